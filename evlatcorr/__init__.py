@@ -1,10 +1,50 @@
-"""evlatcorr: event-camera latency correction for event-guided deblurring and interpolation."""
+"""evlatcorr: event-camera latency correction for event-guided deblurring and interpolation.
+
+Example:
+    >>> import torch.nn as nn
+    >>> from evlatcorr import EventLatencyCorrector
+    >>> pipeline = nn.Sequential(EventLatencyCorrector(), nn.Identity())
+"""
 
 from __future__ import annotations
 
+from evlatcorr.correction import EventLatencyCorrector, correct_constant_latency
+from evlatcorr.edi import edi_deblur, edi_interpolate, estimate_threshold
+from evlatcorr.etf import (
+    EdgeThickness,
+    EventTemporalFidelity,
+    LocalContrast,
+    edge_thickness,
+    etf_loss,
+    local_contrast,
+    temporal_consistency,
+)
 from evlatcorr.events import Events, polarity_to_signed
 from evlatcorr.frames import EventFrames
+from evlatcorr.integral import cumulative_event_grid, event_histogram
+from evlatcorr.search import ConstantSearchResult, search_constant_latency
 
 __version__ = "0.1.0"
 
-__all__ = ["Events", "EventFrames", "polarity_to_signed", "__version__"]
+__all__ = [
+    "ConstantSearchResult",
+    "EdgeThickness",
+    "EventFrames",
+    "EventLatencyCorrector",
+    "EventTemporalFidelity",
+    "Events",
+    "LocalContrast",
+    "correct_constant_latency",
+    "cumulative_event_grid",
+    "edge_thickness",
+    "edi_deblur",
+    "edi_interpolate",
+    "estimate_threshold",
+    "etf_loss",
+    "event_histogram",
+    "local_contrast",
+    "polarity_to_signed",
+    "search_constant_latency",
+    "temporal_consistency",
+    "__version__",
+]

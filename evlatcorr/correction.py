@@ -1,0 +1,187 @@
+"""``EventLatencyCorrector``: an ``nn.Module`` placed in front of any event-guided model."""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from evlatcorr.edi import edi_deblur, estimate_threshold
+from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
+from evlatcorr.frames import EventFrames
+from evlatcorr.search import search_constant_latency
+
+__all__ = ["EventLatencyCorrector", "correct_constant_latency"]
+
+_MODES = ("constant", "spatial")
+
+
+def correct_constant_latency(
+    frames: EventFrames,
+    threshold: float | str = 0.2,
+    num_bins: int = 500,
+    search_range: tuple[float, float] | None = None,
+    num_candidates: int = 100,
+    refine: bool = True,
+    previous_latency: Tensor | None = None,
+    epsilon: float = DEFAULT_EPSILON,
+    window: int = DEFAULT_WINDOW,
+    sigma_us: float = DEFAULT_SIGMA_US,
+) -> EventFrames:
+    """Estimate one latency per frame and remove it from the events (functional form).
+
+    Args:
+        frames: the batch; each sample's events must reach ``exposure_end + search_range[1]``.
+        threshold: contrast threshold θ, or ``"auto"`` (estimated by golden-section search).
+        num_bins: sub-intervals of the exposure for EDI (paper: 500).
+        search_range: ``(low, high)`` µs; default 0 to the exposure time of each frame.
+        num_candidates: coarse candidates over the range.
+        refine: refine below the candidate spacing.
+        previous_latency: ``l'`` :math:`(B,)` µs for the temporal prior (e.g. the previous frame's).
+        epsilon: ETF edge amplifier.
+        window: ETF contrast window.
+        sigma_us: σ of the temporal prior, µs.
+
+    Returns:
+        ``frames`` with ``latency`` :math:`(B, 1, H, W)`, ``corrected`` events, ``latent`` (EDI at
+        mid-exposure from the corrected events) filled; ``meta["etf_curve"]`` holds the candidates
+        and their ETF values :math:`(B, K)` and ``meta["threshold"]`` the θ used.
+    """
+    _check_has_events(frames)
+    _warn_if_short(frames, search_range)
+    theta: float | Tensor = threshold
+    if isinstance(threshold, str):
+        if threshold != "auto":
+            raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
+        first = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                                        0.2, num_bins, search_range, num_candidates, False, previous_latency,
+                                        epsilon, window, sigma_us)
+        theta = estimate_threshold(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                                   latency=first.latency, num_bins=num_bins)
+    result = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                                     theta, num_bins, search_range, num_candidates, refine, previous_latency,
+                                     epsilon, window, sigma_us)
+    height, width = frames.sensor_size
+    latency = result.latency.to(frames.device, torch.float32).view(-1, 1, 1, 1).expand(-1, 1, height, width)
+    corrected = frames.events.shift(result.latency)
+    latent = edi_deblur(frames.blurry, corrected, frames.exposure_start, frames.exposure_end, theta, None, num_bins)
+    meta = dict(frames.meta)
+    meta["etf_curve"] = (result.candidates, result.etf)
+    meta["threshold"] = theta
+    return frames.replace(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
+
+
+class EventLatencyCorrector(nn.Module):
+    """Estimate and remove event latency, in front of any event-guided model.
+
+    ``mode="constant"`` finds one latency per frame: the one whose EDI latent image is sharpest
+    by the event-based temporal fidelity (ETF), searched in one pass over the events.
+
+    The events of each sample must reach past ``exposure_end`` by the largest latency searched
+    (late events of an exposure are stamped after it ends): by default the search range is 0 to
+    the exposure time, so events up to ``exposure_end + exposure time`` are needed. A warning is
+    raised when they stop earlier.
+
+    Args:
+        mode: ``"constant"`` (one latency per frame) or ``"spatial"`` (a per-pixel map).
+        threshold: contrast threshold θ of the events, or ``"auto"``.
+        num_bins: sub-intervals of the exposure used by EDI (paper: 500).
+        search_range: ``(low, high)`` µs; default 0 to each frame's exposure time.
+        num_candidates: coarse candidates over the search range (default 100).
+        refine: refine the best candidate below the candidate spacing.
+        epsilon: ETF edge amplifier ε.
+        window: ETF local-contrast window.
+        sigma_us: σ of the ETF temporal prior (used when ``frames.meta["previous_latency"]`` is set).
+        curve: ``mode="spatial"`` only: a trained latency curve checkpoint.
+        **spatial_kwargs: ``mode="spatial"`` only: options of the spatial corrector.
+
+    Example:
+        >>> corrector = EventLatencyCorrector()
+        >>> corrector
+        EventLatencyCorrector(mode=constant, threshold=0.2, num_bins=500, search_range=None, num_candidates=100)
+    """
+
+    def __init__(
+        self,
+        mode: str = "constant",
+        threshold: float | str = 0.2,
+        num_bins: int = 500,
+        search_range: tuple[float, float] | None = None,
+        num_candidates: int = 100,
+        refine: bool = True,
+        epsilon: float = DEFAULT_EPSILON,
+        window: int = DEFAULT_WINDOW,
+        sigma_us: float = DEFAULT_SIGMA_US,
+        curve: str | None = None,
+        **spatial_kwargs: Any,
+    ) -> None:
+        super().__init__()
+        if mode not in _MODES:
+            raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
+        if not (threshold == "auto" or (isinstance(threshold, (int, float)) and threshold > 0)):
+            raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
+        if num_bins < 2:
+            raise ValueError(f"num_bins must be >= 2, got {num_bins}")
+        if num_candidates < 2:
+            raise ValueError(f"num_candidates must be >= 2, got {num_candidates}")
+        if mode == "constant" and (curve is not None or spatial_kwargs):
+            raise ValueError("curve and spatial options need mode='spatial'")
+        self.mode = mode
+        self.threshold = threshold
+        self.num_bins = num_bins
+        self.search_range = search_range
+        self.num_candidates = num_candidates
+        self.refine = refine
+        self.epsilon, self.window, self.sigma_us = epsilon, window, sigma_us
+        self.spatial: nn.Module | None = None
+        if mode == "spatial":
+            from evlatcorr.spatial import SpatialLatencyCorrector
+
+            self.spatial = SpatialLatencyCorrector(
+                curve=curve, threshold=threshold, num_bins=num_bins, search_range=search_range,
+                num_candidates=num_candidates, epsilon=epsilon, window=window, sigma_us=sigma_us, **spatial_kwargs)
+
+    def extra_repr(self) -> str:
+        return (f"mode={self.mode}, threshold={self.threshold}, num_bins={self.num_bins}, "
+                f"search_range={self.search_range}, num_candidates={self.num_candidates}")
+
+    def forward(self, frames: EventFrames) -> EventFrames:
+        if not isinstance(frames, EventFrames):
+            raise ValueError(f"EventLatencyCorrector takes an EventFrames batch, got {type(frames).__name__}")
+        if self.spatial is not None:
+            return self.spatial(frames)
+        previous = frames.meta.get("previous_latency")
+        return correct_constant_latency(frames, self.threshold, self.num_bins, self.search_range,
+                                        self.num_candidates, self.refine, previous, self.epsilon, self.window,
+                                        self.sigma_us)
+
+
+def _check_has_events(frames: EventFrames) -> None:
+    inside = frames.events.window(frames.exposure_start, frames.exposure_end + frames.exposure_time)
+    counts = inside.counts()
+    if bool((counts == 0).any()):
+        i = int(torch.nonzero(counts == 0)[0, 0])
+        raise ValueError(f"sample {i} has no events in its exposure and search window "
+                         f"[{float(frames.exposure_start[i]):.0f}, "
+                         f"{float(frames.exposure_end[i] + frames.exposure_time[i]):.0f}) us: "
+                         "latency cannot be estimated without events")
+
+
+def _warn_if_short(frames: EventFrames, search_range: tuple[float, float] | None) -> None:
+    high = frames.exposure_time if search_range is None else torch.full_like(frames.exposure_end, search_range[1])
+    need = frames.exposure_end + high
+    ev = frames.events
+    last = torch.full_like(need, -float("inf"))
+    if len(ev):
+        last = last.scatter_reduce(0, ev.batch, ev.t, reduce="amax", include_self=True)
+    short = last < need - (frames.exposure_time / 50)  # allow one coarse bin of slack
+    if bool(short.any()):
+        i = int(torch.nonzero(short)[0, 0])
+        warnings.warn(
+            f"events of sample {i} end at {float(last[i]):.0f} us but the latency search reads up to "
+            f"{float(need[i]):.0f} us (exposure_end + search range): late events are missing and large "
+            "latencies will be underestimated; pass events further past exposure_end or a smaller search_range",
+            stacklevel=3,
+        )

@@ -1,0 +1,26 @@
+from __future__ import annotations
+
+import pytest
+import torch
+
+from evlatcorr import Events
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(params=DEVICES)
+def device(request: pytest.FixtureRequest) -> torch.device:
+    return torch.device(request.param)
+
+
+def random_events(num: int, sensor_size: tuple[int, int], t_range: tuple[float, float], batch_size: int = 1,
+                  seed: int = 0) -> Events:
+    """Uniformly random events, sorted, for tests."""
+    g = torch.Generator().manual_seed(seed)
+    height, width = sensor_size
+    x = torch.randint(0, width, (num,), generator=g)
+    y = torch.randint(0, height, (num,), generator=g)
+    t = torch.rand(num, generator=g, dtype=torch.float64) * (t_range[1] - t_range[0]) + t_range[0]
+    p = torch.randint(0, 2, (num,), generator=g)
+    b = torch.randint(0, batch_size, (num,), generator=g)
+    return Events(x, y, t, p, b, sensor_size=sensor_size, batch_size=batch_size, sort=True)

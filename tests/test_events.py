@@ -1,0 +1,127 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from evlatcorr import Events, polarity_to_signed
+from tests.conftest import random_events
+
+
+class TestPolarity:
+    @pytest.mark.parametrize(
+        "given_p, expected",
+        [([0, 1, 1], [-1, 1, 1]), ([-1, 1], [-1, 1]), ([True, False], [1, -1]), ([1.0, 0.0], [1, -1])],
+    )
+    def test_conventions(self, given_p, expected):
+        assert polarity_to_signed(torch.tensor(given_p)).tolist() == expected
+
+    def test_bad_values(self):
+        with pytest.raises(ValueError, match="polarity"):
+            polarity_to_signed(torch.tensor([0, 2]))
+        with pytest.raises(ValueError, match="polarity"):
+            polarity_to_signed(torch.tensor([-1, 0]))
+
+
+class TestEvents:
+    def test_smoke(self):
+        ev = random_events(100, (10, 12), (0.0, 1000.0), batch_size=3)
+        assert len(ev) == 100 and ev.batch_size == 3 and ev.sensor_size == (10, 12)
+        assert ev.t.dtype == torch.float64 and ev.p.dtype == torch.int8
+        assert int(ev.counts().sum()) == 100
+        assert "num_events=100" in repr(ev)
+
+    def test_batch_defaults_to_zero(self):
+        ev = Events(torch.tensor([1]), torch.tensor([1]), torch.tensor([3.0]), torch.tensor([1]), sensor_size=(2, 2))
+        assert ev.batch.tolist() == [0] and ev.batch_size == 1
+
+    @pytest.mark.parametrize(
+        "kwargs, match",
+        [
+            (dict(x=[5], y=[0], t=[0.0], p=[1]), "x must be in"),
+            (dict(x=[0], y=[-1], t=[0.0], p=[1]), "y must be in"),
+            (dict(x=[0], y=[0], t=[float("nan")], p=[1]), "NaN"),
+            (dict(x=[0, 1], y=[0], t=[0.0], p=[1]), "same length"),
+            (dict(x=[0, 0], y=[0, 0], t=[5.0, 1.0], p=[1, 1]), "sorted"),
+        ],
+    )
+    def test_exceptions(self, kwargs, match):
+        with pytest.raises(ValueError, match=match):
+            Events(*(torch.tensor(kwargs[k]) for k in "xytp"), sensor_size=(2, 2))
+
+    def test_sort_option(self):
+        ev = Events(torch.tensor([0, 1]), torch.tensor([0, 0]), torch.tensor([5.0, 1.0]), torch.tensor([1, 0]),
+                    sensor_size=(1, 2), sort=True)
+        assert ev.t.tolist() == [1.0, 5.0] and ev.x.tolist() == [1, 0]
+
+    def test_batch_size_too_small(self):
+        with pytest.raises(ValueError, match="batch_size"):
+            Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([0.0]), torch.tensor([1]),
+                   batch=torch.tensor([2]), sensor_size=(1, 1), batch_size=2)
+
+    def test_window_per_sample(self):
+        ev = Events(torch.zeros(4), torch.zeros(4), torch.tensor([0.0, 10.0, 5.0, 20.0]), torch.ones(4),
+                    batch=torch.tensor([0, 0, 1, 1]), sensor_size=(1, 1))
+        out = ev.window(torch.tensor([0.0, 10.0]), torch.tensor([10.0, 30.0]))
+        assert out.t.tolist() == [0.0, 20.0] and out.batch.tolist() == [0, 1]
+
+    def test_shift_scalar_and_map(self):
+        ev = Events(torch.tensor([0, 1, 0]), torch.tensor([0, 0, 0]), torch.tensor([10.0, 20.0, 30.0]),
+                    torch.ones(3), batch=torch.tensor([0, 0, 1]), sensor_size=(1, 2))
+        assert ev.shift(torch.tensor([5.0, 1.0])).t.tolist() == [5.0, 15.0, 29.0]
+        lat = torch.tensor([[[[25.0, 0.0]]], [[[2.0, 0.0]]]])
+        shifted = ev.shift(lat)
+        assert shifted.t.tolist() == [-15.0, 20.0, 28.0]  # re-sorted within the sample
+        assert shifted.x.tolist() == [0, 1, 0]
+
+    def test_shift_bad_map(self):
+        ev = random_events(10, (4, 4), (0.0, 10.0))
+        with pytest.raises(ValueError, match="latency"):
+            ev.shift(torch.zeros(1, 1, 3, 4))
+        with pytest.raises(ValueError, match="latency"):
+            ev.shift(torch.zeros(2))
+
+    def test_numpy_round_trip(self):
+        ev = random_events(50, (6, 7), (0.0, 1e6))
+        ev = Events(ev.x, ev.y, ev.t.round(), ev.p, sensor_size=(6, 7))
+        arr = ev.to_numpy()
+        assert set(arr.dtype.names) == {"x", "y", "t", "p"}
+        back = Events.from_numpy(arr, sensor_size=(6, 7))
+        for name in "xytp":
+            assert torch.equal(getattr(back, name), getattr(ev, name))
+
+    def test_from_numpy_bad(self):
+        with pytest.raises(ValueError, match="structured"):
+            Events.from_numpy(np.zeros(3), sensor_size=(2, 2))
+
+    def test_cat_and_sample(self):
+        a = random_events(5, (3, 3), (0.0, 10.0), seed=1)
+        b = random_events(7, (3, 3), (0.0, 10.0), seed=2)
+        both = Events.cat([a, b])
+        assert both.batch_size == 2 and both.counts().tolist() == [5, 7]
+        assert torch.equal(both.sample(1).t, b.t)
+
+    def test_non_contiguous(self):
+        x = torch.zeros(10, 2, dtype=torch.long)[:, 0]
+        t = torch.arange(20.0).view(10, 2)[:, 1]
+        ev = Events(x, x, t, torch.ones(10), sensor_size=(1, 1))
+        assert ev.window(0.0, 10.0).t.tolist() == [1.0, 3.0, 5.0, 7.0, 9.0]
+
+    def test_device(self, device):
+        ev = random_events(20, (3, 3), (0.0, 10.0)).to(device)
+        assert ev.t.device.type == device.type
+        assert len(ev.shift(1.0)) == 20
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), num=st.integers(0, 200), batch_size=st.integers(1, 3))
+def test_shift_unshift_identity(seed, num, batch_size):
+    ev = random_events(num, (5, 6), (0.0, 1000.0), batch_size=batch_size, seed=seed)
+    g = torch.Generator().manual_seed(seed)
+    lat = torch.rand(batch_size, 1, 5, 6, generator=g, dtype=torch.float64) * 500
+    back = ev.shift(lat).shift(-lat)
+    key = lambda e: sorted(zip(e.batch.tolist(), e.t.round(decimals=6).tolist(), e.x.tolist(), e.y.tolist(),  # noqa: E731
+                               e.p.tolist()))
+    assert key(back) == key(ev)

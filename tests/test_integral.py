@@ -1,0 +1,93 @@
+from __future__ import annotations
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from evlatcorr import Events
+from evlatcorr.integral import cumulative_event_grid, event_histogram, sample_grid
+from tests.conftest import random_events
+
+
+def one_pixel(times, pols):
+    n = len(times)
+    return Events(torch.zeros(n, dtype=torch.long), torch.zeros(n, dtype=torch.long),
+                  torch.tensor(times, dtype=torch.float64), torch.tensor(pols), sensor_size=(1, 1))
+
+
+class TestHistogram:
+    def test_smoke_shape(self):
+        ev = random_events(100, (4, 5), (0.0, 100.0), batch_size=2)
+        assert event_histogram(ev, 0.0, 100.0, num_bins=7).shape == (2, 7, 4, 5)
+
+    def test_values(self):
+        ev = one_pixel([0.0, 9.99, 10.0, 25.0, 39.9, 40.0], [1, 1, 0, 1, 0, 1])
+        h = event_histogram(ev, 0.0, 40.0, num_bins=4)[0, :, 0, 0]
+        assert h.tolist() == [2.0, -1.0, 1.0, -1.0]  # the event at t=40 (= end) is outside
+
+    def test_exceptions(self):
+        ev = random_events(10, (2, 2), (0.0, 1.0))
+        with pytest.raises(ValueError, match="num_bins"):
+            event_histogram(ev, 0.0, 1.0, num_bins=0)
+        with pytest.raises(ValueError, match="after its start"):
+            event_histogram(ev, 1.0, 1.0)
+        with pytest.raises(ValueError, match="one value per sample"):
+            event_histogram(ev, torch.zeros(3), 1.0)
+
+    def test_device(self, device):
+        ev = random_events(50, (3, 3), (0.0, 10.0)).to(device)
+        assert event_histogram(ev, 0.0, 10.0, 4).device.type == device.type
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), num=st.integers(0, 300), bins=st.integers(1, 600), batch=st.integers(1, 3))
+def test_histogram_conserves_polarity_sum(seed, num, bins, batch):
+    ev = random_events(num, (3, 4), (0.0, 1000.0), batch_size=batch, seed=seed)
+    hist = event_histogram(ev, 0.0, 1000.0, bins)
+    expected = torch.zeros(batch).index_add_(0, ev.batch, ev.p.float())
+    torch.testing.assert_close(hist.sum(dim=(1, 2, 3)), expected)
+
+
+class TestCumulativeGrid:
+    def test_step_matches_histogram(self):
+        ev = random_events(500, (4, 4), (0.0, 100.0), batch_size=2)
+        cum = cumulative_event_grid(ev, 0.0, 10.0, 10, "step")
+        hist = event_histogram(ev, 0.0, 100.0, 10)
+        torch.testing.assert_close(cum[:, 1:], hist.cumsum(1))
+        assert cum[:, 0].abs().max() == 0
+
+    def test_linear_known_answer(self):
+        # events at 10 (+1) and 30 (-1): +1 spread over (0, 10], -1 over (10, 30]
+        ev = one_pixel([10.0, 30.0], [1, 0])
+        cum = cumulative_event_grid(ev, 0.0, 5.0, 8, "linear", dtype=torch.float64)[0, :, 0, 0]
+        expected = [0.0, 0.5, 1.0, 0.75, 0.5, 0.25, 0.0, 0.0, 0.0]
+        torch.testing.assert_close(cum, torch.tensor(expected, dtype=torch.float64))
+
+    def test_linear_previous_event_before_grid(self):
+        # the previous event at the pixel (t=-10) starts the ramp of the next one (t=10)
+        ev = one_pixel([-10.0, 10.0], [1, 1])
+        cum = cumulative_event_grid(ev, 0.0, 5.0, 4, "linear", dtype=torch.float64)[0, :, 0, 0]
+        torch.testing.assert_close(cum, torch.tensor([0.0, 0.25, 0.5, 0.5, 0.5], dtype=torch.float64))
+
+    def test_linear_equals_step_at_event_times(self):
+        # at every grid point after all events both integrals hold the full polarity sum
+        ev = random_events(300, (3, 3), (0.0, 90.0), seed=3)
+        step = cumulative_event_grid(ev, 0.0, 10.0, 10, "step", dtype=torch.float64)
+        lin = cumulative_event_grid(ev, 0.0, 10.0, 10, "linear", dtype=torch.float64)
+        torch.testing.assert_close(step[:, -1], lin[:, -1])
+
+    def test_exceptions(self):
+        ev = random_events(10, (2, 2), (0.0, 1.0))
+        with pytest.raises(ValueError, match="integral"):
+            cumulative_event_grid(ev, 0.0, 1.0, 4, "cubic")
+        with pytest.raises(ValueError, match="bin_width"):
+            cumulative_event_grid(ev, 0.0, 0.0, 4)
+
+
+def test_sample_grid_interpolates_and_differentiates():
+    cum = torch.tensor([0.0, 1.0, 3.0], dtype=torch.float64).view(1, 3, 1, 1)
+    pos = torch.tensor([0.5, 1.25, 2.0], dtype=torch.float64).view(1, 3, 1, 1).requires_grad_()
+    out = sample_grid(cum, pos)
+    torch.testing.assert_close(out.flatten(), torch.tensor([0.5, 1.5, 3.0], dtype=torch.float64))
+    assert torch.autograd.gradcheck(lambda p: sample_grid(cum, p), (pos.detach()[:, :2].clone().requires_grad_(),))

@@ -1,0 +1,66 @@
+from __future__ import annotations
+
+import pytest
+import torch
+
+from evlatcorr.edi import edi_deblur
+from evlatcorr.etf import etf_loss
+from evlatcorr.search import search_constant_latency
+from tests.conftest import random_events
+
+START, END = torch.tensor([0.0]), torch.tensor([100.0])
+
+
+def test_one_pass_equals_naive_edi_per_candidate():
+    # the prefix-sum table must give exactly the ETF of re-running EDI at each candidate
+    ev = random_events(3000, (8, 9), (0.0, 220.0), seed=5)
+    blurry = torch.rand(1, 1, 8, 9) * 0.8 + 0.1
+    res = search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11, refine=False)
+    assert res.candidates.shape == (1, 11) and res.etf.shape == (1, 11)
+    naive = torch.stack([
+        etf_loss(edi_deblur(blurry, ev.shift(float(l)), START, END, 0.2, num_bins=50))[0]
+        for l in res.candidates[0]
+    ])
+    torch.testing.assert_close(res.etf[0].float(), naive, rtol=1e-4, atol=1e-5)
+    assert res.candidates[0, 0].item() == 0.0 and res.candidates[0, -1].item() == pytest.approx(100.0)
+
+
+def test_refined_latency_is_argmin_neighbourhood():
+    ev = random_events(3000, (8, 9), (0.0, 220.0), seed=6)
+    blurry = torch.rand(1, 1, 8, 9) * 0.8 + 0.1
+    res = search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11)
+    coarse_best = float(res.candidates[0, torch.argmin(res.etf[0])])
+    assert abs(res.latency.item() - coarse_best) <= 10.0 + 1.0  # within one candidate spacing (+1 sub-interval)
+    fine_best = float(res.fine_candidates[0][torch.argmin(res.fine_etf[0])])
+    assert abs(res.latency.item() - fine_best) <= 1.0  # parabola moves at most half a sub-interval (2 us)
+
+
+def test_search_range_and_batch():
+    ev = random_events(4000, (6, 6), (0.0, 400.0), batch_size=2, seed=9)
+    res = search_constant_latency(torch.rand(2, 3, 6, 6), ev, torch.zeros(2), torch.full((2,), 100.0),
+                                  num_bins=20, search_range=(-50.0, 150.0), num_candidates=5)
+    assert res.latency.shape == (2,)
+    assert res.candidates[0, 0].item() == pytest.approx(-50.0)
+    assert ((res.latency >= -55.0) & (res.latency <= 155.0)).all()
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(num_candidates=1), "num_candidates"),
+        (dict(num_bins=1), "num_bins"),
+        (dict(search_range=(10.0, 5.0)), "search_range"),
+        (dict(threshold=0.0), "threshold"),
+    ],
+)
+def test_exceptions(kwargs, match):
+    ev = random_events(100, (4, 4), (0.0, 200.0))
+    with pytest.raises(ValueError, match=match):
+        search_constant_latency(torch.rand(1, 1, 4, 4), ev, START, END, **kwargs)
+
+
+def test_device(device):
+    ev = random_events(500, (4, 4), (0.0, 200.0)).to(device)
+    res = search_constant_latency(torch.rand(1, 1, 4, 4, device=device), ev, START, END, num_bins=20,
+                                  num_candidates=5)
+    assert res.latency.device.type == device.type
