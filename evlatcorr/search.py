@@ -28,7 +28,7 @@ from evlatcorr.integral import cumulative_event_grid
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range"]
 
 # Memory bound of one strip of the prefix-sum table (float64), in elements.
-_STRIP_ELEMENTS = 24_000_000
+_STRIP_ELEMENTS = 4_000_000
 
 
 @dataclass
@@ -179,12 +179,18 @@ class _ShiftTable:
         self.n, self.theta = n, theta
         height, width = events.sensor_size
         num_bins = n + span
-        rows = max(1, min(height, _STRIP_ELEMENTS // ((num_bins + 2) * width)))
+        budget = _STRIP_ELEMENTS * (16 if events.device.type == "cuda" else 1)
+        rows = max(1, min(height, budget // ((num_bins + 2) * width)))
         self.strips = []
-        for r0 in range(0, height, rows):
+        # events ordered by row once, so each strip is a contiguous slice (not a mask over all events)
+        order = torch.argsort(events.y, stable=True)
+        ys = events.y[order]
+        bounds = torch.searchsorted(ys, torch.arange(0, height + rows, rows, device=ys.device).clamp_(max=height))
+        for k, r0 in enumerate(range(0, height, rows)):
             r1 = min(height, r0 + rows)
-            sub = events.select((events.y >= r0) & (events.y < r1))
-            sub = Events._trusted(sub.x, sub.y - r0, sub.t, sub.p, sub.batch, (r1 - r0, width), 1)
+            idx = order[int(bounds[k]):int(bounds[k + 1])]
+            sub = Events._trusted(events.x[idx], events.y[idx] - r0, events.t[idx], events.p[idx],
+                                  events.batch[idx], (r1 - r0, width), 1)
             cum = cumulative_event_grid(sub, grid_start, width_us, num_bins, "step")[0]  # (M+1, h, W)
             x = theta * cum.double()
             peak = x.amax(0, keepdim=True)

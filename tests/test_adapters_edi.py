@@ -1,0 +1,55 @@
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from evlatcorr import EventFrames
+from evlatcorr.adapters.edi import EDIAdapter
+from evlatcorr.edi import edi_deblur
+from tests.conftest import random_events
+
+
+def make_frames(with_next=False):
+    ev = random_events(2000, (6, 8), (0.0, 400.0), batch_size=2, seed=3)
+    kwargs = {}
+    if with_next:
+        kwargs = dict(blurry_next=torch.rand(2, 3, 6, 8), exposure_start_next=torch.full((2,), 200.0),
+                      exposure_end_next=torch.full((2,), 300.0), target_times=torch.tensor([[150.0], [250.0]]))
+    return EventFrames(torch.rand(2, 3, 6, 8), ev, torch.zeros(2), torch.full((2,), 100.0), **kwargs)
+
+
+def test_deblur_matches_edi():
+    frames = make_frames()
+    out = EDIAdapter(num_bins=20)(frames).output
+    expected = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                          num_bins=20).clamp(0, 1)
+    torch.testing.assert_close(out, expected)
+
+
+def test_uses_corrected_events():
+    frames = make_frames()
+    shifted = frames.events.shift(30.0)
+    out = EDIAdapter(num_bins=20)(frames.replace(corrected=shifted)).output
+    expected = edi_deblur(frames.blurry, shifted, frames.exposure_start, frames.exposure_end, num_bins=20)
+    torch.testing.assert_close(out, expected.clamp(0, 1))
+
+
+def test_interpolation_shape():
+    out = EDIAdapter("interpolation", num_bins=20)(make_frames(with_next=True)).output
+    assert out.shape == (2, 1, 3, 6, 8) and out.min() >= 0 and out.max() <= 1
+
+
+def test_exceptions():
+    with pytest.raises(ValueError, match="mode"):
+        EDIAdapter("denoise")
+    with pytest.raises(ValueError, match="target_times"):
+        EDIAdapter("interpolation")(make_frames())
+    with pytest.raises(ValueError, match="EventFrames"):
+        EDIAdapter()(torch.rand(1, 3, 4, 4))
+
+
+def test_sequential():
+    frames = make_frames()
+    out = nn.Sequential(nn.Identity(), EDIAdapter(num_bins=10))(frames)
+    assert out.output.shape == (2, 3, 6, 8)
