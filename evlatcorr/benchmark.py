@@ -1,0 +1,243 @@
+"""The paper's Table 1 as a Lightning test loop.
+
+Each test sample is a :class:`BenchmarkScene`: consecutive blurry frames with their ideal
+events (ground truth timing) and delayed events, plus the frame pairs used for interpolation.
+For every method (EDI deblurring, EFNet, GEM, EDI interpolation, REFID) and every input
+("GT input", "W/o corr.", "W/ corr. const.", "W/ corr. spatial") the restored frames are scored
+by torchmetrics PSNR, SSIM and LPIPS, which reduce across processes, so the same code gives the
+same table on one CPU or on many GPUs with DDP.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor, nn
+from torch.utils.data import DataLoader, Dataset
+from torchmetrics import MaxMetric, MeanMetric
+
+from evlatcorr.frames import EventFrames
+from evlatcorr.metrics import ImageQuality
+
+__all__ = [
+    "INPUTS",
+    "BenchmarkScene",
+    "Method",
+    "BenchmarkModule",
+    "SceneDataModule",
+    "diff_percent",
+    "format_table",
+    "pair_with_latency",
+]
+
+GT, NO_CORR, CONST, SPATIAL = "GT input", "W/o corr.", "W/ corr. const.", "W/ corr. spatial"
+INPUTS = (GT, NO_CORR, CONST, SPATIAL)
+
+
+@dataclass
+class BenchmarkScene:
+    """One test scene.
+
+    Attributes:
+        name: scene name.
+        frames_ideal: deblurring batch (F frames) with ideal events and ``sharp`` at mid-exposure.
+        frames_delayed: the same frames with delayed events.
+        pairs_ideal: interpolation batch (F-1 pairs) with ideal events, ``target_times`` (P, 1) and
+            ``target_frames`` (P, 1, C, H, W).
+        pairs_delayed: the same pairs with delayed events.
+        true_latency: (F, 1, H, W) µs.
+    """
+
+    name: str
+    frames_ideal: EventFrames
+    frames_delayed: EventFrames
+    pairs_ideal: EventFrames
+    pairs_delayed: EventFrames
+    true_latency: Tensor
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to(self, device: torch.device | str) -> BenchmarkScene:
+        return BenchmarkScene(self.name, self.frames_ideal.to(device), self.frames_delayed.to(device),
+                              self.pairs_ideal.to(device), self.pairs_delayed.to(device),
+                              self.true_latency.to(device), self.extra)
+
+
+@dataclass
+class Method:
+    """A row group of the table: a model and the task it solves (``"deblur"`` or ``"interpolation"``)."""
+
+    name: str
+    model: nn.Module
+    task: str
+
+
+def pair_with_latency(pairs: EventFrames, latency_first: Tensor, latency_second: Tensor) -> EventFrames:
+    """Correct the events of interpolation pairs with the latencies estimated on their two frames.
+
+    Events up to the midpoint between the two exposures take the first frame's latency map, later
+    ones the second's (for a constant latency both are the same).
+    """
+    assert pairs.exposure_end_next is not None and pairs.exposure_start_next is not None
+    split = (pairs.exposure_end + pairs.exposure_start_next) / 2
+    ev = pairs.events
+    first = ev.select(ev.t < split[ev.batch]).shift(latency_first)
+    second = ev.select(ev.t >= split[ev.batch]).shift(latency_second)
+    from evlatcorr.events import Events
+
+    merged = Events.cat([first, second])
+    batch = torch.cat([first.batch, second.batch])
+    merged = Events(merged.x, merged.y, merged.t, merged.p, batch, sensor_size=ev.sensor_size,
+                    batch_size=ev.batch_size, sort=True)
+    return pairs.replace(corrected=merged)
+
+
+class BenchmarkModule(L.LightningModule):
+    """Runs every method on every input of each scene and accumulates the metrics.
+
+    Args:
+        methods: the table's row groups.
+        correctors: input name -> corrector module for ``"W/ corr. const."`` / ``"W/ corr. spatial"``.
+        lpips_network: LPIPS network or None (LPIPS reported as NaN).
+        on_scene: optional callback ``(scene, outputs) -> None`` for figures.
+    """
+
+    def __init__(self, methods: Sequence[Method], correctors: dict[str, nn.Module],
+                 lpips_network: nn.Module | None = None,
+                 on_scene: Callable[[BenchmarkScene, dict[str, Any]], None] | None = None) -> None:
+        super().__init__()
+        self.methods = list(methods)
+        self.models = nn.ModuleDict({m.name: m.model for m in methods})
+        self.correctors = nn.ModuleDict(correctors)
+        self.inputs = [GT, NO_CORR] + [name for name in (CONST, SPATIAL) if name in correctors]
+        self.quality = nn.ModuleDict({
+            _key(m.name, i): ImageQuality(lpips_network) for m in methods for i in self.inputs})
+        self.latency_mae = nn.ModuleDict({_key("latency", i): MeanMetric() for i in self.inputs[2:]})
+        self.latency_max = nn.ModuleDict({_key("latency", i): MaxMetric() for i in self.inputs[2:]})
+        self.on_scene = on_scene
+        self.failures: dict[str, str] = {}
+
+    def test_step(self, scene: BenchmarkScene, batch_idx: int) -> None:
+        outputs: dict[str, Any] = {"latency": {}, "restored": {}}
+        frames = {GT: scene.frames_ideal, NO_CORR: scene.frames_delayed}
+        pairs = {GT: scene.pairs_ideal, NO_CORR: scene.pairs_delayed}
+        for name in self.inputs[2:]:
+            corrected = self.correctors[name](scene.frames_delayed)
+            frames[name] = corrected
+            latency = corrected.latency
+            outputs["latency"][name] = latency
+            err = (latency - scene.true_latency).abs()
+            self.latency_mae[_key("latency", name)].update(err.mean())
+            self.latency_max[_key("latency", name)].update(err.max())
+            pairs[name] = pair_with_latency(scene.pairs_delayed, latency[:-1], latency[1:])
+            outputs.setdefault("meta", {})[name] = corrected.meta
+        for method in self.methods:
+            for name in self.inputs:
+                key = _key(method.name, name)
+                if method.name in self.failures:
+                    continue
+                batch = frames[name] if method.task == "deblur" else pairs[name]
+                try:
+                    restored, target = _run(method, batch)
+                except torch.cuda.OutOfMemoryError as exc:  # keep the other rows
+                    self.failures[method.name] = f"out of GPU memory ({exc})"
+                    torch.cuda.empty_cache()
+                    continue
+                self.quality[key].update(restored, target)
+                outputs["restored"][key] = restored
+        if self.on_scene is not None:
+            self.on_scene(scene, outputs)
+
+    def results(self) -> dict[str, Any]:
+        """Every metric after the test loop: ``table`` rows and latency errors."""
+        table = []
+        for method in self.methods:
+            for name in self.inputs:
+                if method.name in self.failures:
+                    row = {"psnr": math.nan, "ssim": math.nan, "lpips": math.nan}
+                else:
+                    row = self.quality[_key(method.name, name)].compute()
+                table.append({"method": method.name, "input": name, **row})
+        latency = {name: {"mae_us": float(self.latency_mae[_key("latency", name)].compute()),
+                          "max_us": float(self.latency_max[_key("latency", name)].compute())}
+                   for name in self.inputs[2:]}
+        return {"table": table, "latency_error": latency, "failures": dict(self.failures)}
+
+
+def _key(a: str, b: str) -> str:
+    # ModuleDict keys may not contain "."
+    return f"{a}|{b}".replace(".", "_")
+
+
+def _run(method: Method, batch: EventFrames) -> tuple[Tensor, Tensor]:
+    with torch.no_grad():
+        out = method.model(batch)
+    restored = out.output
+    if method.task == "deblur":
+        assert batch.sharp is not None
+        return restored.clamp(0, 1), batch.sharp
+    assert batch.target_frames is not None and batch.target_times is not None
+    if restored.dim() == 5 and restored.shape[1] != batch.target_times.shape[1]:
+        # models that output a fixed set of frames (REFID) say when: pick the one nearest each target
+        times = out.meta["output_times"].to(batch.target_times)
+        index = (times[:, None, :] - batch.target_times[:, :, None]).abs().argmin(-1)  # (B, T)
+        restored = torch.stack([restored[b, index[b]] for b in range(restored.shape[0])])
+    restored = restored.clamp(0, 1).flatten(0, 1)
+    return restored, batch.target_frames.flatten(0, 1)
+
+
+class _SceneList(Dataset):
+    def __init__(self, load: Callable[[int], BenchmarkScene], size: int) -> None:
+        self.load, self.size = load, size
+
+    def __len__(self) -> int:
+        return self.size
+
+    def __getitem__(self, index: int) -> BenchmarkScene:
+        return self.load(index)
+
+
+class SceneDataModule(L.LightningDataModule):
+    """Test scenes, one per step (a scene already holds a batch of frames)."""
+
+    def __init__(self, load: Callable[[int], BenchmarkScene], size: int, num_workers: int = 0) -> None:
+        super().__init__()
+        if size < 1:
+            raise ValueError("the benchmark needs at least one scene")
+        self.dataset = _SceneList(load, size)
+        self.num_workers = num_workers
+
+    def test_dataloader(self) -> DataLoader:
+        return DataLoader(self.dataset, batch_size=None, shuffle=False, num_workers=self.num_workers,
+                          collate_fn=lambda scene: scene)
+
+
+def diff_percent(gt: float, without: float, corrected: float) -> float:
+    """The paper's "Diff (%)": ``(corrected - uncorrected) / GT input * 100``."""
+    if gt == 0 or any(math.isnan(v) for v in (gt, without, corrected)):
+        return math.nan
+    return (corrected - without) / gt * 100.0
+
+
+def format_table(results: dict[str, Any]) -> str:
+    """The table as markdown, with a Diff (%) row per corrected input."""
+    rows = results["table"]
+    lines = ["| method | input | PSNR ↑ | SSIM ↑ | LPIPS ↓ |", "| --- | --- | --- | --- | --- |"]
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    fmt = lambda v, d: "n/a" if math.isnan(v) else f"{v:.{d}f}"  # noqa: E731
+    for m in methods:
+        by_input = {r["input"]: r for r in rows if r["method"] == m}
+        for name, r in by_input.items():
+            lines.append(f"| {m} | {name} | {fmt(r['psnr'], 3)} | {fmt(r['ssim'], 3)} | {fmt(r['lpips'], 3)} |")
+        for name in (CONST, SPATIAL):
+            if name in by_input:
+                d = [diff_percent(by_input[GT][k], by_input[NO_CORR][k], by_input[name][k])
+                     for k in ("psnr", "ssim", "lpips")]
+                label = "Diff (%) const." if name == CONST else "Diff (%) spatial"
+                lines.append(f"| {m} | {label} | " + " | ".join(
+                    "n/a" if math.isnan(v) else f"{v:+.2f}" for v in d) + " |")
+    return "\n".join(lines)

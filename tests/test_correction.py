@@ -1,0 +1,80 @@
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from evlatcorr import EventFrames, EventLatencyCorrector, Events, correct_constant_latency
+from tests.conftest import random_events
+
+
+def frames_with(events: Events, batch_size: int = 1, size=(6, 8)) -> EventFrames:
+    return EventFrames(torch.rand(batch_size, 3, *size) * 0.8 + 0.1, events, torch.zeros(batch_size),
+                       torch.full((batch_size,), 100.0))
+
+
+class TestCorrectorModule:
+    def test_defaults_and_repr(self):
+        c = EventLatencyCorrector()
+        assert c.mode == "constant" and c.num_bins == 500 and c.num_candidates == 100
+        assert "mode=constant" in repr(c)
+
+    @pytest.mark.parametrize(
+        "kwargs, match",
+        [
+            (dict(mode="magic"), "mode"),
+            (dict(threshold=-1.0), "threshold"),
+            (dict(threshold="guess"), "threshold"),
+            (dict(num_bins=1), "num_bins"),
+            (dict(num_candidates=1), "num_candidates"),
+            (dict(curve="x.ckpt"), "mode='spatial'"),
+        ],
+    )
+    def test_bad_configuration(self, kwargs, match):
+        with pytest.raises(ValueError, match=match):
+            EventLatencyCorrector(**kwargs)
+
+    def test_fills_latency_corrected_latent(self):
+        ev = random_events(3000, (6, 8), (0.0, 200.0), batch_size=2)
+        frames = frames_with(ev, 2)
+        out = EventLatencyCorrector(num_bins=50, num_candidates=11)(frames)
+        assert out.latency.shape == (2, 1, 6, 8) and out.latent.shape == (2, 3, 6, 8)
+        assert len(out.corrected) == len(ev)
+        lat = out.latency[:, 0, 0, 0].double()
+        assert (out.latency == out.latency[:, :, :1, :1]).all()  # constant per frame
+        expected = ev.shift(lat)
+        torch.testing.assert_close(out.corrected.t, expected.t)
+        cand, etf = out.meta["etf_curve"]
+        assert cand.shape == etf.shape == (2, 11)
+
+    def test_sequential_passes_batch(self):
+        ev = random_events(2000, (6, 8), (0.0, 200.0))
+        out = nn.Sequential(EventLatencyCorrector(num_bins=20, num_candidates=5), nn.Identity())(frames_with(ev))
+        assert isinstance(out, EventFrames) and out.latency is not None
+
+    def test_no_events_raises(self):
+        ev = random_events(100, (6, 8), (500.0, 600.0))  # all after the search window
+        with pytest.raises(ValueError, match="no events"):
+            EventLatencyCorrector(num_bins=20)(frames_with(ev))
+
+    def test_warns_when_events_stop_early(self):
+        ev = random_events(2000, (6, 8), (0.0, 120.0))  # search needs events up to 200 us
+        with pytest.warns(UserWarning, match="late events are missing"):
+            EventLatencyCorrector(num_bins=20, num_candidates=5)(frames_with(ev))
+
+    def test_not_event_frames(self):
+        with pytest.raises(ValueError, match="EventFrames"):
+            EventLatencyCorrector()(torch.rand(1, 3, 4, 4))
+
+    def test_functional_equals_module(self):
+        ev = random_events(2000, (6, 8), (0.0, 200.0))
+        frames = frames_with(ev)
+        a = EventLatencyCorrector(num_bins=20, num_candidates=5)(frames)
+        b = correct_constant_latency(frames, num_bins=20, num_candidates=5)
+        torch.testing.assert_close(a.latency, b.latency)
+        torch.testing.assert_close(a.latent, b.latent)
+
+    def test_device(self, device):
+        ev = random_events(2000, (6, 8), (0.0, 200.0))
+        out = EventLatencyCorrector(num_bins=20, num_candidates=5)(frames_with(ev).to(device))
+        assert out.latency.device.type == device.type
