@@ -69,6 +69,7 @@ def search_constant_latency(
     epsilon: float = DEFAULT_EPSILON,
     window: int = DEFAULT_WINDOW,
     sigma_us: float = DEFAULT_SIGMA_US,
+    integral: str = "step",
 ) -> ConstantSearchResult:
     """Find the constant latency per sample that minimises the ETF of the EDI latent image.
 
@@ -86,6 +87,8 @@ def search_constant_latency(
         epsilon: ETF edge amplifier.
         window: ETF contrast window.
         sigma_us: σ of the temporal prior, µs.
+        integral: ``"step"`` (impulse events) or ``"linear"`` (each event spread since the previous one
+            at its pixel, Eq. 16-18; see :mod:`evlatcorr.integral`).
 
     Returns:
         a :class:`ConstantSearchResult`.
@@ -122,7 +125,7 @@ def search_constant_latency(
         results.append(_search_one(
             grey[i:i + 1], ev, float(start[i]), float(end[i]), float(theta[i]), num_bins,
             float(lows[i]), float(highs[i]), num_candidates, refine,
-            None if prev is None else prev[i:i + 1], epsilon, window, sigma_us,
+            None if prev is None else prev[i:i + 1], epsilon, window, sigma_us, integral,
         ))
     return ConstantSearchResult(
         latency=torch.tensor([r[0] for r in results], dtype=torch.float64, device=blurry.device),
@@ -135,7 +138,8 @@ def search_constant_latency(
 
 def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: float, n: int,
                 low: float, high: float, num_candidates: int, refine: bool, prev: Tensor | None,
-                epsilon: float, window: int, sigma_us: float) -> tuple[float, Tensor, Tensor, Tensor, Tensor]:
+                epsilon: float, window: int, sigma_us: float,
+                integral: str) -> tuple[float, Tensor, Tensor, Tensor, Tensor]:
     """Search for one sample; ``grey`` is :math:`(1, 1, H, W)`."""
     width_us = (end - start) / n
     step = max(1, round((high - low) / (num_candidates - 1) / width_us))  # candidate spacing in sub-intervals
@@ -143,12 +147,12 @@ def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: f
     num = max(2, math.ceil((high - low) / (step * width_us) - 1e-9) + 1)
     span = (num - 1) * step  # shifts 0..span (in sub-intervals, from the first candidate)
     grid_start = start + first * width_us
-    table = _ShiftTable(events, grid_start, width_us, n, span, theta)
+    table = _ShiftTable(events, grid_start, width_us, n, span, theta, integral)
 
     def etf_of(shifts: Tensor) -> Tensor:
-        log_r = table.log_ratio(shifts)  # (K, 1, H, W)
-        latent = grey.to(log_r.dtype) * torch.exp(-log_r)
         lat = (first + shifts).to(torch.float64) * width_us
+        log_r = table.log_ratio(shifts)  # (K, 1, H, W), latent at mid-exposure
+        latent = grey.to(log_r.dtype) * torch.exp(-log_r)
         return etf_loss(latent.float(), lat.float(), None if prev is None else prev.expand(len(shifts)).float(),
                         epsilon, window, sigma_us).double().cpu()
 
@@ -175,7 +179,8 @@ def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: f
 class _ShiftTable:
     """log R for whole-sub-interval shifts, from one prefix-sum table per strip of rows."""
 
-    def __init__(self, events: Events, grid_start: float, width_us: float, n: int, span: int, theta: float):
+    def __init__(self, events: Events, grid_start: float, width_us: float, n: int, span: int, theta: float,
+                 integral: str = "step"):
         self.n, self.theta = n, theta
         height, width = events.sensor_size
         num_bins = n + span
@@ -191,19 +196,22 @@ class _ShiftTable:
             idx = order[int(bounds[k]):int(bounds[k + 1])]
             sub = Events._trusted(events.x[idx], events.y[idx] - r0, events.t[idx], events.p[idx],
                                   events.batch[idx], (r1 - r0, width), 1)
-            cum = cumulative_event_grid(sub, grid_start, width_us, num_bins, "step")[0]  # (M+1, h, W)
+            cum = cumulative_event_grid(sub, grid_start, width_us, num_bins, integral)[0]  # (M+1, h, W)
             x = theta * cum.double()
             peak = x.amax(0, keepdim=True)
             y = torch.exp(x - peak)
             prefix = torch.cat([torch.zeros_like(y[:1]), y.cumsum(0)])
             self.strips.append((x, peak, y, prefix))
 
-    def log_ratio(self, shifts: Tensor) -> Tensor:
+    def log_ratio(self, shifts: Tensor, reference: float = 0.5) -> Tensor:
+        """log R for each shift, latent at ``start + reference * exposure`` (0.5 = mid-exposure)."""
         n = self.n
+        r_lo, r_hi = math.floor(reference * n), math.ceil(reference * n)
+        w_hi = reference * n - r_lo
         out = []
         for x, peak, y, prefix in self.strips:
             total = prefix[shifts + n + 1] - prefix[shifts] - 0.5 * (y[shifts] + y[shifts + n])
             total = total.clamp_min(1e-300) / n
-            ref = 0.5 * (x[shifts + n // 2] + x[shifts + (n + 1) // 2])
+            ref = (1 - w_hi) * x[shifts + r_lo] + w_hi * x[shifts + r_hi]
             out.append(torch.log(total) + peak - ref)
         return torch.cat(out, dim=1)[:, None]  # (K, 1, H, W)
