@@ -1,0 +1,7 @@
+"""``python -m evlatcorr``: the command line."""
+
+import sys
+
+from evlatcorr.cli import main
+
+sys.exit(main())
