@@ -109,9 +109,9 @@ def _progress(iterable, total: int | None, desc: str):
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
-    from evlatcorr.io import EventUtilsRecording, EventWriter, write_event_utils
     import h5py
 
+    from evlatcorr.io import EventUtilsRecording, EventWriter, write_event_utils
     from evlatcorr.io.h5 import _write_header, atomic_path
 
     corrector = _corrector(args, args.mode, args.curve)

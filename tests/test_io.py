@@ -1,0 +1,195 @@
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from evlatcorr import Events
+from evlatcorr.io import (
+    AedatRecording,
+    EventUtilsRecording,
+    H5Recording,
+    RecordingError,
+    open_recording,
+    read_sequence,
+    write_event_utils,
+    write_sequence,
+)
+from evlatcorr.simulate import simulate
+
+DAVIS = Path(__file__).resolve().parents[2] / "shared" / "data" / "davis346"
+SMALL = dict(height=24, width=30, exposure_us=4000.0, frame_interval_us=5000.0)
+
+
+@pytest.fixture(scope="module")
+def sequence():
+    return simulate("camera", num_frames=3, seed=0, **SMALL)
+
+
+@pytest.fixture()
+def h5_file(tmp_path, sequence):
+    path = tmp_path / "seq.h5"
+    write_sequence(path, sequence)
+    return path
+
+
+class TestOurHDF5:
+    def test_round_trip(self, h5_file, sequence):
+        back = read_sequence(h5_file)
+        for name in ("blurry", "sharp", "exposure_start", "exposure_end", "true_latency", "target_times",
+                     "target_frames"):
+            torch.testing.assert_close(getattr(back, name), getattr(sequence, name).to(getattr(back, name).dtype))
+        for which in ("ideal_events", "delayed_events"):
+            a, b = getattr(back, which), getattr(sequence, which)
+            assert torch.equal(a.t, b.t) and torch.equal(a.x, b.x) and torch.equal(a.p, b.p)
+        with h5py.File(h5_file) as f:
+            assert f.attrs["format"] == "evlatcorr" and list(f.attrs["sensor_size"]) == [24, 30]
+            assert f["events/t"].compression == "lzf" and f["events/x"].dtype == np.uint16
+
+    def test_streaming_many_small_chunks_loses_nothing(self, h5_file, sequence):
+        reference = sequence.frames("delayed", after_us=4000.0)
+        rec = H5Recording(h5_file, after_us=4000.0, chunk_events=7)  # windows straddle many chunk boundaries
+        batches = list(rec)
+        assert len(batches) == 3
+        for i, batch in enumerate(batches):
+            want = reference.events.sample(i)
+            assert torch.equal(batch.events.t, want.t) and torch.equal(batch.events.x, want.x)
+            torch.testing.assert_close(batch.blurry[0], sequence.blurry[i])
+        # the whole stream, read in tiny chunks, is read exactly once
+        total = sum(len(c) for c in rec.iter_event_chunks())
+        assert total == len(sequence.delayed_events)
+
+    def test_events_between_binary_search(self, h5_file, sequence):
+        rec = H5Recording(h5_file, chunk_events=5)
+        got = rec.events_between(6000.0, 9000.0)
+        want = sequence.delayed_events.window(6000.0, 9000.0)
+        assert torch.equal(got.t, want.t)
+
+    def test_atomic_write_leaves_nothing(self, tmp_path, sequence):
+        class Broken:
+            def __getattr__(self, name):
+                if name == "ideal_events":
+                    return sequence.ideal_events
+                raise RuntimeError("boom")
+
+        with pytest.raises(RuntimeError):
+            write_sequence(tmp_path / "bad.h5", Broken())
+        assert list(tmp_path.iterdir()) == []
+
+    def test_bad_files(self, tmp_path):
+        junk = tmp_path / "junk.h5"
+        junk.write_bytes(b"not hdf5 at all")
+        with pytest.raises(RecordingError, match="junk.h5"):
+            open_recording(junk)
+        with h5py.File(tmp_path / "other.h5", "w") as f:
+            f["something"] = [1, 2]
+        with pytest.raises(RecordingError, match="unknown format"):
+            open_recording(tmp_path / "other.h5")
+        with pytest.raises(FileNotFoundError):
+            open_recording(tmp_path / "missing.h5")
+
+    def test_truncated_file(self, tmp_path, h5_file):
+        data = h5_file.read_bytes()
+        cut = tmp_path / "cut.h5"
+        cut.write_bytes(data[: len(data) // 3])
+        with pytest.raises((RecordingError, OSError)):
+            list(H5Recording(cut))
+
+    def test_warns_when_events_end_early(self, h5_file):
+        rec = H5Recording(h5_file, after_us=50_000.0)
+        with pytest.warns(UserWarning, match="frame 2: events end"):
+            list(rec)
+
+
+class TestEventUtils:
+    def make(self, tmp_path, sequence, with_exposure=True):
+        path = tmp_path / "eu.h5"
+        ev = sequence.delayed_events
+        with h5py.File(path, "w") as f:
+            f["events/xs"] = ev.x.numpy().astype(np.int16)
+            f["events/ys"] = ev.y.numpy().astype(np.int16)
+            f["events/ts"] = ev.t.numpy() / 1e6  # seconds
+            f["events/ps"] = (ev.p.numpy() > 0).astype(np.uint8)  # 0/1
+            for i in range(sequence.num_frames):
+                img = (sequence.blurry[i].mean(0).numpy() * 255).round().astype(np.uint8)
+                ds = f.create_dataset(f"images/image{i:09d}", data=img)
+                mid = float(sequence.exposure_start[i] + sequence.exposure_end[i]) / 2 / 1e6
+                ds.attrs["timestamp"] = mid
+                if with_exposure:
+                    ds.attrs["exposure_start"] = float(sequence.exposure_start[i]) / 1e6
+                    ds.attrs["exposure_end"] = float(sequence.exposure_end[i]) / 1e6
+        return path
+
+    def test_units_converted(self, tmp_path, sequence):
+        rec = open_recording(self.make(tmp_path, sequence), after_us=4000.0)
+        assert isinstance(rec, EventUtilsRecording) and rec.sensor_size == (24, 30)
+        batch = rec.frame(1)
+        assert float(batch.exposure_start) == pytest.approx(9000.0, abs=1e-3)  # seconds -> us
+        want = sequence.frames("delayed", after_us=4000.0).events.sample(1)
+        assert len(batch.events) == len(want)
+        torch.testing.assert_close(batch.events.t, want.t, rtol=0, atol=1e-3)
+        assert set(batch.events.p.tolist()) == {-1, 1}
+
+    def test_missing_exposure(self, tmp_path, sequence):
+        path = self.make(tmp_path, sequence, with_exposure=False)
+        with pytest.raises(RecordingError, match="frame 0 .* no exposure"):
+            list(open_recording(path))
+        rec = EventUtilsRecording(path, exposure_us=4000.0)
+        assert float(next(iter(rec)).exposure_time) == pytest.approx(4000.0)
+
+    def test_write_round_trip(self, tmp_path, sequence):
+        src = EventUtilsRecording(self.make(tmp_path, sequence))
+        out = tmp_path / "out.h5"
+        ev = Events(sequence.delayed_events.x, sequence.delayed_events.y, sequence.delayed_events.t.round(),
+                    sequence.delayed_events.p, sensor_size=(24, 30))
+        write_event_utils(out, ev, like=src)
+        back = EventUtilsRecording(out, time_unit="s")
+        chunks = np.concatenate(list(back.iter_event_chunks()))
+        np.testing.assert_allclose(chunks["t"], ev.t.numpy(), atol=1e-3)
+        assert len(list(back.frames())) == 3
+
+
+@pytest.mark.skipif(not (DAVIS / "cradle_lowlight.aedat4").is_file(), reason="shared DAVIS recordings absent")
+class TestAedat4:
+    def test_cradle_frames_and_events(self):
+        rec = AedatRecording(DAVIS / "cradle_lowlight.aedat4")
+        assert rec.sensor_size == (260, 346)
+        frames = list(rec.frames())
+        assert len(frames) == 13
+        assert all(f.exposure_end - f.exposure_start == 20000.0 for f in frames)
+        assert frames[0].exposure_start == 1643243628757800.0 and frames[0].image.shape == (1, 260, 346)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            batches = list(rec)
+        # frame 12's window (exposure end + 20 ms) runs past the last event: warned, naming file and frame
+        assert any("frame 12" in str(w.message) and "cradle_lowlight" in str(w.message) for w in caught)
+        # the README's count of events inside frame 0's exposure
+        b0 = batches[0]
+        inside = b0.events.window(b0.exposure_start, b0.exposure_end)
+        assert len(inside) == 8077
+
+    def test_streaming_matches_whole_file(self):
+        rec = AedatRecording(DAVIS / "street_static.aedat4", after_us=500.0)
+        all_events = np.concatenate(list(rec.iter_event_chunks()))
+        assert len(all_events) == 6676
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            batches = list(rec)
+        for b in batches:
+            lo, hi = float(b.exposure_start), float(b.exposure_end) + 500.0
+            want = int(((all_events["t"] >= lo) & (all_events["t"] < hi)).sum())
+            assert len(b.events) == want
+
+    def test_wrong_format(self, tmp_path):
+        bad = tmp_path / "x.aedat4"
+        bad.write_bytes(b"#!AER-DAT2.0\r\n")
+        with pytest.raises(RecordingError, match="not an AEDAT4"):
+            AedatRecording(bad)
+        truncated = tmp_path / "t.aedat4"
+        truncated.write_bytes((DAVIS / "street_static.aedat4").read_bytes()[:5000])
+        with pytest.raises(RecordingError):
+            list(AedatRecording(truncated).iter_event_chunks())
