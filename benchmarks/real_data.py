@@ -28,7 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from evlatcorr import EventLatencyCorrector, edi_deblur, etf_loss  # noqa: E402
 from evlatcorr.io import open_recording  # noqa: E402
 
-DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "davis346" / "cradle_lowlight.aedat4"
+DEFAULT = next((p for p in (Path(__file__).resolve().parents[2] / "shared", Path("/work/shared"))
+                if (p / "data").is_dir()), Path("../shared")) / "data" / "davis346" / "cradle_lowlight.aedat4"
 
 
 def busiest_crop(events, size: tuple[int, int], crop: int = 120) -> tuple[slice, slice]:

@@ -24,3 +24,15 @@ def random_events(num: int, sensor_size: tuple[int, int], t_range: tuple[float, 
     p = torch.randint(0, 2, (num,), generator=g)
     b = torch.randint(0, batch_size, (num,), generator=g)
     return Events(x, y, t, p, b, sensor_size=sensor_size, batch_size=batch_size, sort=True)
+
+
+def shared_data_dir():
+    """The project's shared data folder: ../shared beside the checkout, else /work/shared (may be absent)."""
+    import os
+    from pathlib import Path
+
+    for candidate in (os.environ.get("EVLATCORR_SHARED"), Path(__file__).resolve().parents[2] / "shared",
+                      "/work/shared"):
+        if candidate and (Path(candidate) / "data").is_dir():
+            return Path(candidate) / "data"
+    return Path("/nonexistent")

@@ -1,7 +1,6 @@
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
 
 import h5py
 import numpy as np
@@ -20,8 +19,9 @@ from evlatcorr.io import (
     write_sequence,
 )
 from evlatcorr.simulate import simulate
+from tests.conftest import shared_data_dir
 
-DAVIS = Path(__file__).resolve().parents[2] / "shared" / "data" / "davis346"
+DAVIS = shared_data_dir() / "davis346"
 SMALL = dict(height=24, width=30, exposure_us=4000.0, frame_interval_us=5000.0)
 
 

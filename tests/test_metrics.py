@@ -1,15 +1,15 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import pytest
 import torch
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
 from evlatcorr.metrics import LPIPS_ENV, ImageQuality, load_lpips_network, lpips_backbone_path
+from tests.conftest import shared_data_dir
 
-SHARED_BACKBONE = Path(__file__).resolve().parents[2] / "shared" / "data" / "lpips" / "alexnet_features.pth"
+SHARED_BACKBONE = shared_data_dir() / "lpips" / "alexnet_features.pth"
 
 
 def fixed_pair():
