@@ -11,6 +11,9 @@ Latency models (``latency=``):
 
 - ``"none"``: delayed events are the ideal events.
 - ``"constant"``: delayed events are the ideal events stamped ``latency_us`` later.
+- ``"intensity_delay"``: each ideal event is delayed by ``τ`` (the formula below) at its pixel,
+  evaluated on the blurry frame nearest in time: a clean per-pixel ground truth for evaluating
+  latency maps, without the filter's smoothing.
 - ``"intensity"``: each pixel's photoreceptor is a first-order low-pass filter on the
   log-luminance whose time constant is inversely proportional to the pixel's intensity,
   ``τ = clip(latency_range_us[0] / I, *latency_range_us)`` with ``I`` the linear intensity in
@@ -58,7 +61,7 @@ _FILES = {
 PHOTOGRAPHS_TEST = ("astronaut", "coffee", "chelsea", "rocket", "camera", "motorcycle_right", "brick", "gravel")
 PHOTOGRAPHS_TRAIN = ("motorcycle_left", "hubble_deep_field", "retina", "immunohistochemistry", "moon", "coins",
                      "page", "text", "grass", "cell")
-_LATENCY_MODELS = ("none", "constant", "intensity")
+_LATENCY_MODELS = ("none", "constant", "intensity", "intensity_delay")
 _LOG_EPS = 1e-3  # log(I + eps): dark pixels do not fire on noise-level changes
 
 
@@ -276,7 +279,7 @@ def simulate(
         width: sensor width ``W``.
         exposure_us: exposure time of each frame.
         frame_interval_us: time between exposure starts (≥ exposure).
-        latency: ``"none"``, ``"constant"`` or ``"intensity"`` (see the module docstring).
+        latency: ``"none"``, ``"constant"``, ``"intensity"`` or ``"intensity_delay"`` (see the module docstring).
         latency_us: the constant latency.
         latency_range_us: ``(bright, dim)`` latency limits of the intensity model.
         threshold: contrast threshold (log units).
@@ -312,7 +315,7 @@ def simulate(
     if latency == "constant" and latency_us < 0:
         raise ValueError(f"latency_us must be >= 0, got {latency_us}")
     lo_lat, hi_lat = latency_range_us
-    if latency == "intensity" and not 0 < lo_lat <= hi_lat:
+    if latency.startswith("intensity") and not 0 < lo_lat <= hi_lat:
         raise ValueError(f"latency_range_us must be 0 < bright <= dim, got {latency_range_us}")
     if brightness <= 0 or speed_px_per_ms < 0 or noise_rate_hz < 0 or threshold_sigma < 0:
         raise ValueError("brightness must be positive and speed, noise rate, threshold_sigma non-negative")
@@ -322,7 +325,7 @@ def simulate(
     photo = load_photograph(image) if isinstance(image, str) else image.float()
     if photo.dim() != 3 or photo.shape[0] != 3:
         raise ValueError(f"image must be a photograph name or an RGB tensor (3, H, W), got {tuple(photo.shape)}")
-    max_latency = {"none": 0.0, "constant": latency_us, "intensity": hi_lat}[latency]
+    max_latency = {"none": 0.0, "constant": latency_us, "intensity": hi_lat, "intensity_delay": hi_lat}[latency]
     before = exposure_us if margin_us is None else margin_us
     starts = torch.arange(num_frames, dtype=torch.float64) * frame_interval_us + before
     ends = starts + exposure_us
@@ -398,6 +401,20 @@ def simulate(
         delayed_events = delayed.events((height, width), noise)
         lum_blur = (0.299 * blurry[:, 0] + 0.587 * blurry[:, 1] + 0.114 * blurry[:, 2]).unsqueeze(1)
         true_latency = (lo_lat / lum_blur.clamp_min(1e-6)).clamp(lo_lat, hi_lat)
+    elif latency == "intensity_delay":
+        lum_blur = (0.299 * blurry[:, 0] + 0.587 * blurry[:, 1] + 0.114 * blurry[:, 2]).unsqueeze(1)
+        true_latency = (lo_lat / lum_blur.clamp_min(1e-6)).clamp(lo_lat, hi_lat)
+        # each signal event is delayed by the map of the frame nearest in time, at its pixel
+        signal = ideal.events((height, width), None)
+        mids = ((starts + ends) / 2).to(device)
+        nearest = (signal.t[:, None] - mids[None]).abs().argmin(1)
+        delay = true_latency[:, 0].flatten(1)[nearest, signal.y * width + signal.x].double()
+        parts = [Events._trusted(signal.x, signal.y, signal.t + delay, signal.p, signal.batch, (height, width), 1)]
+        if noise is not None:
+            parts.append(Events._trusted(noise[0] % width, noise[0] // width, noise[1], noise[2],
+                                         torch.zeros_like(noise[0]), (height, width), 1))
+        cat = Events.cat(parts)
+        delayed_events = Events(cat.x, cat.y, cat.t, cat.p, sensor_size=(height, width), sort=True)
     else:
         lat = latency_us if latency == "constant" else 0.0
         if noise is not None and lat:

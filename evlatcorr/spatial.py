@@ -1,0 +1,284 @@
+"""Spatially-varying latency: a polynomial of intensity trained through the differentiable EDI.
+
+``ψ(L) = scale · Σ_{i=0..K} a_i f(L)^i`` per pixel (paper Eq. 15), with ``L`` the blurry frame's
+luminance (the mean intensity over the exposure, ``B / 2Δτ`` for a frame normalised to [0, 1]) and
+
+    f(L) = log(L + ε) / log(ε)          (ε = 0.01)
+
+a fixed map that is monotone decreasing (dim pixels → 1, white → ≈ 0) and keeps every power
+``f^i`` in [0, 1], so the coefficients are of the same order and Adam steps are well conditioned.
+The log follows the photoreceptor: latency grows like 1 / intensity, i.e. fast in log intensity
+at the dark end. ``scale`` (1000 µs) makes the coefficients milliseconds. They start at zero (the
+no-latency assumption).
+
+The objective (Eq. 19-21), with latencies in milliseconds so the paper's weights
+(α=1, β=1, η=20, ζ=0.1) balance the terms:
+
+- ``L_ETF``: the ETF of the EDI latent image from the linear (Eq. 16-18) event integral with the
+  latency map clipped to ``[0, l_max]``, divided by the ETF at the frame's ``l_const`` (so 1 means
+  "as sharp as the constant correction"), with ``g`` centred on ``l_const``;
+- ``L_bound``: mean of ``relu(−l) + relu(l − l_max)`` (the clipping cuts the gradient there, this
+  term brings the map back);
+- ``L_mse``: mean of ``(l − l_const)²``;
+- ``L_dev``: mean of ``relu(dψ/dL)`` over the frame's pixels (ψ must decrease with intensity).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import kornia
+import torch
+from torch import Tensor, nn
+
+from evlatcorr.edi import edi_deblur
+from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
+from evlatcorr.frames import EventFrames
+from evlatcorr.search import search_constant_latency
+
+__all__ = ["PolynomialLatency", "LossWeights", "spatial_objective", "fit_spatial_latency",
+           "SpatialLatencyCorrector", "save_curve", "load_curve"]
+
+
+class PolynomialLatency(nn.Module):
+    """Per-pixel latency ``ψ(L) = scale · Σ a_i f(L)^i`` from the blurry frame's intensity.
+
+    Args:
+        order: polynomial order ``K`` (≥ 0; the paper uses 5).
+        eps: ε of ``f(L) = log(L + ε) / log(ε)``.
+        scale_us: µs per unit of the polynomial (coefficients in ms by default).
+
+    Example:
+        >>> psi = PolynomialLatency()
+        >>> psi(torch.rand(2, 3, 8, 8)).shape  # zero at initialisation
+        torch.Size([2, 1, 8, 8])
+    """
+
+    def __init__(self, order: int = 5, eps: float = 0.01, scale_us: float = 1000.0) -> None:
+        super().__init__()
+        if order < 0:
+            raise ValueError(f"order K must be >= 0, got {order}")
+        if not 0 < eps < 1:
+            raise ValueError(f"eps must be in (0, 1), got {eps}")
+        self.order, self.eps, self.scale_us = order, eps, scale_us
+        self.coefficients = nn.Parameter(torch.zeros(order + 1))
+
+    def extra_repr(self) -> str:
+        return f"order={self.order}, eps={self.eps}, scale_us={self.scale_us}"
+
+    @staticmethod
+    def intensity(blurry: Tensor) -> Tensor:
+        """Luminance ``L`` :math:`(B, 1, H, W)` of a blurry frame in [0, 1]."""
+        return kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
+
+    def transform(self, intensity: Tensor) -> Tensor:
+        return torch.log(intensity.clamp(0, 1) + self.eps) / math.log(self.eps)
+
+    def powers(self, f: Tensor) -> Tensor:
+        return torch.stack([f**i for i in range(self.order + 1)], dim=-1)
+
+    def curve(self, intensity: Tensor) -> Tensor:
+        """ψ at given intensities (any shape), µs."""
+        return self.scale_us * (self.powers(self.transform(intensity)) * self.coefficients.to(intensity)).sum(-1)
+
+    def slope(self, intensity: Tensor) -> Tensor:
+        """dψ/dL at given intensities, µs per unit intensity (Eq. 20's inner term)."""
+        f = self.transform(intensity)
+        df_dl = 1.0 / ((intensity.clamp(0, 1) + self.eps) * math.log(self.eps))
+        i = torch.arange(1, self.order + 1, device=f.device, dtype=f.dtype)
+        dpsi_df = (i * self.coefficients[1:].to(f) * f[..., None] ** (i - 1)).sum(-1) if self.order else 0 * f
+        return self.scale_us * df_dl * dpsi_df
+
+    def forward(self, blurry: Tensor) -> Tensor:
+        return self.curve(self.intensity(blurry))
+
+
+@dataclass
+class LossWeights:
+    """α, β, η, ζ of Eq. (21)."""
+
+    etf: float = 1.0
+    bound: float = 1.0
+    mse: float = 20.0
+    dev: float = 0.1
+
+
+def spatial_objective(
+    model: PolynomialLatency,
+    frames: EventFrames,
+    l_const: Tensor,
+    l_max: Tensor,
+    etf_const: Tensor,
+    threshold: float = 0.2,
+    num_bins: int = 100,
+    weights: LossWeights | None = None,
+    epsilon: float = DEFAULT_EPSILON,
+    window: int = DEFAULT_WINDOW,
+    sigma_us: float = DEFAULT_SIGMA_US,
+) -> dict[str, Tensor]:
+    """The terms of Eq. (19)-(21) and their weighted sum ``"total"`` for one batch.
+
+    Args:
+        model: the latency polynomial.
+        frames: the batch (events reaching ``exposure_end + l_max``).
+        l_const: the frames' constant latencies :math:`(B,)` µs.
+        l_max: upper bound of the latency :math:`(B,)` µs.
+        etf_const: ETF at ``l_const`` :math:`(B,)`, the normaliser of ``L_ETF``.
+    """
+    w = weights or LossWeights()
+    latency = model(frames.blurry)  # (B, 1, H, W) µs
+    b = latency.shape[0]
+    l_max_map = l_max.to(latency).view(b, 1, 1, 1)
+    clipped = torch.minimum(latency.clamp_min(0.0), l_max_map)
+    latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, threshold,
+                        clipped, num_bins, integral="linear")
+    mean_latency = clipped.mean(dim=(1, 2, 3))
+    etf = etf_loss(latent, mean_latency, l_const.to(latency), epsilon, window, sigma_us)
+    ms = 1e-3
+    terms = {
+        "etf": (etf / etf_const.to(etf)).mean(),
+        "bound": ((torch.relu(-latency) + torch.relu(latency - l_max_map)) * ms).mean(),
+        "mse": (((latency - l_const.to(latency).view(b, 1, 1, 1)) * ms) ** 2).mean(),
+        "dev": torch.relu(model.slope(model.intensity(frames.blurry)) * ms).mean(),
+    }
+    terms["total"] = w.etf * terms["etf"] + w.bound * terms["bound"] + w.mse * terms["mse"] + w.dev * terms["dev"]
+    return terms
+
+
+def constant_reference(frames: EventFrames, threshold: float, num_bins: int, search_range: tuple[float, float] | None,
+                       num_candidates: int, epsilon: float, window: int, sigma_us: float) -> tuple[Tensor, Tensor]:
+    """``l_const`` per frame and the ETF (linear integral) of its latent image."""
+    res = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                                  threshold, num_bins, search_range, num_candidates, True, None, epsilon, window,
+                                  sigma_us)
+    l_const = res.latency.to(frames.device)
+    with torch.no_grad():
+        latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, threshold,
+                            l_const, num_bins, integral="linear")
+        etf = etf_loss(latent, l_const.float(), l_const.float(), epsilon, window, sigma_us)
+    return l_const, etf
+
+
+def fit_spatial_latency(
+    frames: EventFrames,
+    model: PolynomialLatency | None = None,
+    steps: int = 100,
+    lr: float = 0.05,
+    threshold: float = 0.2,
+    num_bins: int = 100,
+    search_range: tuple[float, float] | None = None,
+    num_candidates: int = 100,
+    weights: LossWeights | None = None,
+    epsilon: float = DEFAULT_EPSILON,
+    window: int = DEFAULT_WINDOW,
+    sigma_us: float = DEFAULT_SIGMA_US,
+    progress: bool = False,
+) -> tuple[PolynomialLatency, list[float]]:
+    """Test-time optimisation: fit ψ on the given batch by Adam (a bounded number of steps).
+
+    Returns:
+        the fitted model and the total loss per step.
+    """
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    model = model if model is not None else PolynomialLatency()
+    model = model.to(frames.device)
+    l_const, etf_const = constant_reference(frames, threshold, num_bins, search_range, num_candidates, epsilon,
+                                            window, sigma_us)
+    l_max = frames.exposure_time if search_range is None else torch.full_like(frames.exposure_time, search_range[1])
+    optimiser = torch.optim.Adam(model.parameters(), lr=lr)
+    history = []
+    iterator: Any = range(steps)
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(iterator, desc="fit latency curve", unit="step")
+    for _ in iterator:
+        optimiser.zero_grad()
+        terms = spatial_objective(model, frames, l_const, l_max, etf_const, threshold, num_bins, weights, epsilon,
+                                  window, sigma_us)
+        terms["total"].backward()
+        optimiser.step()
+        history.append(float(terms["total"].detach()))
+    return model, history
+
+
+def save_curve(model: PolynomialLatency, path: str | Path, **extra: Any) -> None:
+    """Save the coefficients and f's settings (a small torch file)."""
+    torch.save({"coefficients": model.coefficients.detach().cpu(), "order": model.order, "eps": model.eps,
+                "scale_us": model.scale_us, "format": "evlatcorr-curve", **extra}, path)
+
+
+def load_curve(path: str | Path) -> PolynomialLatency:
+    """Load a curve saved by :func:`save_curve` or a Lightning checkpoint of ``LatencyCorrectionModule``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such latency curve checkpoint")
+    data = torch.load(path, map_location="cpu", weights_only=False)
+    if "state_dict" in data:  # Lightning checkpoint
+        hp = data.get("hyper_parameters", {})
+        state = {k.split("latency_model.", 1)[1]: v for k, v in data["state_dict"].items()
+                 if k.startswith("latency_model.")}
+        model = PolynomialLatency(hp.get("order", 5), hp.get("eps", 0.01), hp.get("scale_us", 1000.0))
+        model.load_state_dict(state, strict=True)
+        return model
+    if data.get("format") != "evlatcorr-curve":
+        raise ValueError(f"{path}: not an evlatcorr latency curve")
+    model = PolynomialLatency(data["order"], data["eps"], data["scale_us"])
+    with torch.no_grad():
+        model.coefficients.copy_(data["coefficients"])
+    return model
+
+
+class SpatialLatencyCorrector(nn.Module):
+    """Per-pixel latency correction (what ``EventLatencyCorrector(mode="spatial")`` runs).
+
+    With ``curve``, the trained polynomial gives the map directly; without, a polynomial is fitted
+    on the batch it is given (``steps`` Adam steps of the self-supervised objective).
+
+    Args:
+        curve: path of a saved curve or Lightning checkpoint, or None.
+        steps: test-time optimisation steps when no curve is given.
+        lr: Adam learning rate of the test-time optimisation.
+        train_bins: EDI sub-intervals used while fitting (the output latent uses ``num_bins``).
+        order: polynomial order for test-time fitting.
+    """
+
+    def __init__(self, curve: str | Path | None = None, threshold: float | str = 0.2, num_bins: int = 500,
+                 search_range: tuple[float, float] | None = None, num_candidates: int = 100,
+                 epsilon: float = DEFAULT_EPSILON, window: int = DEFAULT_WINDOW, sigma_us: float = DEFAULT_SIGMA_US,
+                 steps: int = 60, lr: float = 0.05, train_bins: int = 100, order: int = 5,
+                 weights: LossWeights | None = None) -> None:
+        super().__init__()
+        if isinstance(threshold, str):
+            raise ValueError("mode='spatial' needs a numeric threshold")
+        self.model = load_curve(curve) if curve is not None else None
+        self.threshold, self.num_bins, self.search_range = float(threshold), num_bins, search_range
+        self.num_candidates, self.epsilon, self.window, self.sigma_us = num_candidates, epsilon, window, sigma_us
+        self.steps, self.lr, self.train_bins, self.order, self.weights = steps, lr, train_bins, order, weights
+
+    def extra_repr(self) -> str:
+        return f"curve={'trained' if self.model is not None else 'fit per batch'}, steps={self.steps}"
+
+    def forward(self, frames: EventFrames) -> EventFrames:
+        if self.model is not None:
+            model = self.model.to(frames.device)
+        else:
+            with torch.enable_grad():
+                model, _ = fit_spatial_latency(frames, PolynomialLatency(self.order), self.steps, self.lr,
+                                               self.threshold, self.train_bins, self.search_range,
+                                               self.num_candidates, self.weights, self.epsilon, self.window,
+                                               self.sigma_us)
+        with torch.no_grad():
+            high = frames.exposure_time if self.search_range is None else torch.full_like(
+                frames.exposure_time, self.search_range[1])
+            latency = torch.minimum(model(frames.blurry).clamp_min(0.0), high.to(frames.blurry).view(-1, 1, 1, 1))
+            corrected = frames.events.shift(latency.double())
+            latent = edi_deblur(frames.blurry, corrected, frames.exposure_start, frames.exposure_end,
+                                self.threshold, None, self.num_bins)
+        meta = dict(frames.meta)
+        meta["latency_curve"] = model.coefficients.detach().cpu()
+        return frames.replace(latency=latency.float().contiguous(), corrected=corrected, latent=latent, meta=meta)

@@ -1,0 +1,109 @@
+from __future__ import annotations
+
+import pytest
+import torch
+
+from evlatcorr import EventLatencyCorrector
+from evlatcorr.simulate import simulate
+from evlatcorr.spatial import (
+    LossWeights,
+    PolynomialLatency,
+    fit_spatial_latency,
+    load_curve,
+    save_curve,
+    spatial_objective,
+)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    seq = simulate("camera", num_frames=1, latency="intensity", seed=0, height=24, width=32, exposure_us=5000.0,
+                   frame_interval_us=5000.0, latency_range_us=(200.0, 3000.0))
+    return seq.frames("delayed")
+
+
+class TestPolynomialLatency:
+    def test_zero_init_and_shape(self):
+        psi = PolynomialLatency(order=3)
+        out = psi(torch.rand(2, 3, 5, 6))
+        assert out.shape == (2, 1, 5, 6) and out.abs().max() == 0
+        assert psi.coefficients.shape == (4,)
+
+    def test_transform_is_decreasing_and_bounded(self):
+        psi = PolynomialLatency()
+        f = psi.transform(torch.linspace(0, 1, 101))
+        assert bool((f[1:] < f[:-1]).all()) and f[0] == pytest.approx(1.0) and abs(float(f[-1])) < 0.01
+
+    def test_slope_matches_autograd(self):
+        psi = PolynomialLatency(order=4)
+        with torch.no_grad():
+            psi.coefficients.copy_(torch.tensor([0.3, -1.0, 2.0, 0.5, -0.2]))
+        x = torch.linspace(0.05, 0.95, 7, dtype=torch.float64, requires_grad=True)
+        (grad,) = torch.autograd.grad(psi.curve(x).sum(), x)
+        torch.testing.assert_close(psi.slope(x.detach()), grad)
+
+    def test_bad_order(self):
+        with pytest.raises(ValueError, match="order"):
+            PolynomialLatency(order=-1)
+        with pytest.raises(ValueError, match="eps"):
+            PolynomialLatency(eps=2.0)
+
+
+def test_gradients_reach_every_coefficient(frames):
+    # finite differences of L_total (float64) against autograd, for every a_i
+    f64 = frames.replace(blurry=frames.blurry.double())
+    psi = PolynomialLatency(order=2).double()
+    with torch.no_grad():
+        psi.coefficients.copy_(torch.tensor([0.8, 0.5, 0.3], dtype=torch.float64))
+    l_const = torch.tensor([600.0], dtype=torch.float64)
+    args = (f64, l_const, torch.tensor([5000.0], dtype=torch.float64), torch.tensor([3.0], dtype=torch.float64))
+
+    def total(coeffs):
+        with torch.no_grad():
+            psi.coefficients.copy_(coeffs)
+        return spatial_objective(psi, *args, num_bins=40)["total"]
+
+    base = psi.coefficients.detach().clone()
+    loss = spatial_objective(psi, *args, num_bins=40)["total"]
+    (grad,) = torch.autograd.grad(loss, psi.coefficients)
+    for i in range(3):
+        step = torch.zeros(3, dtype=torch.float64)
+        step[i] = 1e-4
+        numeric = (total(base + step) - total(base - step)) / 2e-4
+        assert float(grad[i]) != 0.0
+        assert float(grad[i]) == pytest.approx(float(numeric.detach()), rel=0.05, abs=1e-6)
+
+
+def test_fit_decreases_loss_and_is_monotone(frames):
+    model, history = fit_spatial_latency(frames, PolynomialLatency(order=3), steps=15, lr=0.05, num_bins=40,
+                                         weights=LossWeights(dev=1.0))
+    assert history[-1] < history[0]
+    ramp = torch.linspace(0.02, 1.0, 50)
+    slope = model.slope(ramp)
+    assert float(slope.max()) <= 1e-3 * float(slope.abs().max()) + 50.0  # non-increasing up to a tolerance (us)
+
+
+def test_checkpoint_round_trip(tmp_path):
+    psi = PolynomialLatency(order=2, eps=0.02, scale_us=500.0)
+    with torch.no_grad():
+        psi.coefficients.copy_(torch.tensor([1.0, 2.0, 3.0]))
+    save_curve(psi, tmp_path / "curve.pt")
+    back = load_curve(tmp_path / "curve.pt")
+    assert (back.order, back.eps, back.scale_us) == (2, 0.02, 500.0)
+    x = torch.rand(1, 1, 4, 4)
+    torch.testing.assert_close(back(x), psi(x))
+    with pytest.raises(FileNotFoundError):
+        load_curve(tmp_path / "missing.pt")
+
+
+def test_corrector_spatial_mode(frames, tmp_path):
+    psi = PolynomialLatency(order=1)
+    with torch.no_grad():
+        psi.coefficients.copy_(torch.tensor([0.5, 1.0]))  # 0.5 ms bright .. 1.5 ms dark
+    save_curve(psi, tmp_path / "c.pt")
+    out = EventLatencyCorrector(mode="spatial", curve=str(tmp_path / "c.pt"), num_bins=50)(frames)
+    expected = psi(frames.blurry).clamp(0, 5000)
+    torch.testing.assert_close(out.latency, expected)
+    assert out.latency.std() > 0 and out.latent.shape == frames.blurry.shape
+    fitted = EventLatencyCorrector(mode="spatial", num_bins=50, steps=3, train_bins=30)(frames)
+    assert fitted.latency.shape == (1, 1, 24, 32)
