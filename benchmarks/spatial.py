@@ -48,6 +48,7 @@ def main() -> None:
     p.add_argument("--order", type=int, default=5)
     p.add_argument("--lr", type=float, default=0.05)
     p.add_argument("--train-bins", type=int, default=100)
+    p.add_argument("--eta", type=float, default=20.0, help="weight of L_mse (paper: 20)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("outputs/spatial"))
     args = p.parse_args()
@@ -59,7 +60,8 @@ def main() -> None:
     L.seed_everything(args.seed, verbose=False)
     frames = simulated_training_frames(PHOTOGRAPHS_TRAIN, size, args.seed, latency=args.latency_model)
     module = LatencyCorrectionModule(order=args.order, lr=args.lr, num_bins=args.train_bins,
-                                     constant_epochs=min(2, args.epochs), decay_epochs=max(0, args.epochs - 2))
+                                     constant_epochs=min(2, args.epochs), decay_epochs=max(0, args.epochs - 2),
+                                     eta=args.eta)
     trainer = L.Trainer(max_epochs=args.epochs, accelerator="cpu", devices=1, logger=False,
                         enable_checkpointing=False, enable_model_summary=False, enable_progress_bar=True)
     trainer.fit(module, EventFramesDataModule(frames))
