@@ -112,7 +112,7 @@ class BenchmarkModule(L.LightningModule):
         super().__init__()
         self.methods = list(methods)
         self.models = nn.ModuleDict({m.name: m.model for m in methods})
-        self.correctors = nn.ModuleDict(correctors)
+        self.correctors = nn.ModuleDict({_key('corrector', k): v for k, v in correctors.items()})
         self.inputs = [GT, NO_CORR] + [name for name in (CONST, SPATIAL) if name in correctors]
         self.quality = nn.ModuleDict({
             _key(m.name, i): ImageQuality(lpips_network) for m in methods for i in self.inputs})
@@ -121,12 +121,15 @@ class BenchmarkModule(L.LightningModule):
         self.on_scene = on_scene
         self.failures: dict[str, str] = {}
 
+    def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
+        return batch.to(device) if isinstance(batch, BenchmarkScene) else batch
+
     def test_step(self, scene: BenchmarkScene, batch_idx: int) -> None:
         outputs: dict[str, Any] = {"latency": {}, "restored": {}}
         frames = {GT: scene.frames_ideal, NO_CORR: scene.frames_delayed}
         pairs = {GT: scene.pairs_ideal, NO_CORR: scene.pairs_delayed}
         for name in self.inputs[2:]:
-            corrected = self.correctors[name](scene.frames_delayed)
+            corrected = self.correctors[_key('corrector', name)](scene.frames_delayed)
             frames[name] = corrected
             latency = corrected.latency
             outputs["latency"][name] = latency

@@ -76,7 +76,9 @@ def test_short_training_lowers_latency_error(tmp_path):
     trainer = quiet_trainer(max_epochs=5)
     trainer.fit(module, EventFramesDataModule(frames))
     after = error()
-    assert after < 0.6 * before  # measured: 1833 us -> 612 us
+    assert after < 0.6 * before  # measured: 1833 us -> 682 us
+    ramp = torch.linspace(0.01, 1.0, 100)
+    assert float(module.latency_model.slope(ramp).max()) <= 0.0  # the learned curve falls with intensity
     # checkpoint round trip: the Lightning checkpoint loads as a curve for inference
     trainer.save_checkpoint(tmp_path / "m.ckpt")
     curve = load_curve(tmp_path / "m.ckpt")
