@@ -4,7 +4,6 @@ import math
 
 import lightning as L
 import pytest
-import torch
 
 from evlatcorr import EventLatencyCorrector
 from evlatcorr.adapters.edi import EDIAdapter
