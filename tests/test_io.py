@@ -193,3 +193,38 @@ class TestAedat4:
         truncated.write_bytes((DAVIS / "street_static.aedat4").read_bytes()[:5000])
         with pytest.raises(RecordingError):
             list(AedatRecording(truncated).iter_event_chunks())
+
+
+class TestGemNpz:
+    def write(self, path, sequence, scale_factor=1, drop=None):
+        ev = sequence.delayed_events
+        data = dict(blur1=(sequence.blurry[0].numpy() * 255).round().astype(np.uint8),
+                    blur2=(sequence.blurry[1].numpy() * 255).round().astype(np.uint8),
+                    exp_start1=int(sequence.exposure_start[0]), exp_end1=int(sequence.exposure_end[0]),
+                    exp_start2=int(sequence.exposure_start[1]), exp_end2=int(sequence.exposure_end[1]),
+                    events=np.array({"x": ev.x.numpy(), "y": ev.y.numpy(), "t": ev.t.numpy().round(),
+                                     "p": (ev.p.numpy() > 0).astype(np.uint8)}, dtype=object),
+                    scale_factor=scale_factor)
+        if drop:
+            data.pop(drop)
+        np.savez(path, **data)
+        return path
+
+    def test_reads_pairs(self, tmp_path, sequence):
+        from evlatcorr.io import GemNpzRecording
+
+        rec = open_recording(self.write(tmp_path / "pair.npz", sequence), after_us=4000.0)
+        assert isinstance(rec, GemNpzRecording) and rec.sensor_size == (24, 30)
+        batches = list(rec)
+        assert len(batches) == 2 and batches[0].blurry.shape == (1, 3, 24, 30)
+        assert float(batches[1].exposure_start) == float(sequence.exposure_start[1])
+        want = sequence.delayed_events.window(float(sequence.exposure_start[1]), float(sequence.exposure_end[1]) + 4000)
+        assert len(batches[1].events) == len(want) and set(batches[1].events.p.tolist()) == {-1, 1}
+
+    def test_refuses_lower_resolution_events_and_missing_keys(self, tmp_path, sequence):
+        from evlatcorr.io import GemNpzRecording
+
+        with pytest.raises(RecordingError, match="pixel-aligned"):
+            GemNpzRecording(self.write(tmp_path / "sf.npz", sequence, scale_factor=4))
+        with pytest.raises(RecordingError, match="unknown format"):
+            open_recording(self.write(tmp_path / "bad.npz", sequence, drop="exp_end2"))
