@@ -24,7 +24,8 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="evlatcorr",
         description="Event-camera latency correction for event-guided deblurring and frame interpolation.",
-        epilog="Formats read: AEDAT4 (DAVIS), evlatcorr HDF5, event_utils HDF5, GEM npz pairs. Times are microseconds.",
+        epilog="Formats read: AEDAT4 (DAVIS), evlatcorr HDF5, event_utils HDF5, GEM npz pairs, HighREV video folders. "
+               "Times are microseconds.",
     )
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 

@@ -228,3 +228,48 @@ class TestGemNpz:
             GemNpzRecording(self.write(tmp_path / "sf.npz", sequence, scale_factor=4))
         with pytest.raises(RecordingError, match="unknown format"):
             open_recording(self.write(tmp_path / "bad.npz", sequence, drop="exp_end2"))
+
+
+class TestHighREV:
+    def make(self, tmp_path, sequence, m=3, n=1):
+        from PIL import Image
+
+        video = tmp_path / "HighREV" / "train" / "seqA"
+        (video / "blur").mkdir(parents=True)
+        events_dir = tmp_path / "HighREV" / "train_event" / "seqA"
+        events_dir.mkdir(parents=True)
+        ev = sequence.delayed_events
+        edges = torch.linspace(0.0, float(ev.t.max()) + 1, 3 * (m + n) + 1)
+        for i in range(3 * (m + n)):
+            sel = ev.window(float(edges[i]), float(edges[i + 1]))
+            np.savez(events_dir / f"{i:06d}.npz", x=sel.y.numpy(), y=sel.x.numpy(),  # swapped, as in HighREV
+                     timestamp=sel.t.numpy(), polarity=(sel.p.numpy() > 0).astype(np.uint8))
+        for k in range(3):
+            img = (sequence.blurry[k].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+            Image.fromarray(img).save(video / "blur" / f"{k:06d}.png")
+        return video, edges
+
+    def test_layout_and_conventions(self, tmp_path, sequence):
+        from evlatcorr.io import HighREVRecording
+
+        video, edges = self.make(tmp_path, sequence)
+        rec = open_recording(video, m=3, n=1)
+        assert isinstance(rec, HighREVRecording) and rec.sensor_size == (24, 30)
+        frames = list(rec.frames())
+        assert len(frames) == 3
+        # frame 1 uses event files 4 and 5: its exposure spans their events
+        inside = sequence.delayed_events.window(float(edges[4]), float(edges[6]))
+        assert frames[1].exposure_start == pytest.approx(float(inside.t.min()))
+        assert frames[1].exposure_end == pytest.approx(float(inside.t.max()))
+        chunks = np.concatenate(list(rec.iter_event_chunks()))
+        assert len(chunks) == len(sequence.delayed_events)
+        np.testing.assert_array_equal(chunks["x"], sequence.delayed_events.x.numpy())  # un-swapped
+
+    def test_missing_event_files(self, tmp_path, sequence):
+        from evlatcorr.io import HighREVRecording
+
+        video, _ = self.make(tmp_path, sequence)
+        for f in sorted((tmp_path / "HighREV" / "train_event" / "seqA").glob("*.npz"))[8:]:
+            f.unlink()
+        with pytest.raises(RecordingError, match="frame 2"):
+            list(HighREVRecording(video, m=3, n=1).frames())

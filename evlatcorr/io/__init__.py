@@ -15,12 +15,14 @@ from evlatcorr.io.base import FrameInfo, Recording, RecordingError
 from evlatcorr.io.event_utils import EventUtilsRecording, is_event_utils_h5, write_event_utils
 from evlatcorr.io.gem_npz import GemNpzRecording, is_gem_npz
 from evlatcorr.io.h5 import EventWriter, H5Recording, is_evlatcorr_h5, read_sequence, write_sequence
+from evlatcorr.io.highrev import HighREVRecording, is_highrev
 
 __all__ = [
     "AedatRecording",
     "EventUtilsRecording",
     "EventWriter",
     "GemNpzRecording",
+    "HighREVRecording",
     "FrameInfo",
     "H5Recording",
     "Recording",
@@ -43,6 +45,9 @@ def open_recording(path: str | Path, **kwargs) -> Recording:
         return H5Recording(path, **kwargs)
     if path.is_file() and is_event_utils_h5(path):
         return EventUtilsRecording(path, **kwargs)
+    if is_highrev(path):
+        return HighREVRecording(path, **kwargs)
     if is_gem_npz(path):
         return GemNpzRecording(path, **kwargs)
-    raise RecordingError(f"{path}: unknown format (supported: AEDAT4, evlatcorr HDF5, event_utils HDF5, GEM npz)")
+    raise RecordingError(f"{path}: unknown format (supported: AEDAT4, evlatcorr HDF5, event_utils HDF5, GEM npz, "
+                         "HighREV video folder)")
