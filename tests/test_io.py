@@ -273,3 +273,18 @@ class TestHighREV:
             f.unlink()
         with pytest.raises(RecordingError, match="frame 2"):
             list(HighREVRecording(video, m=3, n=1).frames())
+
+
+def test_frame_without_events_and_events_after_last_frame_warn(tmp_path):
+    seq = simulate("camera", num_frames=2, seed=0, **SMALL)
+    path = tmp_path / "s.h5"
+    write_sequence(path, seq)
+    with h5py.File(path, "r+") as f:  # move frame 0 to before the first event
+        f["frames/exposure_start"][0] = -9000.0
+        f["frames/exposure_end"][0] = -8000.0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        list(H5Recording(path, after_us=100.0))
+    messages = [str(w.message) for w in caught]
+    assert any("frame 0 has no events" in m and "s.h5" in m for m in messages)
+    assert any("after the window of the last frame (1)" in m for m in messages)

@@ -73,6 +73,7 @@ class Recording:
         buffer: list[np.ndarray] = []
         newest = -np.inf
         exhausted = False
+        last_index, last_hi = -1, -np.inf
         for info in self.frames():
             after = (info.exposure_end - info.exposure_start) if self.after_us is None else self.after_us
             lo, hi = info.exposure_start - self.before_us, info.exposure_end + after
@@ -97,7 +98,13 @@ class Recording:
             if n_exposure == 0:
                 warnings.warn(f"{self.path}: frame {info.index} has no events inside its exposure", stacklevel=2)
             ev = Events.from_numpy(inside, sensor_size=self.sensor_size)
+            last_index, last_hi = info.index, hi
             yield frame_batch(info, ev, {"file": str(self.path), "frame": info.index})
+        if not exhausted:
+            later = sum(int((c["t"] >= last_hi).sum()) for c in buffer) + sum(len(c) for c in chunks)
+            if later:
+                warnings.warn(f"{self.path}: {later} events after the window of the last frame "
+                              f"({last_index}) are not used", stacklevel=2)
 
     def __len__(self) -> int:
         return sum(1 for _ in self.frames())
