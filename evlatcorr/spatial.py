@@ -180,8 +180,13 @@ def fit_spatial_latency(
     window: int = DEFAULT_WINDOW,
     sigma_us: float = DEFAULT_SIGMA_US,
     progress: bool = False,
+    start_from_constant: bool = False,
 ) -> tuple[PolynomialLatency, list[float]]:
     """Test-time optimisation: fit ψ on the given batch by Adam (a bounded number of steps).
+
+    With ``start_from_constant`` the polynomial starts at the batch's mean ``l_const`` instead of
+    zero (the paper's zero start is for training over a dataset; a few test-time steps from zero
+    cannot travel milliseconds).
 
     Returns:
         the fitted model and the total loss per step.
@@ -192,6 +197,10 @@ def fit_spatial_latency(
     model = model.to(frames.device)
     l_const, etf_const = constant_reference(frames, threshold, num_bins, search_range, num_candidates, epsilon,
                                             window, sigma_us)
+    if start_from_constant:
+        with torch.no_grad():  # ψ ≡ mean l_const: the fit only has to learn the variation around it
+            model.coefficients.zero_()
+            model.coefficients[0] = float(l_const.mean()) / model.scale_us
     l_max = frames.exposure_time if search_range is None else torch.full_like(frames.exposure_time, search_range[1])
     optimiser = torch.optim.Adam(model.parameters(), lr=lr)
     history = []
@@ -271,11 +280,14 @@ class SpatialLatencyCorrector(nn.Module):
         if self.model is not None:
             model = self.model.to(frames.device)
         else:
-            with torch.enable_grad():
+            # fitting needs autograd even when called under no_grad or inference mode (e.g. a test loop)
+            with torch.inference_mode(False), torch.enable_grad():
+                if any(t.is_inference() for t in (frames.blurry, frames.events.t)):
+                    frames = _clone_frames(frames)
                 model, _ = fit_spatial_latency(frames, PolynomialLatency(self.order), self.steps, self.lr,
                                                self.threshold, self.train_bins, self.search_range,
                                                self.num_candidates, self.weights, self.epsilon, self.window,
-                                               self.sigma_us)
+                                               self.sigma_us, start_from_constant=True)
         with torch.no_grad():
             high = frames.exposure_time if self.search_range is None else torch.full_like(
                 frames.exposure_time, self.search_range[1])
@@ -286,3 +298,14 @@ class SpatialLatencyCorrector(nn.Module):
         meta = dict(frames.meta)
         meta["latency_curve"] = model.coefficients.detach().cpu()
         return frames.replace(latency=latency.float().contiguous(), corrected=corrected, latent=latent, meta=meta)
+
+
+def _clone_frames(frames: EventFrames) -> EventFrames:
+    """Normal (non-inference) copies of the tensors the fit saves for backward."""
+    from evlatcorr.events import Events
+
+    ev = frames.events
+    events = Events._trusted(ev.x.clone(), ev.y.clone(), ev.t.clone(), ev.p.clone(), ev.batch.clone(),
+                             ev.sensor_size, ev.batch_size)
+    return frames.replace(blurry=frames.blurry.clone(), events=events,
+                          exposure_start=frames.exposure_start.clone(), exposure_end=frames.exposure_end.clone())

@@ -1,0 +1,283 @@
+"""The paper's Table 1 on simulated data, as a Lightning test loop.
+
+    python benchmarks/run.py                 # 8 unseen test scenes, 256x336, 20 ms exposure, 4 ms latency
+    python benchmarks/run.py --quick         # CI-sized run (2 small scenes)
+    python benchmarks/run.py --latency-model intensity --devices 2 --strategy ddp
+
+Rows: EDI deblurring, EFNet, GEM, EDI interpolation, REFID; inputs "GT input" (ideal events),
+"W/o corr." (delayed events), "W/ corr. const." and "W/ corr. spatial"; a "Diff (%)" row per
+correction, (corrected - uncorrected) / GT input. Beside it, the latency error of both
+corrections against the true latency. Rows whose model is not available (no adapter or no
+checkpoint) are reported as n/a with the reason; the others still run.
+
+Data: scenes simulated from the test photographs (never used for training), generated once and
+cached as evlatcorr HDF5 files under ``~/.cache/evlatcorr/benchmark/<config>/``, reproducible
+by seed. ``--data DIR`` reads evlatcorr HDF5 sequence files instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import hashlib
+import json
+import math
+import os
+import platform
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import evlatcorr  # noqa: E402
+from evlatcorr import EventLatencyCorrector  # noqa: E402
+from evlatcorr.adapters.edi import EDIAdapter  # noqa: E402
+from evlatcorr.benchmark import (  # noqa: E402
+    CONST,
+    SPATIAL,
+    BenchmarkModule,
+    BenchmarkScene,
+    Method,
+    SceneDataModule,
+    format_table,
+)
+from evlatcorr.io import read_sequence, write_sequence  # noqa: E402
+from evlatcorr.metrics import load_lpips_network  # noqa: E402
+from evlatcorr.simulate import PHOTOGRAPHS_TEST, simulate  # noqa: E402
+
+METHODS = {
+    "edi": ("EDI deblurring", "deblur"),
+    "efnet": ("EFNet", "deblur"),
+    "gem": ("GEM", "deblur"),
+    "edi-interp": ("EDI interpolation", "interpolation"),
+    "refid": ("REFID", "interpolation"),
+}
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, help="folder of evlatcorr HDF5 sequence files (default: simulated test set)")
+    p.add_argument("--ckpt", action="append", default=[], metavar="NAME=PATH", help="checkpoint for efnet/gem/refid")
+    p.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {','.join(METHODS)}")
+    p.add_argument("--latency-model", choices=("constant", "intensity"), default="constant")
+    p.add_argument("--latency-us", type=float, default=4000.0, help="constant latency of the simulated test set")
+    p.add_argument("--scenes", type=int, default=len(PHOTOGRAPHS_TEST))
+    p.add_argument("--size", type=int, nargs=2, default=(256, 336), metavar=("H", "W"))
+    p.add_argument("--num-bins", type=int, default=500)
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--devices", default="1")
+    p.add_argument("--strategy", default="auto")
+    p.add_argument("--out", type=Path, default=Path("outputs/benchmark"))
+    p.add_argument("--quick", action="store_true", help="2 scenes at 64x80, 100 bins: a CI-sized run")
+    p.add_argument("--lpips-backbone", type=Path, help="AlexNet features for LPIPS (else torch hub cache / "
+                                                        "$EVLATCORR_LPIPS_BACKBONE)")
+    p.add_argument("--spatial-steps", type=int, default=30, help="test-time fitting steps of the spatial corrector")
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    if args.quick:
+        args.scenes, args.size, args.num_bins, args.spatial_steps = 2, (64, 80), 100, 10
+    unknown = set(args.methods.split(",")) - set(METHODS)
+    if unknown:
+        p.error(f"unknown methods {sorted(unknown)}; choose from {sorted(METHODS)}")
+    return args
+
+
+def scene_from_sequence(name: str, seq) -> BenchmarkScene:
+    return BenchmarkScene(name, seq.frames("ideal"), seq.frames("delayed"), seq.pairs("ideal"),
+                          seq.pairs("delayed"), seq.true_latency)
+
+
+def prepare_data(args: argparse.Namespace) -> list[Path]:
+    """Simulate the test set once (cached by configuration), or list the files of --data."""
+    if args.data is not None:
+        files = sorted(args.data.glob("*.h5")) if args.data.is_dir() else [args.data]
+        if not files:
+            raise SystemExit(f"run.py: error: no .h5 files in {args.data}")
+        return files
+    config = dict(scenes=list(PHOTOGRAPHS_TEST[:args.scenes]), size=list(args.size), latency=args.latency_model,
+                  latency_us=args.latency_us, seed=args.seed, exposure_us=20000.0, interval_us=25000.0, v=1)
+    key = hashlib.sha1(json.dumps(config, sort_keys=True).encode()).hexdigest()[:10]
+    root = Path(os.environ.get("EVLATCORR_CACHE", Path.home() / ".cache" / "evlatcorr")) / "benchmark" / key
+    root.mkdir(parents=True, exist_ok=True)
+    files = []
+    for i, name in enumerate(config["scenes"]):
+        path = root / f"{i:02d}_{name}.h5"
+        if not path.is_file():
+            print(f"simulating test scene {name} ({args.size[1]}x{args.size[0]}) -> {path}", flush=True)
+            seq = simulate(name, num_frames=2, height=args.size[0], width=args.size[1], exposure_us=20000.0,
+                           frame_interval_us=25000.0, latency=args.latency_model, latency_us=args.latency_us,
+                           seed=args.seed + 100 + i)
+            write_sequence(path, seq)
+        files.append(path)
+    return files
+
+
+def build_methods(args: argparse.Namespace) -> tuple[list[Method], dict[str, str]]:
+    ckpts = dict(item.split("=", 1) for item in args.ckpt if "=" in item)
+    methods, missing = [], {}
+    for key in args.methods.split(","):
+        title, task = METHODS[key]
+        if key == "edi":
+            methods.append(Method(title, EDIAdapter(num_bins=args.num_bins), task))
+        elif key == "edi-interp":
+            methods.append(Method(title, EDIAdapter("interpolation", num_bins=args.num_bins), task))
+        else:
+            adapter = getattr(evlatcorr.adapters, f"{key.upper() if key != 'efnet' else 'EFNet'}Adapter", None)
+            if adapter is None:
+                missing[title] = "adapter not implemented in this version of evlatcorr.adapters"
+                continue
+            try:
+                methods.append(Method(title, adapter(checkpoint=ckpts.get(key, "default")), task))
+            except (FileNotFoundError, ValueError) as exc:
+                missing[title] = f"checkpoint not loaded ({exc})"
+    return methods, missing
+
+
+class Figures:
+    """Collects the first scene's outputs for the figures."""
+
+    def __init__(self) -> None:
+        self.first: tuple[BenchmarkScene, dict[str, Any]] | None = None
+
+    def __call__(self, scene: BenchmarkScene, outputs: dict[str, Any]) -> None:
+        if self.first is None:
+            self.first = (scene.to("cpu"), {k: _cpu(v) for k, v in outputs.items()})
+
+    def write(self, out: Path) -> list[str]:
+        if self.first is None:
+            return []
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        scene, outputs = self.first
+        written = []
+        meta = outputs.get("meta", {}).get(CONST)
+        if meta is not None and "etf_curve" in meta:
+            cand, etf = meta["etf_curve"]
+            fig, ax = plt.subplots(figsize=(5, 3.5))
+            ax.plot(cand[0].numpy() / 1000, etf[0].numpy())
+            ax.axvline(float(scene.true_latency[0].mean()) / 1000, color="g", ls="-", label="true")
+            ax.axvline(float(outputs["latency"][CONST][0].mean()) / 1000, color="r", ls="--", label="estimated")
+            ax.set_xlabel("candidate latency (ms)")
+            ax.set_ylabel("ETF")
+            ax.set_title(f"{scene.name}, frame 0")
+            ax.legend()
+            fig.tight_layout()
+            fig.savefig(out / "etf_vs_latency.png", dpi=100)
+            plt.close(fig)
+            written.append("etf_vs_latency.png")
+        restored = outputs["restored"]
+        if restored:
+            keys = list(restored)
+            cols = 4
+            rows = math.ceil(len(keys) / cols)
+            fig, axes = plt.subplots(rows, cols, figsize=(3 * cols, 2.6 * rows), squeeze=False)
+            for ax in axes.flat:
+                ax.axis("off")
+            for ax, key in zip(axes.flat, keys):
+                img = restored[key][0]
+                ax.imshow(img.permute(1, 2, 0).clamp(0, 1).numpy())
+                ax.set_title(key.replace("|", "\n").replace("_", "."), fontsize=8)
+            fig.tight_layout()
+            fig.savefig(out / "restored.png", dpi=90)
+            plt.close(fig)
+            written.append("restored.png")
+        maps = [("true", scene.true_latency[0, 0])] + [(k, v[0, 0]) for k, v in outputs["latency"].items()]
+        fig, axes = plt.subplots(1, len(maps), figsize=(3.4 * len(maps), 2.8), squeeze=False)
+        vmax = max(float(m.max()) for _, m in maps) / 1000
+        for ax, (title, m) in zip(axes[0], maps):
+            im = ax.imshow(m.numpy() / 1000, vmin=0, vmax=vmax, cmap="viridis")
+            ax.set_title(f"{title} (ms)", fontsize=9)
+            ax.axis("off")
+        fig.colorbar(im, ax=list(axes[0]), shrink=0.8)
+        fig.savefig(out / "latency_maps.png", dpi=90)
+        plt.close(fig)
+        written.append("latency_maps.png")
+        return written
+
+
+def _cpu(value: Any) -> Any:
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, dict):
+        return {k: _cpu(v) for k, v in value.items()}
+    if isinstance(value, tuple):
+        return tuple(_cpu(v) for v in value)
+    return value
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    t0 = time.perf_counter()
+    warnings.filterwarnings("ignore", module="lightning")
+    files = prepare_data(args)
+    methods, missing = build_methods(args)
+    for title, why in missing.items():
+        print(f"{title}: {why}; its rows are n/a", flush=True)
+    lpips_net, lpips_why = load_lpips_network(args.lpips_backbone)
+    if lpips_net is None:
+        print(f"LPIPS: n/a ({lpips_why})", flush=True)
+    correctors = {CONST: EventLatencyCorrector(num_bins=args.num_bins),
+                  SPATIAL: EventLatencyCorrector(mode="spatial", num_bins=args.num_bins, steps=args.spatial_steps)}
+    figures = Figures()
+    module = BenchmarkModule(methods, correctors, lpips_net, on_scene=figures)
+
+    def load(i: int) -> BenchmarkScene:
+        try:
+            return scene_from_sequence(files[i].stem, read_sequence(files[i]))
+        except (OSError, ValueError) as exc:
+            raise SystemExit(f"run.py: error: cannot read {files[i]}: {exc}") from exc
+
+    devices: int | str = int(args.devices) if args.devices.isdigit() else args.devices
+    trainer = L.Trainer(accelerator=args.device if args.device != "cuda" else "gpu", devices=devices,
+                        strategy=args.strategy, logger=False, enable_model_summary=False,
+                        enable_progress_bar=True)
+    trainer.test(module, SceneDataModule(load, len(files)))
+    if not trainer.is_global_zero:
+        return 0
+    results = module.results()
+    for title, why in missing.items():
+        for name in module.inputs:
+            results["table"].append({"method": title, "input": name, "psnr": math.nan, "ssim": math.nan,
+                                     "lpips": math.nan})
+        results["failures"][title] = why
+    order = [METHODS[k][0] for k in args.methods.split(",")]
+    results["table"].sort(key=lambda r: (order.index(r["method"]), module.inputs.index(r["input"])))
+    wall = time.perf_counter() - t0
+    args.out.mkdir(parents=True, exist_ok=True)
+    table = format_table(results)
+    latency_lines = ["| correction | latency MAE (us) | latency max error (us) |", "| --- | --- | --- |"]
+    for name, err in results["latency_error"].items():
+        latency_lines.append(f"| {name} | {err['mae_us']:.0f} | {err['max_us']:.0f} |")
+    truth = (f"{args.latency_us:.0f} us constant" if args.latency_model == "constant" else "intensity-dependent")
+    header = (f"Simulated test set: {len(files)} scenes ({args.size[1]}x{args.size[0]}), 20 ms exposure, latency "
+              f"{truth}; EDI {args.num_bins} bins; LPIPS {'AlexNet' if lpips_net is not None else 'n/a: ' + lpips_why}")
+    notes = "".join(f"\n- {k}: n/a, {v}" for k, v in results["failures"].items())
+    md = f"{header}\n\n{table}\n\n{chr(10).join(latency_lines)}\n{notes}\n\nwall time {wall:.0f} s\n"
+    (args.out / "results.md").write_text(md)
+    with open(args.out / "results.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=["method", "input", "psnr", "ssim", "lpips"])
+        w.writeheader()
+        w.writerows(results["table"])
+    figures_written = figures.write(args.out)
+    (args.out / "results.json").write_text(json.dumps({
+        **results, "config": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+        "data": [str(f) for f in files], "seed": args.seed, "wall_time_s": wall, "figures": figures_written,
+        "versions": {"evlatcorr": evlatcorr.__version__, "torch": torch.__version__, "lightning": L.__version__,
+                     "python": platform.python_version()},
+    }, indent=2, default=lambda v: None if isinstance(v, float) and math.isnan(v) else str(v)))
+    print(md)
+    print(f"wrote {args.out}/results.md, results.csv, results.json and {', '.join(figures_written)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,40 @@
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import shared_data_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_quick_benchmark_end_to_end(tmp_path):
+    backbone = shared_data_dir() / "lpips" / "alexnet_features.pth"
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "run.py"), "--quick", "--out", str(tmp_path / "out")]
+    if backbone.is_file():
+        cmd += ["--lpips-backbone", str(backbone)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=tmp_path,
+                       env={"EVLATCORR_CACHE": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin"})
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = tmp_path / "out"
+    results = json.loads((out / "results.json").read_text())
+    rows = {(row["method"], row["input"]): row for row in results["table"]}
+    methods = ["EDI deblurring", "EFNet", "GEM", "EDI interpolation", "REFID"]
+    inputs = ["GT input", "W/o corr.", "W/ corr. const.", "W/ corr. spatial"]
+    assert [row["method"] for row in results["table"]] == [m for m in methods for _ in inputs]
+    assert set(rows) == {(m, i) for m in methods for i in inputs}
+    assert rows[("EDI deblurring", "GT input")]["psnr"] > rows[("EDI deblurring", "W/o corr.")]["psnr"]
+    assert set(results["latency_error"]) == {"W/ corr. const.", "W/ corr. spatial"}
+    md = (out / "results.md").read_text()
+    assert "Diff (%) const." in md and "| PSNR ↑ | SSIM ↑ | LPIPS ↓ |" in md
+    for name in ("results.csv", "etf_vs_latency.png", "restored.png", "latency_maps.png"):
+        assert (out / name).is_file()
+    # the cache is reused: a second run simulates nothing
+    r2 = subprocess.run(cmd + ["--methods", "edi"], capture_output=True, text=True, timeout=600, cwd=tmp_path,
+                        env={"EVLATCORR_CACHE": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin"})
+    assert r2.returncode == 0 and "simulating" not in r2.stdout
