@@ -132,8 +132,12 @@ def build_methods(args: argparse.Namespace) -> tuple[list[Method], dict[str, str
             if adapter is None:
                 missing[title] = "adapter not implemented in this version of evlatcorr.adapters"
                 continue
+            if key not in ckpts:
+                missing[title] = (f"no checkpoint: pass --ckpt {key}=PATH (official or ours); none is shipped yet and "
+                                  "a randomly initialised network would score nothing meaningful")
+                continue
             try:
-                methods.append(Method(title, adapter(checkpoint=ckpts.get(key, "default")), task))
+                methods.append(Method(title, adapter(checkpoint=ckpts[key]), task))
             except (FileNotFoundError, ValueError) as exc:
                 missing[title] = f"checkpoint not loaded ({exc})"
     return methods, missing
