@@ -1,12 +1,16 @@
 """Adapters that feed (corrected) events to restoration models; installed as ``evlatcorr.adapters``.
 
 Each adapter is an ``nn.Module`` taking an ``EventFrames`` batch and returning it with ``output``
-filled, so ``nn.Sequential(EventLatencyCorrector(), adapter)`` works. EFNet, GEM and REFID
-adapters are not written yet.
+filled, so ``nn.Sequential(EventLatencyCorrector(), adapter)`` works. Adapters of learned models take
+``checkpoint=None`` (random weights), ``"default"`` (shipped weights) or a path, read by
+:func:`load_weights` (official BasicSR ``.pth``, Lightning ``.ckpt``, plain state_dicts, our sharded
+``.safetensors`` written by :func:`save_weights`).
 """
 
 from __future__ import annotations
 
+from evlatcorr.adapters.checkpoint import load_weights, resolve_checkpoint, save_weights
 from evlatcorr.adapters.edi import EDIAdapter
+from evlatcorr.adapters.efnet import EFNetAdapter
 
-__all__ = ["EDIAdapter"]
+__all__ = ["EDIAdapter", "EFNetAdapter", "load_weights", "resolve_checkpoint", "save_weights"]
