@@ -12,5 +12,6 @@ from __future__ import annotations
 from evlatcorr.adapters.checkpoint import load_weights, resolve_checkpoint, save_weights
 from evlatcorr.adapters.edi import EDIAdapter
 from evlatcorr.adapters.efnet import EFNetAdapter
+from evlatcorr.adapters.refid import REFIDAdapter
 
-__all__ = ["EDIAdapter", "EFNetAdapter", "load_weights", "resolve_checkpoint", "save_weights"]
+__all__ = ["EDIAdapter", "EFNetAdapter", "REFIDAdapter", "load_weights", "resolve_checkpoint", "save_weights"]
