@@ -12,6 +12,15 @@ from __future__ import annotations
 from evlatcorr.adapters.checkpoint import load_weights, resolve_checkpoint, save_weights
 from evlatcorr.adapters.edi import EDIAdapter
 from evlatcorr.adapters.efnet import EFNetAdapter
+from evlatcorr.adapters.gem import GEMAdapter
 from evlatcorr.adapters.refid import REFIDAdapter
 
-__all__ = ["EDIAdapter", "EFNetAdapter", "REFIDAdapter", "load_weights", "resolve_checkpoint", "save_weights"]
+__all__ = [
+    "EDIAdapter",
+    "EFNetAdapter",
+    "GEMAdapter",
+    "REFIDAdapter",
+    "load_weights",
+    "resolve_checkpoint",
+    "save_weights",
+]
