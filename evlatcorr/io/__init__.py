@@ -1,53 +1,189 @@
 """Readers and writers of event recordings; every reader yields ``EventFrames`` frame by frame.
 
+Formats read (each reader states its file's conventions and converts them once to ours: µs,
+polarity ±1, sensor size (H, W), frames (C, H, W) float in [0, 1]):
+
+| format | reader | recognised by |
+| --- | --- | --- |
+| AEDAT4 (DAVIS, iniVation) | :class:`AedatRecording` | magic ``#!AER-DAT4.0`` |
+| our HDF5 (see :mod:`evlatcorr.io.h5`) | :class:`H5Recording` | HDF5 with ``format="evlatcorr"`` |
+| event_utils / EFNet HDF5 | :class:`EventUtilsRecording` | HDF5 with ``/events/xs, ys, ts, ps`` |
+| GEM NPZ pairs | :class:`GemNpzRecording` | ``.npz`` (or a folder of them) with ``blur1``, ``exp_start1``, ... |
+| HighREV | :class:`HighREVRecording` | a folder with ``blur/`` and ``event/`` NPZs |
+
+Formats written: our HDF5 (:func:`write_sequence`, :func:`write_dataset`, :func:`write_h5_events`)
+and event_utils HDF5 (:func:`write_event_utils`); :func:`write_events` picks the input's format
+where we can write it, else ours.
+
 Example:
     >>> from evlatcorr.io import open_recording
-    >>> for batch in open_recording("recording.aedat4"):  # doctest: +SKIP
+    >>> rec = open_recording("recording.aedat4", after_us=20_000)  # doctest: +SKIP
+    >>> for batch in rec:  # doctest: +SKIP
     ...     out = EventLatencyCorrector()(batch)
 """
 
 from __future__ import annotations
 
+import inspect
+from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
-from evlatcorr.io.aedat4 import AedatRecording, is_aedat4
+import h5py
+import numpy as np
+
+from evlatcorr.events import Events
+from evlatcorr.io.aedat4 import AedatRecording
 from evlatcorr.io.base import FrameInfo, Recording, RecordingError
 from evlatcorr.io.event_utils import EventUtilsRecording, is_event_utils_h5, write_event_utils
 from evlatcorr.io.gem_npz import GemNpzRecording, is_gem_npz
-from evlatcorr.io.h5 import EventWriter, H5Recording, is_evlatcorr_h5, read_sequence, write_sequence
+from evlatcorr.io.h5 import (
+    EventWriter,
+    H5Recording,
+    is_evlatcorr_h5,
+    num_sequences,
+    read_sequence,
+    read_sequences,
+    write_dataset,
+    write_h5_events,
+    write_sequence,
+)
 from evlatcorr.io.highrev import HighREVRecording, is_highrev
 
 __all__ = [
     "AedatRecording",
     "EventUtilsRecording",
     "EventWriter",
-    "GemNpzRecording",
-    "HighREVRecording",
     "FrameInfo",
+    "GemNpzRecording",
     "H5Recording",
+    "HighREVRecording",
     "Recording",
     "RecordingError",
+    "num_sequences",
     "open_recording",
     "read_sequence",
+    "read_sequences",
+    "write_dataset",
     "write_event_utils",
+    "write_events",
+    "write_h5_events",
     "write_sequence",
 ]
 
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+_ZIP_MAGIC = b"PK\x03\x04"
 
-def open_recording(path: str | Path, **kwargs) -> Recording:
-    """Open a recording, recognising its format by content (AEDAT4 header, HDF5 layout)."""
+
+def _make(cls: type[Recording], path: Path, kwargs: dict[str, Any]) -> Recording:
+    accepted = set(inspect.signature(cls.__init__).parameters) - {"self", "path"}
+    unknown = sorted(set(kwargs) - accepted)
+    if unknown:
+        raise TypeError(f"{path} is read by {cls.__name__}, which does not take {unknown}; it takes {sorted(accepted)}")
+    return cls(path, **kwargs)
+
+
+def _sniff_file(path: Path) -> type[Recording]:
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if head.startswith(b"#!AER-DAT4"):
+        return AedatRecording
+    if head.startswith(b"#!AER-DAT"):
+        version = head[len(b"#!AER-DAT"):].split(b"\r")[0].split(b"\n")[0].decode(errors="replace")
+        raise RecordingError(f"{path}: AEDAT {version} is not supported (only AEDAT4; convert the file with "
+                             "DV or dv-processing)")
+    if head.startswith(_HDF5_MAGIC) or h5py.is_hdf5(path):
+        if is_evlatcorr_h5(path):
+            return H5Recording
+        if is_event_utils_h5(path):
+            return EventUtilsRecording
+        try:
+            with h5py.File(path, "r") as f:
+                keys = sorted(f.keys())[:10]
+        except OSError as exc:
+            raise RecordingError(f"{path}: cannot read as HDF5 (truncated or corrupt?): {exc}") from exc
+        raise RecordingError(f"{path}: unknown format: an HDF5 file with top-level {keys}; expected our format "
+                             "(attribute format='evlatcorr') or event_utils (/events/xs, ys, ts, ps)")
+    if head.startswith(_ZIP_MAGIC) or path.suffix == ".npz":
+        if is_gem_npz(path):
+            return GemNpzRecording
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                keys = sorted(z.files)[:10]
+        except Exception as exc:  # noqa: BLE001 - any failure here means "not a readable npz"
+            raise RecordingError(f"{path}: cannot read as npz (truncated or corrupt?): {exc}") from exc
+        raise RecordingError(f"{path}: unknown format: an npz with keys {keys}; expected a GEM pair (blur1, blur2, "
+                             "exp_start1, exp_end1, exp_start2, exp_end2, events)")
+    if path.suffix.lower() in (".aedat4", ".aedat"):
+        raise RecordingError(f"{path}: named like AEDAT but does not start with '#!AER-DAT4.0' (wrong format or "
+                             "corrupt header)")
+    if path.suffix.lower() in (".h5", ".hdf5"):
+        raise RecordingError(f"{path}: named like HDF5 but has no HDF5 signature (wrong format or truncated)")
+    raise RecordingError(f"{path}: unknown format (supported: AEDAT4, evlatcorr HDF5, event_utils HDF5, GEM npz, "
+                         "HighREV folder)")
+
+
+def open_recording(path: str | Path, **kwargs: Any) -> Recording:
+    """Open a recording, recognising its format by content (magic bytes, HDF5 layout, folder layout).
+
+    Args:
+        path: a file (AEDAT4, HDF5, npz) or a folder (HighREV, folder of GEM npz).
+        **kwargs: passed to the reader: ``before_us``, ``after_us`` for all, and the reader's own
+            options (e.g. ``exposure_us`` for event_utils, ``sequence`` for our HDF5 and HighREV).
+
+    Returns:
+        A :class:`Recording`.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        RecordingError: the format is not recognised, or the file is corrupt (the message says which).
+
+    Example:
+        >>> rec = open_recording("cradle_lowlight.aedat4")  # doctest: +SKIP
+        >>> rec.format_name, rec.sensor_size, len(rec)  # doctest: +SKIP
+        ('aedat4', (260, 346), 13)
+    """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or directory")
-    if path.is_file() and is_aedat4(path):
-        return AedatRecording(path, **kwargs)
-    if path.is_file() and is_evlatcorr_h5(path):
-        return H5Recording(path, **kwargs)
-    if path.is_file() and is_event_utils_h5(path):
-        return EventUtilsRecording(path, **kwargs)
+    if path.is_file():
+        return _make(_sniff_file(path), path, kwargs)
     if is_highrev(path):
-        return HighREVRecording(path, **kwargs)
+        return _make(HighREVRecording, path, kwargs)
     if is_gem_npz(path):
-        return GemNpzRecording(path, **kwargs)
-    raise RecordingError(f"{path}: unknown format (supported: AEDAT4, evlatcorr HDF5, event_utils HDF5, GEM npz, "
-                         "HighREV video folder)")
+        return _make(GemNpzRecording, path, kwargs)
+    inner = [p.name for p in sorted(path.iterdir()) if p.is_dir() and is_highrev(p)][:5]
+    hint = f"; its subfolders {inner} are HighREV folders: open one of them" if inner else ""
+    raise RecordingError(f"{path}: unknown format: a folder that is neither HighREV blur/ + event/, or GEM .npz files)"
+                         f"{hint}")
+
+
+def write_events(path: str | Path, events: Events | Iterable[Events | np.ndarray], like: Recording | None = None,
+                 format: str | None = None, **kwargs: Any) -> str:
+    """Write events in the format of the recording they came from where we can write it, else ours.
+
+    Args:
+        path: output file (written atomically).
+        events: one sample of :class:`Events`, or an iterable of time-sorted chunks.
+        like: the input recording; its frames are written too.
+        format: ``"evlatcorr"`` or ``"event_utils"``; default: event_utils for an event_utils input,
+            our HDF5 for every other input (AEDAT4, HighREV and GEM are not written).
+        **kwargs: passed to :func:`write_h5_events` or :func:`write_event_utils`.
+
+    Returns:
+        The format written.
+
+    Example:
+        >>> rec = open_recording("input.h5")  # doctest: +SKIP
+        >>> write_events("corrected.h5", corrected, like=rec)  # doctest: +SKIP
+        'event_utils'
+    """
+    if format is None:
+        format = "event_utils" if isinstance(like, EventUtilsRecording) else "evlatcorr"
+    if format == "event_utils":
+        write_event_utils(path, events, like=like, **kwargs)
+    elif format == "evlatcorr":
+        write_h5_events(path, events, like=like, **kwargs)
+    else:
+        raise ValueError(f"format must be 'evlatcorr' or 'event_utils', got {format!r}")
+    return format

@@ -1,23 +1,35 @@
 """AEDAT4 recordings from DAVIS cameras (iniVation), decoded by the ``aedat`` package.
 
-Conventions of the file and how they are converted:
+Conventions of the file and how they are converted (once, here):
 
-- timestamps are absolute microseconds (uint64): kept as µs (float64 in our events);
-- polarity is a bool field ``on`` (True = ON): converted to ±1;
-- the sensor size comes from the events stream header as width × height: we use ``(H, W)``;
-- APS frames carry ``exposure_begin_t`` / ``exposure_end_t`` (µs): the exposure window. Grey
-  8-bit (``L``) frames become one channel, colour ``RGB``/``RGBA`` frames three (alpha dropped);
-  16-bit pixels are scaled by 1/65535. A frame without exposure timestamps is refused.
+- timestamps are absolute Unix-epoch microseconds (uint64): kept as µs (float64 in our events,
+  exact below 2**53 µs, i.e. for any date before the year 2255);
+- polarity is the bool field ``on`` (True = ON, brightness increase): converted to ±1;
+- the sensor size comes from the event stream's header, width × height: we use ``(H, W)``;
+- every APS frame carries ``exposure_begin_t`` / ``exposure_end_t`` (µs): the exposure window.
+  Its ``t`` field is *not* used, because cameras disagree on it (exposure start in some files,
+  mid-exposure in others); ``begin_t`` / ``end_t`` are the readout window, not the exposure.
+  A frame whose exposure timestamps are missing (0) is refused with a message naming it;
+- frames: 8-bit grey (``L``) gives one channel, colour ``RGB``/``RGBA`` three (alpha dropped),
+  16-bit pixels are divided by 65535. Frames smaller than the sensor (a region of interest with an
+  offset) are refused: events and frames must be pixel-aligned.
+
+The decoder is a streaming packet iterator: frames and event packets come interleaved, and a
+frame's packet may come before or after the events of its exposure. :class:`AedatRecording` reads
+the file once, keeping the events that a waiting frame needs plus ``max_frame_delay_us`` of past
+events while no frame waits (a frame packet written later than that after its window start is
+reported with a clear error).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from evlatcorr.io.base import FrameInfo, Recording, RecordingError, structured_events
+from evlatcorr.io.base import FrameInfo, Recording, RecordingError, SegmentEnd, structured_events, to_unit_image
 
 __all__ = ["AedatRecording", "is_aedat4"]
 
@@ -25,6 +37,10 @@ MAGIC = b"#!AER-DAT4.0"
 
 
 def is_aedat4(path: str | Path) -> bool:
+    """Whether ``path`` is a file starting with the AEDAT 4.0 magic ``#!AER-DAT4.0``."""
+    path = Path(path)
+    if not path.is_file():
+        return False
     with open(path, "rb") as f:
         return f.read(len(MAGIC)) == MAGIC
 
@@ -32,35 +48,51 @@ def is_aedat4(path: str | Path) -> bool:
 class AedatRecording(Recording):
     """A DAVIS AEDAT4 file, streamed packet by packet (memory bounded by one frame's window).
 
+    Args:
+        path: the ``.aedat4`` file.
+        before_us: events to include before exposure start (µs).
+        after_us: events to include after exposure end (µs); ``None``: the exposure time.
+        max_frame_delay_us: how far (µs) behind the newest event a frame packet may come in the file
+            and still find all the events of its window.
+
     Example:
-        >>> rec = AedatRecording("cradle_lowlight.aedat4")  # doctest: +SKIP
-        >>> for batch in rec:  # EventFrames of one frame each  # doctest: +SKIP
-        ...     print(batch.exposure_start, len(batch.events))
+        >>> rec = AedatRecording("cradle_lowlight.aedat4", after_us=20_000)  # doctest: +SKIP
+        >>> rec.sensor_size, rec.num_frames  # doctest: +SKIP
+        ((260, 346), 13)
+        >>> for batch in rec:  # one EventFrames per frame  # doctest: +SKIP
+        ...     print(float(batch.exposure_time), len(batch.events))
     """
 
     format_name = "aedat4"
 
-    def __init__(self, path: str | Path, before_us: float = 0.0, after_us: float | None = None) -> None:
+    def __init__(self, path: str | Path, before_us: float = 0.0, after_us: float | None = None,
+                 max_frame_delay_us: float = 1_000_000.0) -> None:
         super().__init__(path, before_us, after_us)
-        if not is_aedat4(self.path):
-            raise RecordingError(f"{self.path}: not an AEDAT4 file (missing the '#!AER-DAT4.0' header)")
+        if not self.path.is_file() or not is_aedat4(self.path):
+            raise RecordingError(f"{self.path}: not an AEDAT4 file (it does not start with '#!AER-DAT4.0')")
+        if not max_frame_delay_us >= 0:
+            raise ValueError(f"max_frame_delay_us must be >= 0, got {max_frame_delay_us}")
+        self._frame_delay_us = float(max_frame_delay_us)
         streams = self._decoder().id_to_stream()
         events = [s for s in streams.values() if s.get("type") == "events"]
         if not events:
             raise RecordingError(f"{self.path}: no event stream in this AEDAT4 file")
+        if len(events) > 1:
+            raise RecordingError(f"{self.path}: {len(events)} event streams (stereo?); only one is supported")
         self.sensor_size = (int(events[0]["height"]), int(events[0]["width"]))
         if not any(s.get("type") == "frame" for s in streams.values()):
-            raise RecordingError(f"{self.path}: no frame stream: latency correction needs APS frames with exposures")
+            raise RecordingError(f"{self.path}: no frame stream: latency correction needs APS frames with "
+                                 "exposure timestamps")
 
-    def _decoder(self):
+    def _decoder(self) -> Any:
         import aedat
 
         try:
             return aedat.Decoder(str(self.path))
-        except Exception as exc:  # the Rust decoder raises plain exceptions for corrupt files
-            raise RecordingError(f"{self.path}: cannot decode AEDAT4 ({exc})") from exc
+        except Exception as exc:  # the Rust decoder raises plain exceptions for corrupt headers
+            raise RecordingError(f"{self.path}: cannot decode the AEDAT4 header ({exc})") from exc
 
-    def _packets(self) -> Iterator[dict]:
+    def _packets(self) -> Iterator[dict[str, Any]]:
         decoder = self._decoder()
         index = 0
         while True:
@@ -69,49 +101,72 @@ class AedatRecording(Recording):
             except StopIteration:
                 return
             except Exception as exc:
-                raise RecordingError(f"{self.path}: corrupt or truncated after packet {index} ({exc})") from exc
+                raise RecordingError(f"{self.path}: corrupt or truncated file after packet {index} ({exc})") from exc
             index += 1
             yield packet
 
+    # conversion -------------------------------------------------------------------------------
+    def _exposure(self, frame: dict[str, Any], index: int) -> tuple[float, float]:
+        begin, end = int(frame.get("exposure_begin_t", 0)), int(frame.get("exposure_end_t", 0))
+        if begin <= 0 or end <= begin:
+            raise RecordingError(f"{self.path}: frame {index} has no valid exposure timestamps "
+                                 f"(exposure_begin_t={begin}, exposure_end_t={end}); the frame's t field cannot "
+                                 "replace them (its meaning differs between cameras)")
+        return float(begin), float(end)
+
+    def _image(self, frame: dict[str, Any], index: int) -> np.ndarray:
+        where = f"{self.path}: frame {index} (format {frame.get('format')!r})"
+        fmt = frame.get("format", "L")
+        if fmt not in ("L", "RGB", "RGBA", "I;16"):
+            raise RecordingError(f"{where}: unsupported frame format (supported: L, RGB, RGBA, I;16)")
+        width, height = int(frame.get("width", 0)), int(frame.get("height", 0))
+        offset = (int(frame.get("offset_x", 0)), int(frame.get("offset_y", 0)))
+        if (height, width) != self.sensor_size or offset != (0, 0):
+            raise RecordingError(f"{where}: the frame is {height}x{width} at offset {offset} but the events are "
+                                 f"{self.sensor_size} (H, W); frames of a region of interest are not supported")
+        return to_unit_image(frame["pixels"], where)
+
+    def _frame_info(self, frame: dict[str, Any], index: int) -> FrameInfo:
+        start, end = self._exposure(frame, index)
+        return FrameInfo(index, start, end, self._image(frame, index), meta={"format": frame.get("format")})
+
+    @staticmethod
+    def _chunk(ev: np.ndarray) -> np.ndarray:
+        return structured_events(ev["x"], ev["y"], ev["t"].astype(np.float64), ev["on"])
+
+    # the Recording interface -------------------------------------------------------------------
     def frames(self) -> Iterator[FrameInfo]:
         index = 0
         for packet in self._packets():
             frame = packet.get("frame")
-            if frame is None:
-                continue
-            begin, end = int(frame["exposure_begin_t"]), int(frame["exposure_end_t"])
-            if begin <= 0 or end <= begin:
-                raise RecordingError(f"{self.path}: frame {index} has no valid exposure timestamps "
-                                     f"(begin {begin}, end {end})")
-            yield FrameInfo(index, float(begin), float(end), self._image(frame, index))
-            index += 1
+            if frame is not None:
+                yield self._frame_info(frame, index)
+                index += 1
 
-    def _image(self, frame: dict, index: int) -> np.ndarray:
-        pixels = np.asarray(frame["pixels"])
-        fmt = frame.get("format", "L")
-        if pixels.dtype == np.uint8:
-            image = pixels.astype(np.float32) / 255.0
-        elif pixels.dtype == np.uint16:
-            image = pixels.astype(np.float32) / 65535.0
-        else:
-            raise RecordingError(f"{self.path}: frame {index} has unsupported pixel type {pixels.dtype}")
-        if image.ndim == 2:
-            image = image[None]
-        elif fmt in ("RGB", "RGBA", "BGR", "BGRA") and image.ndim == 3:
-            image = image[..., :3]
-            if fmt.startswith("BGR"):
-                image = image[..., ::-1]
-            image = np.ascontiguousarray(image.transpose(2, 0, 1))
-        else:
-            raise RecordingError(f"{self.path}: frame {index} has unsupported format {fmt!r} {pixels.shape}")
-        if image.shape[1:] != self.sensor_size:
-            raise RecordingError(f"{self.path}: frame {index} is {image.shape[1:]} but the events are "
-                                 f"{self.sensor_size} (frames with an offset/ROI are not supported)")
-        return image
+    def _read_frame_times(self) -> list[tuple[float, float, int]]:
+        times, index = [], 0
+        for packet in self._packets():
+            frame = packet.get("frame")
+            if frame is not None:
+                times.append((*self._exposure(frame, index), 0))
+                index += 1
+        return times
 
-    def iter_event_chunks(self) -> Iterator[np.ndarray]:
+    def _segmented_chunks(self) -> Iterator[np.ndarray | SegmentEnd]:
         for packet in self._packets():
             ev = packet.get("events")
-            if ev is None or len(ev) == 0:
+            if ev is not None and len(ev):
+                yield self._chunk(ev)
+
+    def _items(self) -> Iterator[FrameInfo | np.ndarray | SegmentEnd]:
+        """One pass over the packets: frames and event chunks in file order."""
+        index = 0
+        for packet in self._packets():
+            frame = packet.get("frame")
+            if frame is not None:
+                yield self._frame_info(frame, index)
+                index += 1
                 continue
-            yield structured_events(ev["x"], ev["y"], ev["t"].astype(np.float64), ev["on"])
+            ev = packet.get("events")
+            if ev is not None and len(ev):
+                yield self._chunk(ev)

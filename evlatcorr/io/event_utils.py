@@ -1,109 +1,320 @@
-"""event_utils-style HDF5 (TimoStoff/event_utils; also EFNet's raw-event files).
+"""event_utils-style HDF5 (TimoStoff/event_utils ``hdf5_packager``; also EFNet's raw-event files).
 
-Layout read: ``/events/xs, ys, ts, ps`` and ``/images/image%09d`` datasets (H, W) or (H, W, 3)
-with a ``timestamp`` attribute. Conventions converted once:
+Layout read::
 
-- ``ts`` and image timestamps in **seconds** (the event_utils default; ``time_unit="us"`` for
-  files in microseconds; ``"auto"`` takes seconds when the largest event time is below 1e5);
-- polarity 0/1 (or bool, or ±1) → ±1; images uint8 → [0, 1];
-- exposure: the image attributes ``exposure_start`` / ``exposure_end`` (same time unit) when
-  present, else ``timestamp`` ± ``exposure_us`` / 2 when the caller gives ``exposure_us``;
-  otherwise a :class:`RecordingError` says so.
+    /events/xs, ys          int16 (N,)       column, row
+    /events/ts              float64 (N,)     seconds (the event_utils convention) or µs
+    /events/ps              bool/uint8 (N,)  1 = ON (0/1, bool or ±1 accepted)
+    /images/image%09d       uint8 (H, W), (H, W, 3) or (3, H, W); attrs: timestamp, type, size, event_idx
+    /sharp_images/image%09d optional ground truth (EFNet), same layout
+    root attrs              sensor_resolution (H, W), num_events, num_pos, num_neg, t0, tk, num_imgs, ...
+
+Conventions converted once:
+
+- time unit: ``time_unit="auto"`` takes the root attribute ``time_unit`` when there is one (our
+  writer sets it); otherwise seconds when ``ts`` holds fractional values below 1e5, else µs.
+  ``"s"``, ``"ms"``, ``"us"``, ``"ns"`` force it. Everything is converted to µs (rounded to the
+  nanosecond when converted, so whole-µs stamps stored in seconds come back exact);
+- polarity 0/1 (or bool, or ±1) → ±1; images uint8 → [0, 1]; an image with ``type="color_bgr"``
+  (event_utils writes OpenCV's BGR order) is flipped to RGB;
+- sensor size: ``sensor_resolution`` is ``(H, W)`` in event_utils; when it disagrees with the
+  images, the images win (with a warning);
+- exposure: event_utils stores one ``timestamp`` per image, not an exposure. The image attributes
+  ``exposure_start`` / ``exposure_end`` (same time unit; our writer adds them) are used when
+  present; otherwise, when the caller gives ``exposure_us``, an exposure of that length placed by
+  ``timestamp_is`` (``"middle"`` by default, ``"start"`` or ``"end"``); otherwise a
+  :class:`RecordingError` names the file and the frame.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import re
+import warnings
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from evlatcorr.events import Events
-from evlatcorr.io.base import FrameInfo, Recording, RecordingError, structured_events
-from evlatcorr.io.h5 import atomic_path
+from evlatcorr.frames import EventFrames
+from evlatcorr.io.base import (
+    EVENT_DTYPE,
+    TIME_UNITS,
+    FrameInfo,
+    Recording,
+    RecordingError,
+    SegmentEnd,
+    iter_events_as_chunks,
+    structured_events,
+    to_microseconds,
+    to_unit_image,
+)
+from evlatcorr.io.h5 import _bisect, _open, atomic_path
 
-__all__ = ["EventUtilsRecording", "write_event_utils", "is_event_utils_h5"]
+__all__ = ["EventUtilsRecording", "is_event_utils_h5", "write_event_utils"]
+
+_UNITS = TIME_UNITS
 
 
 def is_event_utils_h5(path: str | Path) -> bool:
+    """Whether ``path`` is an HDF5 file with ``/events/xs``, ``ys``, ``ts``, ``ps``."""
+    path = Path(path)
+    if not path.is_file() or not h5py.is_hdf5(path):
+        return False
     try:
         with h5py.File(path, "r") as f:
-            return "events" in f and "xs" in f["events"] and "ts" in f["events"]
+            return "events" in f and all(k in f["events"] for k in ("xs", "ys", "ts", "ps"))
     except OSError:
         return False
 
 
+def _image_names(group: h5py.Group) -> list[str]:
+    def key(name: str) -> tuple[int, str]:
+        m = re.search(r"(\d+)$", name)
+        return (int(m.group(1)) if m else -1, name)
+
+    return sorted(group.keys(), key=key)
+
+
+def _image(ds: h5py.Dataset, where: str) -> np.ndarray:
+    a = ds[()]
+    channels_last = not (a.ndim == 3 and a.shape[0] in (1, 3) and a.shape[-1] not in (1, 3, 4))
+    img = to_unit_image(a, where, channels_last=channels_last)
+    kind = ds.attrs.get("type", "")
+    kind = kind.decode() if isinstance(kind, bytes) else str(kind)
+    if img.shape[0] == 3 and "bgr" in kind.lower():
+        img = np.ascontiguousarray(img[::-1])
+    return img
+
+
 class EventUtilsRecording(Recording):
-    """Reader of event_utils-style HDF5 files."""
+    """Reader of event_utils-style HDF5 files (see the module docstring for conventions).
+
+    Args:
+        path: the ``.h5`` file.
+        before_us: events to include before exposure start (µs).
+        after_us: events to include after exposure end (µs); ``None``: the exposure time.
+        exposure_us: exposure length for files whose images only carry a ``timestamp``.
+        timestamp_is: where ``timestamp`` lies in that exposure: ``"middle"``, ``"start"`` or ``"end"``.
+        time_unit: ``"auto"``, ``"s"``, ``"ms"``, ``"us"`` or ``"ns"`` (of ``ts`` and image attributes).
+        chunk_events: events per read when streaming.
+
+    Example:
+        >>> rec = EventUtilsRecording("esim.h5", exposure_us=10_000)  # doctest: +SKIP
+        >>> batch = rec.frame(0)  # doctest: +SKIP
+    """
 
     format_name = "event_utils-h5"
+    random_access = True
 
     def __init__(self, path: str | Path, before_us: float = 0.0, after_us: float | None = None,
-                 exposure_us: float | None = None, time_unit: str = "auto", chunk_events: int = 1 << 20) -> None:
+                 exposure_us: float | None = None, time_unit: str = "auto", chunk_events: int = 1 << 20,
+                 timestamp_is: str = "middle") -> None:
         super().__init__(path, before_us, after_us)
-        if time_unit not in ("auto", "s", "us"):
-            raise ValueError(f"time_unit must be 'auto', 's' or 'us', got {time_unit!r}")
-        self.exposure_us, self.chunk_events = exposure_us, chunk_events
-        try:
-            with h5py.File(self.path, "r") as f:
-                if not is_event_utils_h5(self.path):
-                    raise RecordingError(f"{self.path}: no /events/xs, ys, ts, ps: not an event_utils HDF5 file")
-                ts = f["events/ts"]
-                last = float(ts[-1]) if ts.shape[0] else 0.0
-                self.scale = (1e6 if last < 1e5 else 1.0) if time_unit == "auto" else (1e6 if time_unit == "s" else 1.0)
-                if "sensor_resolution" in f.attrs:
-                    self.sensor_size = tuple(int(v) for v in f.attrs["sensor_resolution"])
-                else:
-                    first = next(iter(f["images"].values()), None) if "images" in f else None
-                    if first is None:
-                        raise RecordingError(f"{self.path}: no images and no sensor_resolution attribute")
-                    self.sensor_size = tuple(int(v) for v in first.shape[:2])
-        except OSError as exc:
-            raise RecordingError(f"{self.path}: cannot read as HDF5 ({exc})") from exc
+        if time_unit != "auto" and time_unit not in _UNITS:
+            raise ValueError(f"time_unit must be 'auto' or one of {sorted(_UNITS)}, got {time_unit!r}")
+        if timestamp_is not in ("middle", "start", "end"):
+            raise ValueError(f"timestamp_is must be 'middle', 'start' or 'end', got {timestamp_is!r}")
+        if exposure_us is not None and not exposure_us > 0:
+            raise ValueError(f"exposure_us must be positive, got {exposure_us}")
+        if chunk_events < 1:
+            raise ValueError(f"chunk_events must be >= 1, got {chunk_events}")
+        self.exposure_us, self.timestamp_is, self.chunk_events = exposure_us, timestamp_is, int(chunk_events)
+        if not is_event_utils_h5(self.path):
+            with _open(self.path):  # a RecordingError for files that are not HDF5 at all
+                pass
+            raise RecordingError(f"{self.path}: no /events/xs, ys, ts, ps: not an event_utils HDF5 file")
+        with _open(self.path) as f:
+            ts = f["events/ts"]
+            self.time_unit = self._detect_unit(f, ts) if time_unit == "auto" else time_unit
+            self.scale = _UNITS[self.time_unit]
+            self.sensor_size = self._sensor_size(f)
+
+    def _detect_unit(self, f: h5py.File, ts: h5py.Dataset) -> str:
+        unit = f.attrs.get("time_unit")
+        if unit is not None:
+            unit = unit.decode() if isinstance(unit, bytes) else str(unit)
+            if unit not in _UNITS:
+                raise RecordingError(f"{self.path}: unknown time_unit attribute {unit!r}")
+            return unit
+        if ts.shape[0] == 0 or not np.issubdtype(ts.dtype, np.floating):
+            return "us"
+        head = ts[: min(ts.shape[0], 4096)]
+        fractional = bool(np.any(head != np.round(head)))
+        return "s" if fractional and abs(float(ts[-1])) < 1e5 else "us"
+
+    def _sensor_size(self, f: h5py.File) -> tuple[int, int]:
+        from_images = None
+        if "images" in f and len(f["images"]):
+            first = f["images"][_image_names(f["images"])[0]]
+            shape = first.shape
+            from_images = tuple(int(v) for v in (shape[1:] if len(shape) == 3 and shape[0] in (1, 3)
+                                                 and shape[-1] not in (1, 3, 4) else shape[:2]))
+        if "sensor_resolution" in f.attrs:
+            res = tuple(int(v) for v in np.asarray(f.attrs["sensor_resolution"]).reshape(-1)[:2])
+            if from_images is not None and res != from_images:
+                warnings.warn(f"{self.path}: sensor_resolution {res} disagrees with the images {from_images} "
+                              "(H, W); using the images'", stacklevel=3)
+                return from_images
+            return res
+        if from_images is None:
+            raise RecordingError(f"{self.path}: no images and no sensor_resolution attribute")
+        return from_images
+
+    # frames -------------------------------------------------------------------------------
+    def _exposure(self, ds: h5py.Dataset, index: int, name: str) -> tuple[float, float]:
+        a = ds.attrs
+        if "exposure_start" in a and "exposure_end" in a:
+            return float(self._us(float(a["exposure_start"]))), float(self._us(float(a["exposure_end"])))
+        if "timestamp" in a and self.exposure_us is not None:
+            t = float(self._us(float(a["timestamp"])))
+            offset = {"middle": self.exposure_us / 2, "start": 0.0, "end": self.exposure_us}[self.timestamp_is]
+            return t - offset, t - offset + self.exposure_us
+        raise RecordingError(f"{self.path}: frame {index} ({name}) has no exposure_start/exposure_end attributes; "
+                             "pass exposure_us (and timestamp_is) to place an exposure around its timestamp")
+
+    def _images_group(self, f: h5py.File) -> h5py.Group:
+        if "images" not in f or not len(f["images"]):
+            raise RecordingError(f"{self.path}: no /images: latency correction needs frames")
+        return f["images"]
+
+    def _read_frame_times(self) -> list[tuple[float, float, int]]:
+        with _open(self.path) as f:
+            g = self._images_group(f)
+            return [(*self._exposure(g[n], i, n), 0) for i, n in enumerate(_image_names(g))]
+
+    def _frame_info(self, f: h5py.File, index: int, name: str) -> FrameInfo:
+        ds = self._images_group(f)[name]
+        start, end = self._exposure(ds, index, name)
+        image = _image(ds, f"{self.path}: frame {index} ({name})")
+        sharp = None
+        if "sharp_images" in f and name in f["sharp_images"]:
+            sharp = _image(f["sharp_images"][name], f"{self.path}: sharp frame {index} ({name})")
+        return FrameInfo(index, start, end, image, sharp=sharp, meta={"image": name})
 
     def frames(self) -> Iterator[FrameInfo]:
-        with h5py.File(self.path, "r") as f:
-            if "images" not in f:
-                raise RecordingError(f"{self.path}: no /images group: latency correction needs frames")
-            names = sorted(f["images"].keys())
-            for i, name in enumerate(names):
-                ds = f["images"][name]
-                a = ds.attrs
-                if "exposure_start" in a and "exposure_end" in a:
-                    start, end = float(a["exposure_start"]) * self.scale, float(a["exposure_end"]) * self.scale
-                elif "timestamp" in a and self.exposure_us is not None:
-                    mid = float(a["timestamp"]) * self.scale
-                    start, end = mid - self.exposure_us / 2, mid + self.exposure_us / 2
-                else:
-                    raise RecordingError(f"{self.path}: frame {i} ({name}) has no exposure_start/exposure_end "
-                                         "attributes; pass exposure_us to centre an exposure on its timestamp")
-                img = ds[:]
-                img = img.astype(np.float32) / (255.0 if img.dtype == np.uint8 else 65535.0 if img.dtype == np.uint16
-                                                 else 1.0)
-                img = img[None] if img.ndim == 2 else np.ascontiguousarray(img[..., :3].transpose(2, 0, 1))
-                yield FrameInfo(i, start, end, img)
+        with _open(self.path) as f:
+            for i, name in enumerate(_image_names(self._images_group(f))):
+                yield self._frame_info(f, i, name)
 
-    def iter_event_chunks(self) -> Iterator[np.ndarray]:
-        with h5py.File(self.path, "r") as f:
+    # events -------------------------------------------------------------------------------
+    def _us(self, t: np.ndarray | float) -> np.ndarray:
+        return to_microseconds(t, self.scale)
+
+    def _columns(self, g: h5py.Group, i: int, j: int) -> np.ndarray:
+        return structured_events(g["xs"][i:j], g["ys"][i:j], self._us(g["ts"][i:j].astype(np.float64)), g["ps"][i:j])
+
+    def _segmented_chunks(self) -> Iterator[np.ndarray | SegmentEnd]:
+        with _open(self.path) as f:
             g = f["events"]
             n = g["ts"].shape[0]
             for i in range(0, n, self.chunk_events):
-                j = min(n, i + self.chunk_events)
-                yield structured_events(g["xs"][i:j], g["ys"][i:j], g["ts"][i:j] * self.scale, g["ps"][i:j])
+                yield self._columns(g, i, min(n, i + self.chunk_events))
+
+    def _slice(self, f: h5py.File, t0: float, t1: float) -> np.ndarray:
+        g = f["events"]
+        # search a hair wider in file units (the unit conversion rounds), then cut exactly in µs
+        a, b = t0 / self.scale, t1 / self.scale
+        i = _bisect(g["ts"], a - abs(a) * 1e-12 - 1e-300)
+        j = _bisect(g["ts"], b + abs(b) * 1e-12 + 1e-300, lo=i)
+        ev = self._columns(g, i, j) if j > i else np.zeros(0, dtype=EVENT_DTYPE)
+        # the unit conversion can move a boundary event across t0/t1 by rounding: filter in µs
+        return ev[(ev["t"] >= t0) & (ev["t"] < t1)]
+
+    def events_between(self, t0: float, t1: float, segment: int | None = None) -> Events:
+        """Events with ``t0 <= t < t1`` (µs) by binary search on ``ts``."""
+        if not t1 >= t0:
+            raise ValueError(f"events_between needs t1 >= t0, got [{t0}, {t1})")
+        self._resolve_segment(segment)
+        with _open(self.path) as f:
+            return Events.from_numpy(self._slice(f, t0, t1), sensor_size=self.sensor_size)
+
+    def _frame_random_access(self, index: int) -> EventFrames:
+        with _open(self.path) as f:
+            name = _image_names(self._images_group(f))[index]
+            info = self._frame_info(f, index, name)
+            lo, hi = self.window(info.exposure_start, info.exposure_end)
+            events = self._slice(f, lo, hi)
+            ts = f["events/ts"]
+            first, last = (float(self._us(ts[0])), float(self._us(ts[-1]))) if ts.shape[0] else (None, -np.inf)
+        self._warn_coverage(info, lo, hi, events, first, last, exhausted=last < hi)
+        return self._batch(info, events, lo, hi)
 
 
-def write_event_utils(path: str | Path, events: Events, like: EventUtilsRecording | None = None) -> None:
-    """Write events (one sample) in event_utils layout, copying the images of ``like`` (atomic)."""
-    scale = like.scale if like is not None else 1e6
+def write_event_utils(path: str | Path, events: Events | Iterable[Events | np.ndarray],
+                      like: Recording | None = None, time_unit: str | None = None,
+                      sensor_size: tuple[int, int] | None = None) -> None:
+    """Write events in event_utils layout (atomic), with the frames of ``like``.
+
+    Args:
+        path: output file.
+        events: one sample of :class:`Events`, or an iterable of time-sorted chunks (``Events`` or
+            structured arrays) for outputs larger than memory.
+        like: a recording whose frames are written too: an :class:`EventUtilsRecording`'s image
+            groups are copied as they are; other recordings' frames are written as uint8 images
+            (lossy: use our HDF5 format to keep float frames) with ``timestamp`` at mid-exposure
+            and ``exposure_start`` / ``exposure_end`` attributes.
+        time_unit: unit of ``ts``; defaults to ``like``'s for an event_utils input, else seconds.
+        sensor_size: ``(H, W)``; defaults to ``like``'s or the events'.
+
+    Example:
+        >>> write_event_utils("corrected.h5", corrected_events, like=recording)  # doctest: +SKIP
+    """
+    if time_unit is None:
+        time_unit = like.time_unit if isinstance(like, EventUtilsRecording) else "s"
+    if time_unit not in _UNITS:
+        raise ValueError(f"time_unit must be one of {sorted(_UNITS)}, got {time_unit!r}")
+    scale = _UNITS[time_unit]
+    if sensor_size is None:
+        sensor_size = like.sensor_size if like is not None else getattr(events, "sensor_size", None)
+        if sensor_size is None:
+            raise ValueError("write_event_utils needs sensor_size (or like=) when given chunks")
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
-        g = f.create_group("events")
-        g.create_dataset("xs", data=events.x.cpu().numpy().astype(np.int16), compression="lzf")
-        g.create_dataset("ys", data=events.y.cpu().numpy().astype(np.int16), compression="lzf")
-        g.create_dataset("ts", data=events.t.cpu().numpy() / scale, compression="lzf")
-        g.create_dataset("ps", data=(events.p.cpu().numpy() > 0).astype(np.uint8), compression="lzf")
-        f.attrs["sensor_resolution"] = list(events.sensor_size)
-        if like is not None:
-            with h5py.File(like.path, "r") as src:
-                if "images" in src:
-                    src.copy(src["images"], f, "images")
+        kw = dict(shape=(0,), maxshape=(None,), chunks=(65536,), compression="lzf")
+        ds = {"xs": f.create_dataset("events/xs", dtype=np.int16, **kw),
+              "ys": f.create_dataset("events/ys", dtype=np.int16, **kw),
+              "ts": f.create_dataset("events/ts", dtype=np.float64, **kw),
+              "ps": f.create_dataset("events/ps", dtype=np.bool_, **kw)}
+        n, pos, t_first, t_last = 0, 0, None, None
+        for chunk in iter_events_as_chunks(events):
+            if not len(chunk):
+                continue
+            if t_last is not None and chunk["t"][0] < t_last:
+                raise ValueError("write_event_utils needs event chunks sorted by time")
+            m = n + len(chunk)
+            for name, values in (("xs", chunk["x"]), ("ys", chunk["y"]), ("ts", chunk["t"] / scale),
+                                 ("ps", chunk["p"] > 0)):
+                ds[name].resize((m,))
+                ds[name][n:] = values
+            pos += int((chunk["p"] > 0).sum())
+            t_first = float(chunk["t"][0]) if t_first is None else t_first
+            t_last, n = float(chunk["t"][-1]), m
+        num_imgs = 0
+        if isinstance(like, EventUtilsRecording):
+            with _open(like.path) as src:
+                for group in ("images", "sharp_images"):
+                    if group in src:
+                        src.copy(src[group], f, group)
+                num_imgs = len(src["images"]) if "images" in src else 0
+        elif like is not None:
+            for info in like.frames():
+                img = np.round(np.clip(info.image, 0, 1) * 255).astype(np.uint8)
+                img = img[0] if img.shape[0] == 1 else np.ascontiguousarray(img[::-1].transpose(1, 2, 0))  # BGR
+                d = f.create_dataset(f"images/image{info.index:09d}", data=img)
+                d.attrs["size"] = img.shape
+                d.attrs["timestamp"] = (info.exposure_start + info.exposure_end) / 2 / scale
+                d.attrs["exposure_start"] = info.exposure_start / scale
+                d.attrs["exposure_end"] = info.exposure_end / scale
+                d.attrs["type"] = "greyscale" if img.ndim == 2 else "color_bgr"
+                num_imgs += 1
+        if "images" in f:
+            ts = ds["ts"]
+            for name in _image_names(f["images"]):
+                stamp = f["images"][name].attrs.get("timestamp")
+                if stamp is not None:
+                    f["images"][name].attrs["event_idx"] = max(0, _bisect(ts, float(stamp)) - 1) if n else 0
+        f.attrs.update({"num_events": n, "num_pos": pos, "num_neg": n - pos, "num_imgs": num_imgs, "num_flow": 0,
+                        "t0": (t_first or 0.0) / scale, "tk": (t_last or 0.0) / scale,
+                        "duration": ((t_last or 0.0) - (t_first or 0.0)) / scale,
+                        "sensor_resolution": [int(v) for v in sensor_size], "time_unit": time_unit})

@@ -1,35 +1,51 @@
-"""Our HDF5 dataset format (written by the simulator, the benchmark cache and ``evlatcorr correct``).
+"""Our HDF5 dataset format: written by the simulator, the benchmark cache and ``evlatcorr correct``.
 
-Layout (all times in microseconds, polarity ±1, sensor size (H, W)):
+## The evlatcorr HDF5 format (version 1)
+
+Units and conventions: times in **microseconds**, polarity **±1**, sensor size **(H, W)**,
+images **(F, C, H, W)** linear intensity in [0, 1].
+
+A *sequence group* holds one continuous recording:
 
 ```
-/                       attrs: format="evlatcorr", version=1, sensor_size=[H, W], time_unit="us"
-/events/x, y            uint16 (N,)     column, row
-/events/t               float64 (N,)    sorted, µs (float keeps the simulator's sub-µs times)
-/events/p               int8 (N,)       ±1
-/frames/blurry          float32 (F, C, H, W) in [0, 1], one chunk per frame
-/frames/exposure_start  float64 (F,)
-/frames/exposure_end    float64 (F,)
-/frames/sharp           float32 (F, C, H, W)   optional ground truth at mid-exposure
-/frames/latency         float32 (F, 1, H, W)   optional true latency (µs)
-/frames/estimated_latency float32 (F,)        optional, written by `evlatcorr correct`
-/ideal_events/x, y, t, p                        optional events without latency
-/targets/times          float64 (T,)           optional times of ground-truth frames
-/targets/frames         float32 (T, C, H, W)
+<group>/                   attrs: sensor_size=[H, W]; optional threshold, seed, config (JSON text)
+<group>/events/x, y        uint16 (N,)           column, row of each event
+<group>/events/t           float64 (N,)          µs, sorted (float keeps the simulator's sub-µs times)
+<group>/events/p           int8 (N,)             ±1
+<group>/frames/blurry      (F, C, H, W)          float32 by default (see "image storage")
+<group>/frames/exposure_start, exposure_end     float64 (F,) µs
+<group>/frames/sharp       (F, C, H, W)          optional ground truth at mid-exposure
+<group>/frames/latency     float32 (F, 1, H, W)  optional true latency map (µs)
+<group>/frames/estimated_latency       float32 (F,)          optional, written by `evlatcorr correct`
+<group>/frames/estimated_latency_map   float32 (F, 1, H, W)  optional estimated latency maps (µs)
+<group>/ideal_events/x, y, t, p                  optional events without latency (same layout)
+<group>/targets/times      float64 (T,)          optional times of ground-truth frames (µs)
+<group>/targets/frames     (T, C, H, W)          optional ground-truth frames at those times
 ```
 
-Event datasets are chunked (64 Ki events) and LZF-compressed; readers find a frame's events by
-binary search on ``t``, so memory stays bounded by one frame's window. Writers write to a
-temporary file in the same folder and rename it, so a failed write leaves nothing behind.
+A file is either one sequence (the root group is the sequence group) or a dataset of several:
+`/sequences/0000`, `/sequences/0001`, ... each a sequence group. The root always carries
+`format="evlatcorr"`, `version=1`, `time_unit="us"`, `creator`, and `sensor_size` (of the
+first sequence); a dataset also `num_sequences`.
+
+Storage: event columns are chunked (65,536 events) and compressed (LZF by default; `"gzip"`,
+or `"zstd"`/`"blosc"`/`"lz4"` when the optional `hdf5plugin` package is installed; `None` for
+none). Images are chunked one frame per chunk. Image storage: `float32` (default, exact),
+`float16`, or `uint8`/`uint16` with an attribute `scale` (value = stored × scale). Readers find a
+frame's events by binary search on `t`, reading O(log N) chunks, so memory stays bounded by one
+frame's window. Writers write to a temporary file in the same folder and rename it at the end,
+so a failed write leaves nothing behind.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import h5py
@@ -37,17 +53,60 @@ import numpy as np
 import torch
 
 from evlatcorr.events import Events
-from evlatcorr.io.base import FrameInfo, Recording, RecordingError, structured_events
+from evlatcorr.frames import EventFrames
+from evlatcorr.io.base import (
+    EVENT_DTYPE,
+    FrameInfo,
+    Recording,
+    RecordingError,
+    SegmentEnd,
+    iter_events_as_chunks,
+    structured_events,
+)
 
-__all__ = ["H5Recording", "write_sequence", "read_sequence", "EventWriter", "atomic_path", "is_evlatcorr_h5"]
+__all__ = [
+    "EventWriter",
+    "H5Recording",
+    "atomic_path",
+    "is_evlatcorr_h5",
+    "num_sequences",
+    "read_sequence",
+    "read_sequences",
+    "write_dataset",
+    "write_h5_events",
+    "write_sequence",
+]
 
 FORMAT, VERSION = "evlatcorr", 1
 _CHUNK = 65536
+_PLUGIN_FILTERS = ("zstd", "blosc", "lz4")
+
+
+def _creator() -> str:
+    try:
+        from evlatcorr import __version__
+    except ImportError:  # pragma: no cover
+        __version__ = "?"
+    return f"evlatcorr {__version__}"
+
+
+def _load_plugins() -> bool:
+    """Register the optional hdf5plugin filters (for files compressed with zstd/blosc/lz4)."""
+    try:
+        import hdf5plugin  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """A temporary path next to ``path``, renamed to it only if the block succeeds."""
+    """A temporary path next to ``path``, renamed to ``path`` only if the block succeeds.
+
+    Example:
+        >>> with atomic_path("out.h5") as tmp:  # doctest: +SKIP
+        ...     write_something(tmp)
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -61,7 +120,28 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
+def _compression(compression: str | None) -> dict[str, Any]:
+    if compression is None or compression == "none":
+        return {}
+    if compression == "lzf":
+        return {"compression": "lzf"}
+    if compression == "gzip":
+        return {"compression": "gzip", "compression_opts": 4}
+    if compression in _PLUGIN_FILTERS:
+        if not _load_plugins():
+            raise ValueError(f"compression={compression!r} needs the optional package hdf5plugin "
+                             "(pip install hdf5plugin); use 'lzf' or 'gzip' without it")
+        import hdf5plugin
+
+        return dict({"zstd": hdf5plugin.Zstd(), "blosc": hdf5plugin.Blosc(), "lz4": hdf5plugin.LZ4()}[compression])
+    raise ValueError(f"compression must be None, 'lzf', 'gzip', 'zstd', 'blosc' or 'lz4', got {compression!r}")
+
+
 def is_evlatcorr_h5(path: str | Path) -> bool:
+    """Whether ``path`` is an HDF5 file with ``format="evlatcorr"``."""
+    path = Path(path)
+    if not path.is_file() or not h5py.is_hdf5(path):
+        return False
     try:
         with h5py.File(path, "r") as f:
             return f.attrs.get("format") == FORMAT
@@ -69,140 +149,502 @@ def is_evlatcorr_h5(path: str | Path) -> bool:
         return False
 
 
-class EventWriter:
-    """Appends sorted event chunks to ``/<group>/{x,y,t,p}`` of an open HDF5 file."""
+def _open(path: str | Path) -> h5py.File:
+    _load_plugins()
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read as HDF5 (truncated or corrupt?): {exc}") from exc
 
-    def __init__(self, f: h5py.File, group: str = "events") -> None:
+
+class EventWriter:
+    """Appends time-sorted event chunks to ``<group>/{x,y,t,p}`` of an open HDF5 file.
+
+    Args:
+        f: an HDF5 file or group open for writing.
+        group: name of the group to create.
+        compression: see the module docstring.
+
+    Example:
+        >>> with h5py.File("ev.h5", "w") as f:  # doctest: +SKIP
+        ...     w = EventWriter(f)
+        ...     w.append_events(events)
+    """
+
+    def __init__(self, f: h5py.Group, group: str = "events", compression: str | None = "lzf") -> None:
         g = f.require_group(group)
-        kw = dict(maxshape=(None,), chunks=(_CHUNK,), compression="lzf")
+        kw = dict(maxshape=(None,), chunks=(_CHUNK,), **_compression(compression))
         self.ds = {name: g.create_dataset(name, shape=(0,), dtype=dtype, **kw)
                    for name, dtype in (("x", np.uint16), ("y", np.uint16), ("t", np.float64), ("p", np.int8))}
         self.last = -np.inf
+        self.count = 0
 
     def append(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
+        """Append columns (t in µs, sorted and not before the previous chunk; p ±1 or 0/1)."""
+        t = np.asarray(t, dtype=np.float64)
         if len(t) == 0:
             return
         if t[0] < self.last or np.any(np.diff(t) < 0):
             raise ValueError("EventWriter.append needs events sorted by time, continuing the previous chunk")
-        n = self.ds["t"].shape[0]
+        x, y = np.asarray(x), np.asarray(y)
+        if x.min() < 0 or y.min() < 0 or x.max() > 65535 or y.max() > 65535:
+            raise ValueError("event coordinates must be in [0, 65535] to be stored as uint16")
+        p = np.asarray(p)
+        p = np.where(p > 0, 1, -1).astype(np.int8)
+        n = self.count
         for name, values in (("x", x), ("y", y), ("t", t), ("p", p)):
             self.ds[name].resize((n + len(t),))
             self.ds[name][n:] = values
-        self.last = float(t[-1])
+        self.last, self.count = float(t[-1]), n + len(t)
 
-    def append_events(self, events: Events) -> None:
-        self.append(events.x.cpu().numpy(), events.y.cpu().numpy(), events.t.cpu().numpy(),
-                    events.p.cpu().numpy())
+    def append_events(self, events: Events | np.ndarray) -> None:
+        """Append one sample of :class:`Events` (or a structured chunk)."""
+        for chunk in iter_events_as_chunks(events):
+            self.append(chunk["x"], chunk["y"], chunk["t"], chunk["p"])
 
 
 def _write_header(f: h5py.File, sensor_size: tuple[int, int], **attrs: Any) -> None:
+    """Root attributes of our format (``sensor_size`` as (H, W))."""
     f.attrs["format"], f.attrs["version"] = FORMAT, VERSION
-    f.attrs["sensor_size"] = list(sensor_size)
+    f.attrs["sensor_size"] = [int(v) for v in sensor_size]
     f.attrs["time_unit"] = "us"
+    f.attrs["creator"] = _creator()
     for k, v in attrs.items():
         f.attrs[k] = v
 
 
-def _write_frames(f: h5py.File, name: str, array: torch.Tensor) -> None:
-    a = array.detach().cpu().float().numpy()
-    f.create_dataset(f"frames/{name}", data=a, chunks=(1, *a.shape[1:]), compression="lzf")
+def _numpy(a: Any) -> np.ndarray:
+    return a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
 
 
-def write_sequence(path: str | Path, seq: Any) -> None:
-    """Write a simulated sequence (any object with the fields of ``SimulatedSequence``)."""
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
-        _write_header(f, seq.ideal_events.sensor_size, threshold=float(seq.threshold), seed=int(seq.seed),
-                      config=repr(seq.config))
-        EventWriter(f, "events").append_events(seq.delayed_events)
-        EventWriter(f, "ideal_events").append_events(seq.ideal_events)
-        _write_frames(f, "blurry", seq.blurry)
-        _write_frames(f, "sharp", seq.sharp)
-        _write_frames(f, "latency", seq.true_latency)
-        f["frames/exposure_start"] = seq.exposure_start.cpu().numpy()
-        f["frames/exposure_end"] = seq.exposure_end.cpu().numpy()
-        f["targets/times"] = seq.target_times.cpu().numpy()
-        f.create_dataset("targets/frames", data=seq.target_frames.cpu().float().numpy(), compression="lzf")
+def _write_images(g: h5py.Group, name: str, array: Any, dtype: str = "float32",
+                  compression: str | None = "lzf") -> None:
+    a = _numpy(array).astype(np.float32)
+    if a.ndim != 4:
+        raise ValueError(f"{name} must be (F, C, H, W), got shape {a.shape}")
+    kw = dict(chunks=(1, *a.shape[1:]) if a.shape[0] else None, **_compression(compression))
+    if dtype in ("float32", "float16"):
+        g.create_dataset(name, data=a.astype(dtype), **kw)
+    elif dtype in ("uint8", "uint16"):
+        top = float(np.iinfo(dtype).max)
+        ds = g.create_dataset(name, data=np.round(np.clip(a, 0, 1) * top).astype(dtype), **kw)
+        ds.attrs["scale"] = 1.0 / top
+    else:
+        raise ValueError(f"frames_dtype must be float32, float16, uint8 or uint16, got {dtype!r}")
 
 
-def read_sequence(path: str | Path):
-    """Read back what :func:`write_sequence` wrote, as a ``SimulatedSequence``."""
-    from evlatcorr.simulate import SimulatedSequence
+def _read_images(ds: h5py.Dataset, index: Any = slice(None)) -> np.ndarray:
+    a = ds[index]
+    scale = ds.attrs.get("scale")
+    a = a.astype(np.float32)
+    return a * np.float32(scale) if scale is not None else a
 
-    with h5py.File(path, "r") as f:
-        if f.attrs.get("format") != FORMAT or "ideal_events" not in f:
-            raise RecordingError(f"{path}: not an evlatcorr simulated sequence")
-        size = tuple(int(v) for v in f.attrs["sensor_size"])
 
-        def events(group: str) -> Events:
-            g = f[group]
-            return Events(g["x"][:].astype(np.int64), g["y"][:].astype(np.int64), g["t"][:], g["p"][:],
-                          sensor_size=size)
+def _json(config: Any) -> str:
+    try:
+        return json.dumps(config, sort_keys=True, default=lambda o: o.tolist() if hasattr(o, "tolist") else repr(o))
+    except (TypeError, ValueError):
+        return json.dumps({"repr": repr(config)})
 
-        t = lambda name: torch.from_numpy(f[name][:])  # noqa: E731
-        return SimulatedSequence(
-            blurry=t("frames/blurry"), sharp=t("frames/sharp"), exposure_start=t("frames/exposure_start"),
-            exposure_end=t("frames/exposure_end"), ideal_events=events("ideal_events"),
-            delayed_events=events("events"), true_latency=t("frames/latency"), target_times=t("targets/times"),
-            target_frames=t("targets/frames"), threshold=float(f.attrs["threshold"]), seed=int(f.attrs["seed"]),
-            config={"exposure_us": float(f["frames/exposure_end"][0] - f["frames/exposure_start"][0]),
-                    "source": str(f.attrs.get("config", ""))},
+
+def _sequence_fields(seq: Any) -> SimpleNamespace:
+    """Duck-typed read of a sequence-like object (``SimulatedSequence`` or similar)."""
+    def get(*names: str) -> Any:
+        for n in names:
+            v = getattr(seq, n, None)
+            if v is not None:
+                return v
+        return None
+
+    out = SimpleNamespace(
+        blurry=get("blurry"), exposure_start=get("exposure_start"), exposure_end=get("exposure_end"),
+        events=get("delayed_events", "events"), ideal_events=get("ideal_events"), sharp=get("sharp"),
+        latency=get("true_latency"), target_times=get("target_times"), target_frames=get("target_frames"),
+        threshold=get("threshold"), seed=get("seed"), config=get("config"),
+    )
+    missing = [n for n in ("blurry", "exposure_start", "exposure_end", "events") if getattr(out, n) is None]
+    if missing:
+        raise ValueError(f"write_sequence needs an object with blurry, exposure_start, exposure_end and "
+                         f"delayed_events (or events); {type(seq).__name__} lacks {missing}")
+    return out
+
+
+def _write_sequence_group(g: h5py.Group, seq: Any, compression: str | None, frames_dtype: str) -> None:
+    s = _sequence_fields(seq)
+    blurry = _numpy(s.blurry)
+    if blurry.ndim != 4:
+        raise ValueError(f"blurry must be (F, C, H, W), got shape {blurry.shape}")
+    size = tuple(int(v) for v in blurry.shape[-2:])
+    if isinstance(s.events, Events) and s.events.sensor_size != size:
+        raise ValueError(f"events sensor_size {s.events.sensor_size} differs from the frames' (H, W)={size}")
+    g.attrs["sensor_size"] = list(size)
+    if s.threshold is not None:
+        g.attrs["threshold"] = float(s.threshold)
+    if s.seed is not None:
+        g.attrs["seed"] = int(s.seed)
+    if s.config is not None:
+        g.attrs["config"] = _json(s.config)
+    EventWriter(g, "events", compression).append_events(s.events)
+    if s.ideal_events is not None:
+        EventWriter(g, "ideal_events", compression).append_events(s.ideal_events)
+    _write_images(g, "frames/blurry", blurry, frames_dtype, compression)
+    start, end = _numpy(s.exposure_start).astype(np.float64), _numpy(s.exposure_end).astype(np.float64)
+    if start.shape != (blurry.shape[0],) or end.shape != start.shape:
+        raise ValueError(f"exposure_start/end must be ({blurry.shape[0]},), got {start.shape} and {end.shape}")
+    g["frames/exposure_start"], g["frames/exposure_end"] = start, end
+    if s.sharp is not None:
+        _write_images(g, "frames/sharp", s.sharp, frames_dtype, compression)
+    if s.latency is not None:
+        g.create_dataset("frames/latency", data=_numpy(s.latency).astype(np.float32), **_compression(compression))
+    est = getattr(seq, "estimated_latency_map", None)
+    if est is not None:
+        g.create_dataset("frames/estimated_latency_map", data=_numpy(est).astype(np.float32),
+                         **_compression(compression))
+    if s.target_times is not None:
+        g["targets/times"] = _numpy(s.target_times).astype(np.float64).reshape(-1)
+        if s.target_frames is not None:
+            _write_images(g, "targets/frames", _numpy(s.target_frames).reshape(-1, *blurry.shape[1:]),
+                          frames_dtype, compression)
+
+
+def write_sequence(path_or_group: str | Path | h5py.Group, seq: Any, compression: str | None = "lzf",
+                   frames_dtype: str = "float32") -> None:
+    """Write one sequence: a ``SimulatedSequence`` or any object with its fields.
+
+    Fields read (duck typing): ``blurry`` (F, C, H, W), ``exposure_start``/``exposure_end`` (F,) µs,
+    ``delayed_events`` (or ``events``; one sample), and optionally ``ideal_events``, ``sharp``,
+    ``true_latency`` (F, 1, H, W), ``target_times`` (T,), ``target_frames`` (T, C, H, W),
+    ``threshold``, ``seed``, ``config`` (stored as JSON).
+
+    Args:
+        path_or_group: a file path (written atomically; the root is the sequence) or an open
+            ``h5py.Group`` to write into.
+        seq: the sequence.
+        compression: ``"lzf"`` (default), ``"gzip"``, ``None``, or a hdf5plugin filter name.
+        frames_dtype: image storage, ``"float32"`` (default, lossless), ``"float16"``, ``"uint8"``, ``"uint16"``.
+
+    Example:
+        >>> from evlatcorr.simulate import simulate  # doctest: +SKIP
+        >>> write_sequence("seq.h5", simulate("camera", num_frames=3))  # doctest: +SKIP
+        >>> read_sequence("seq.h5").num_frames  # doctest: +SKIP
+        3
+    """
+    if isinstance(path_or_group, h5py.Group):
+        _write_sequence_group(path_or_group, seq, compression, frames_dtype)
+        return
+    with atomic_path(path_or_group) as tmp, h5py.File(tmp, "w") as f:
+        _write_sequence_group(f, seq, compression, frames_dtype)
+        _write_header(f, tuple(f.attrs["sensor_size"]))
+
+
+def _frames_as_sequences(frames: EventFrames) -> Iterator[SimpleNamespace]:
+    """Each sample of an ``EventFrames`` batch as a one-frame sequence."""
+    for i in range(frames.batch_size):
+        yield SimpleNamespace(
+            blurry=frames.blurry[i:i + 1], exposure_start=frames.exposure_start[i:i + 1],
+            exposure_end=frames.exposure_end[i:i + 1], events=frames.events.sample(i),
+            sharp=None if frames.sharp is None else frames.sharp[i:i + 1],
+            estimated_latency_map=None if frames.latency is None else frames.latency[i:i + 1],
+            target_times=None if frames.target_times is None else frames.target_times[i],
+            target_frames=None if frames.target_frames is None else frames.target_frames[i],
+            config={k: v for k, v in frames.meta.items() if isinstance(v, (str, int, float, bool))},
         )
 
 
-def _bisect(ds: h5py.Dataset, value: float) -> int:
+def write_dataset(path: str | Path, items: Any, compression: str | None = "lzf",
+                  frames_dtype: str = "float32", **attrs: Any) -> int:
+    """Write several sequences to one file, as ``/sequences/0000``, ``/sequences/0001``, ...
+
+    Args:
+        path: output file (written atomically).
+        items: sequence-like objects (see :func:`write_sequence`), :class:`EventFrames` batches
+            (each sample becomes a one-frame sequence with its window's events), or one of either.
+        compression: see :func:`write_sequence`.
+        frames_dtype: see :func:`write_sequence`.
+        **attrs: extra root attributes (str, numbers).
+
+    Returns:
+        The number of sequences written.
+
+    Example:
+        >>> write_dataset("test_set.h5", [seq_a, seq_b])  # doctest: +SKIP
+        2
+        >>> [s.num_frames for s in read_sequences("test_set.h5")]  # doctest: +SKIP
+    """
+    if isinstance(items, EventFrames) or hasattr(items, "blurry"):
+        items = [items]
+    count, size = 0, None
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        for item in items:
+            for seq in (_frames_as_sequences(item) if isinstance(item, EventFrames) else [item]):
+                g = f.create_group(f"sequences/{count:04d}")
+                _write_sequence_group(g, seq, compression, frames_dtype)
+                size = size or tuple(g.attrs["sensor_size"])
+                count += 1
+        if count == 0:
+            raise ValueError("write_dataset needs at least one sequence")
+        _write_header(f, size, num_sequences=count, **attrs)
+    return count
+
+
+def write_h5_events(path: str | Path, events: Events | Iterable[Events | np.ndarray],
+                    like: Recording | None = None, sensor_size: tuple[int, int] | None = None,
+                    compression: str | None = "lzf", **attrs: Any) -> None:
+    """Write events (e.g. latency-corrected ones) in our format, with the frames of ``like``.
+
+    Args:
+        path: output file (written atomically).
+        events: one sample of :class:`Events`, or an iterable of time-sorted chunks (``Events``
+            or structured arrays) for outputs larger than memory.
+        like: a recording whose frames (images and exposures, streamed) are copied.
+        sensor_size: ``(H, W)``; defaults to ``like``'s or the events'.
+        compression: see :func:`write_sequence`.
+        **attrs: extra root attributes.
+    """
+    if sensor_size is None:
+        if like is not None:
+            sensor_size = like.sensor_size
+        elif isinstance(events, Events):
+            sensor_size = events.sensor_size
+        else:
+            raise ValueError("write_h5_events needs sensor_size (or like=) when given chunks")
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        _write_header(f, sensor_size, **attrs)
+        writer = EventWriter(f, "events", compression)
+        for chunk in iter_events_as_chunks(events):
+            writer.append(chunk["x"], chunk["y"], chunk["t"], chunk["p"])
+        if like is not None:
+            _copy_frames(f, like, compression)
+
+
+def _copy_frames(f: h5py.File, rec: Recording, compression: str | None) -> None:
+    starts, ends, ds, sharp = [], [], None, None
+    for info in rec.frames():
+        img = np.asarray(info.image, dtype=np.float32)
+        if ds is None:
+            ds = f.create_dataset("frames/blurry", shape=(0, *img.shape), maxshape=(None, *img.shape),
+                                  dtype=np.float32, chunks=(1, *img.shape), **_compression(compression))
+            if info.sharp is not None:
+                sharp = f.create_dataset("frames/sharp", shape=(0, *img.shape), maxshape=(None, *img.shape),
+                                         dtype=np.float32, chunks=(1, *img.shape), **_compression(compression))
+        n = ds.shape[0]
+        ds.resize((n + 1, *img.shape))
+        ds[n] = img
+        if sharp is not None and info.sharp is not None:
+            sharp.resize((n + 1, *img.shape))
+            sharp[n] = info.sharp
+        starts.append(info.exposure_start)
+        ends.append(info.exposure_end)
+    f["frames/exposure_start"] = np.asarray(starts, dtype=np.float64)
+    f["frames/exposure_end"] = np.asarray(ends, dtype=np.float64)
+
+
+# reading ------------------------------------------------------------------------------------------
+def _sequence_groups(f: h5py.File, path: Any) -> list[str]:
+    if f.attrs.get("format") != FORMAT:
+        raise RecordingError(f"{path}: not an evlatcorr HDF5 file (attribute format={f.attrs.get('format')!r})")
+    version = int(f.attrs.get("version", 0))
+    if version > VERSION:
+        raise RecordingError(f"{path}: format version {version} is newer than this reader ({VERSION})")
+    if "frames" in f or "events" in f:
+        return ["/"]
+    if "sequences" in f:
+        names = sorted(f["sequences"].keys())
+        if names:
+            return [f"sequences/{n}" for n in names]
+    raise RecordingError(f"{path}: no sequence in this file (neither /frames nor /sequences/NNNN)")
+
+
+def _require(g: h5py.Group, names: Iterable[str], path: Any, group: str) -> None:
+    for name in names:
+        if name not in g:
+            where = "" if group == "/" else f" in /{group}"
+            raise RecordingError(f"{path}: missing dataset /{name}{where}")
+
+
+def num_sequences(path: str | Path) -> int:
+    """Number of sequences in one of our files (1 for a single-sequence file)."""
+    with _open(path) as f:
+        return len(_sequence_groups(f, path))
+
+
+def _read_events(g: h5py.Group, size: tuple[int, int]) -> Events:
+    return Events(g["x"][:].astype(np.int64), g["y"][:].astype(np.int64), g["t"][:], g["p"][:], sensor_size=size)
+
+
+def _read_sequence_group(f: h5py.File, name: str, path: Any) -> Any:
+    from evlatcorr.simulate import SimulatedSequence
+
+    g = f[name]
+    needed = ("events/t", "ideal_events/t", "frames/blurry", "frames/sharp", "frames/exposure_start",
+              "frames/exposure_end", "frames/latency", "targets/times", "targets/frames")
+    missing = [n for n in needed if n not in g]
+    if missing:
+        raise RecordingError(f"{path}: /{name.strip('/')} is not a simulated sequence (missing {missing})")
+    size = tuple(int(v) for v in g.attrs.get("sensor_size", f.attrs["sensor_size"]))
+    try:
+        config = json.loads(g.attrs.get("config", "{}"))
+    except (TypeError, ValueError):
+        config = {"source": str(g.attrs.get("config"))}
+    start, end = g["frames/exposure_start"][:], g["frames/exposure_end"][:]
+    if isinstance(config, dict) and "exposure_us" not in config and len(start):
+        config["exposure_us"] = float(end[0] - start[0])
+    t = lambda n: torch.from_numpy(_read_images(g[n]) if n.endswith(("blurry", "sharp", "frames")) else g[n][:])  # noqa: E731
+    return SimulatedSequence(
+        blurry=t("frames/blurry"), sharp=t("frames/sharp"), exposure_start=torch.from_numpy(start),
+        exposure_end=torch.from_numpy(end), ideal_events=_read_events(g["ideal_events"], size),
+        delayed_events=_read_events(g["events"], size), true_latency=t("frames/latency"),
+        target_times=t("targets/times"), target_frames=t("targets/frames"),
+        threshold=float(g.attrs.get("threshold", 0.2)), seed=int(g.attrs.get("seed", 0)), config=config,
+    )
+
+
+def read_sequence(path: str | Path, index: int = 0) -> Any:
+    """Read back a sequence written by :func:`write_sequence` / :func:`write_dataset` as a ``SimulatedSequence``.
+
+    Args:
+        path: the file.
+        index: which sequence of a dataset file (0 for a single-sequence file).
+    """
+    with _open(path) as f:
+        groups = _sequence_groups(f, path)
+        if not -len(groups) <= index < len(groups):
+            raise IndexError(f"{path}: sequence {index} out of range ({len(groups)} sequences)")
+        return _read_sequence_group(f, groups[index], path)
+
+
+def read_sequences(path: str | Path) -> Iterator[Any]:
+    """Every sequence of a file, one at a time (``SimulatedSequence`` objects)."""
+    for i in range(num_sequences(path)):
+        yield read_sequence(path, i)
+
+
+def _bisect(ds: h5py.Dataset, value: float, lo: int = 0, hi: int | None = None) -> int:
     """First index with ``ds[i] >= value`` in a sorted 1-D dataset, reading O(log N) chunks."""
-    lo, hi = 0, ds.shape[0]
+    hi = ds.shape[0] if hi is None else hi
     while hi - lo > _CHUNK:
         mid = (lo + hi) // 2
         if ds[mid] < value:
             lo = mid + 1
         else:
             hi = mid
-    block = ds[lo:hi]
-    return lo + int(np.searchsorted(block, value, side="left"))
+    return lo + int(np.searchsorted(ds[lo:hi], value, side="left"))
 
 
 class H5Recording(Recording):
-    """Reader of our HDF5 format (see the module docstring for the layout)."""
+    """Reader of our HDF5 format (see the module docstring for the layout).
+
+    Frames and events are read lazily: a frame's events by binary search on ``t``, so
+    :meth:`frame` and :meth:`events_between` read only what they return.
+
+    Args:
+        path: the ``.h5`` file.
+        before_us: events to include before exposure start (µs).
+        after_us: events to include after exposure end (µs); ``None``: the exposure time.
+        sequence: which sequence of a dataset file; ``None``: all of them, as segments.
+        chunk_events: events per read when streaming.
+        group: the event group to read, ``"events"`` (default) or ``"ideal_events"``.
+
+    Example:
+        >>> rec = H5Recording("seq.h5", after_us=20_000)  # doctest: +SKIP
+        >>> batch = rec.frame(1)  # doctest: +SKIP
+    """
 
     format_name = "evlatcorr-h5"
+    random_access = True
 
     def __init__(self, path: str | Path, before_us: float = 0.0, after_us: float | None = None,
-                 chunk_events: int = 1 << 20) -> None:
+                 sequence: int | None = None, chunk_events: int = 1 << 20, group: str = "events") -> None:
         super().__init__(path, before_us, after_us)
-        self.chunk_events = chunk_events
-        try:
-            with h5py.File(self.path, "r") as f:
-                if f.attrs.get("format") != FORMAT:
-                    raise RecordingError(f"{self.path}: not an evlatcorr HDF5 file (attribute format="
-                                         f"{f.attrs.get('format')!r})")
-                self.sensor_size = tuple(int(v) for v in f.attrs["sensor_size"])
-                for name in ("events/t", "frames/blurry", "frames/exposure_start", "frames/exposure_end"):
-                    if name not in f:
-                        raise RecordingError(f"{self.path}: missing dataset /{name}")
-        except OSError as exc:
-            raise RecordingError(f"{self.path}: cannot read as HDF5 ({exc})") from exc
+        if chunk_events < 1:
+            raise ValueError(f"chunk_events must be >= 1, got {chunk_events}")
+        self.chunk_events, self.event_group = int(chunk_events), group
+        with _open(self.path) as f:
+            groups = _sequence_groups(f, self.path)
+            if sequence is not None:
+                if not -len(groups) <= sequence < len(groups):
+                    raise RecordingError(f"{self.path}: sequence {sequence} out of range ({len(groups)} sequences)")
+                groups = [groups[sequence]]
+            sizes = set()
+            for name in groups:
+                g = f[name]
+                _require(g, (f"{group}/t", f"{group}/x", f"{group}/y", f"{group}/p", "frames/blurry",
+                             "frames/exposure_start", "frames/exposure_end"), self.path, name)
+                sizes.add(tuple(int(v) for v in g.attrs.get("sensor_size", f.attrs.get("sensor_size", (0, 0)))))
+            if len(sizes) != 1:
+                raise RecordingError(f"{self.path}: sequences of different sensor sizes {sorted(sizes)}; "
+                                     "open one at a time with sequence=")
+            self.sensor_size = sizes.pop()
+        self.groups = groups
+        self.segment_names = [] if len(groups) == 1 else list(groups)
+
+    def _read_frame_times(self) -> list[tuple[float, float, int]]:
+        times = []
+        with _open(self.path) as f:
+            for seg, name in enumerate(self.groups):
+                start, end = f[name]["frames/exposure_start"][:], f[name]["frames/exposure_end"][:]
+                times.extend((float(a), float(b), seg) for a, b in zip(start, end))
+        return times
+
+    def _locate(self, index: int) -> tuple[int, int]:
+        """(segment, index inside the segment) of a recording-wide frame index."""
+        times = self.frame_times()
+        seg = times[index][2]
+        first = next(i for i, (_, _, s) in enumerate(times) if s == seg)
+        return seg, index - first
+
+    def _frame_info(self, f: h5py.File, seg: int, local: int, index: int) -> FrameInfo:
+        g = f[self.groups[seg]]
+        start, end = float(g["frames/exposure_start"][local]), float(g["frames/exposure_end"][local])
+        image = _read_images(g["frames/blurry"], local)
+        sharp = _read_images(g["frames/sharp"], local) if "frames/sharp" in g else None
+        meta = {"sequence": self.groups[seg]} if len(self.groups) > 1 else {}
+        if "frames/latency" in g:
+            meta["true_latency"] = torch.from_numpy(g["frames/latency"][local].astype(np.float32))[None]
+        return FrameInfo(index, start, end, image, sharp=sharp, segment=seg, meta=meta)
 
     def frames(self) -> Iterator[FrameInfo]:
-        with h5py.File(self.path, "r") as f:
-            start, end = f["frames/exposure_start"][:], f["frames/exposure_end"][:]
-            for i in range(len(start)):
-                if not end[i] > start[i]:
-                    raise RecordingError(f"{self.path}: frame {i} has exposure end {end[i]} <= start {start[i]}")
-                yield FrameInfo(i, float(start[i]), float(end[i]), f["frames/blurry"][i])
+        with _open(self.path) as f:
+            index = 0
+            for seg, name in enumerate(self.groups):
+                for local in range(f[name]["frames/exposure_start"].shape[0]):
+                    yield self._frame_info(f, seg, local, index)
+                    index += 1
 
-    def iter_event_chunks(self, group: str = "events") -> Iterator[np.ndarray]:
-        with h5py.File(self.path, "r") as f:
-            g = f[group]
-            n = g["t"].shape[0]
-            for i in range(0, n, self.chunk_events):
-                j = min(n, i + self.chunk_events)
-                yield structured_events(g["x"][i:j], g["y"][i:j], g["t"][i:j], g["p"][i:j])
+    def _segmented_chunks(self) -> Iterator[np.ndarray | SegmentEnd]:
+        with _open(self.path) as f:
+            for seg, name in enumerate(self.groups):
+                if seg:
+                    yield SegmentEnd()
+                g = f[name][self.event_group]
+                n = g["t"].shape[0]
+                for i in range(0, n, self.chunk_events):
+                    j = min(n, i + self.chunk_events)
+                    yield structured_events(g["x"][i:j], g["y"][i:j], g["t"][i:j], g["p"][i:j])
 
-    def events_between(self, t0: float, t1: float, group: str = "events") -> Events:
-        """Events with ``t0 <= t < t1`` (binary search, reads only that slice)."""
-        with h5py.File(self.path, "r") as f:
-            g = f[group]
-            i, j = _bisect(g["t"], t0), _bisect(g["t"], t1)
-            arr = structured_events(g["x"][i:j], g["y"][i:j], g["t"][i:j], g["p"][i:j])
-        return Events.from_numpy(arr, sensor_size=self.sensor_size)
+    def _slice(self, f: h5py.File, seg: int, t0: float, t1: float) -> np.ndarray:
+        g = f[self.groups[seg]][self.event_group]
+        i = _bisect(g["t"], t0)
+        j = _bisect(g["t"], t1, lo=i)
+        if j == i:
+            return np.zeros(0, dtype=EVENT_DTYPE)
+        return structured_events(g["x"][i:j], g["y"][i:j], g["t"][i:j], g["p"][i:j])
+
+    def events_between(self, t0: float, t1: float, segment: int | None = None) -> Events:
+        """Events with ``t0 <= t < t1`` (µs) by binary search: reads only that slice."""
+        if not t1 >= t0:
+            raise ValueError(f"events_between needs t1 >= t0, got [{t0}, {t1})")
+        seg = self._resolve_segment(segment)
+        with _open(self.path) as f:
+            return Events.from_numpy(self._slice(f, seg, t0, t1), sensor_size=self.sensor_size)
+
+    def _frame_random_access(self, index: int) -> EventFrames:
+        seg, local = self._locate(index)
+        with _open(self.path) as f:
+            info = self._frame_info(f, seg, local, index)
+            lo, hi = self.window(info.exposure_start, info.exposure_end)
+            events = self._slice(f, seg, lo, hi)
+            t = f[self.groups[seg]][self.event_group]["t"]
+            first, last = (float(t[0]), float(t[-1])) if t.shape[0] else (None, -np.inf)
+        self._warn_coverage(info, lo, hi, events, first, last, exhausted=last < hi)
+        return self._batch(info, events, lo, hi)

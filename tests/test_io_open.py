@@ -1,0 +1,75 @@
+"""``open_recording`` (format sniffing) and ``write_events`` (writing back in the input's format)."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from evlatcorr.io import (
+    EventUtilsRecording,
+    H5Recording,
+    RecordingError,
+    open_recording,
+    write_events,
+    write_sequence,
+)
+from tests.test_io_h5 import fake_sequence
+
+
+@pytest.fixture()
+def ours(tmp_path):
+    path = tmp_path / "ours.h5"
+    write_sequence(path, fake_sequence())
+    return path
+
+
+def test_sniffs_by_content_not_extension(tmp_path, ours):
+    renamed = tmp_path / "recording.dat"
+    renamed.write_bytes(ours.read_bytes())
+    assert isinstance(open_recording(renamed), H5Recording)
+    assert isinstance(open_recording(str(ours)), H5Recording)
+
+
+def test_unknown_and_missing(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nothing.h5: no such file"):
+        open_recording(tmp_path / "nothing.h5")
+    junk = tmp_path / "junk.bin"
+    junk.write_bytes(b"\x00\x01 not a recording")
+    with pytest.raises(RecordingError, match="junk.bin: unknown format \\(supported: AEDAT4"):
+        open_recording(junk)
+    fake = tmp_path / "fake.h5"
+    fake.write_bytes(b"not hdf5 at all")
+    with pytest.raises(RecordingError, match="fake.h5: named like HDF5 but has no HDF5 signature"):
+        open_recording(fake)
+    with h5py.File(tmp_path / "other.h5", "w") as f:
+        f["something"] = [1, 2]
+    with pytest.raises(RecordingError, match="other.h5: unknown format: an HDF5 file with top-level \\['something'\\]"):
+        open_recording(tmp_path / "other.h5")
+    (tmp_path / "emptydir").mkdir()
+    with pytest.raises(RecordingError, match="emptydir: unknown format: a folder"):
+        open_recording(tmp_path / "emptydir")
+
+
+def test_reader_options_are_checked(ours):
+    with pytest.raises(TypeError, match="read by H5Recording, which does not take \\['exposure_us'\\]"):
+        open_recording(ours, exposure_us=100.0)
+    assert open_recording(ours, sequence=0, after_us=10.0).after_us == 10.0
+
+
+def test_write_events_picks_the_input_format(tmp_path, ours):
+    seq = fake_sequence()
+    rec = H5Recording(ours)
+    assert write_events(tmp_path / "a.h5", seq.delayed_events, like=rec) == "evlatcorr"
+    assert isinstance(open_recording(tmp_path / "a.h5"), H5Recording)
+    assert write_events(tmp_path / "b.h5", seq.delayed_events, like=rec, format="event_utils") == "event_utils"
+    eu = open_recording(tmp_path / "b.h5")
+    assert isinstance(eu, EventUtilsRecording) and eu.num_frames == 3
+    assert write_events(tmp_path / "c.h5", seq.delayed_events, like=eu) == "event_utils"
+    back = EventUtilsRecording(tmp_path / "c.h5")
+    torch.testing.assert_close(back.events_between(-1e9, 1e9).t, seq.delayed_events.t, rtol=0, atol=1e-3)
+    with pytest.raises(ValueError, match="format must be"):
+        write_events(tmp_path / "d.h5", seq.delayed_events, format="aedat4")
+    assert not (tmp_path / "d.h5").exists()
+    np.testing.assert_array_equal([f.index for f in back.frames()], [0, 1, 2])
