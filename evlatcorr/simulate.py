@@ -1,41 +1,49 @@
 """Event simulator with known latency, from the photographs scikit-image ships.
 
-A photograph is seen by a camera under a random smooth motion (translation with a gentle
-wobble, a slow rotation and zoom, rendered with Kornia warps). At small time steps the
-simulator renders the colour frame, takes its luminance, and emits an event each time the
-log-luminance of a pixel crosses a multiple of the contrast threshold since its last event,
-with the crossing time interpolated linearly inside the step (as ESIM does). Blurry frames are
-the mean of the colour frames over each exposure.
+A photograph is seen by a camera under a random smooth motion: a drift in a random direction with
+a gentle wobble (sums of low-frequency sinusoids), a small rotation and a small zoom, rendered
+with Kornia's ``warp_affine``. At small time steps (≤ 0.3 px of image motion per step) the
+simulator renders the luminance ``Y = 0.299 R + 0.587 G + 0.114 B`` and emits an event each time
+``log(Y + 1e-3)`` of a pixel crosses a multiple of the contrast threshold away from its last
+event's level, the crossing time interpolated linearly inside the step (as ESIM does). Colour is
+kept for the frames: blurry frames are the time average of the colour frames over each exposure
+(exact for frames varying linearly between steps), sharp frames are rendered at mid-exposure and
+at any requested time.
 
 Latency models (``latency=``):
 
 - ``"none"``: delayed events are the ideal events.
 - ``"constant"``: delayed events are the ideal events stamped ``latency_us`` later.
-- ``"intensity_delay"``: each ideal event is delayed by ``τ`` (the formula below) at its pixel,
-  evaluated on the blurry frame nearest in time: a clean per-pixel ground truth for evaluating
-  latency maps, without the filter's smoothing.
-- ``"intensity"``: each pixel's photoreceptor is a first-order low-pass filter on the
-  log-luminance whose time constant is inversely proportional to the pixel's intensity,
-  ``τ = clip(latency_range_us[0] / I, *latency_range_us)`` with ``I`` the linear intensity in
-  [0, 1] (as in v2e and IEBCS): bright pixels (I = 1) lag by ≈ 0.5 ms, dim ones up to 10 ms. The
-  delayed events are those of the filtered signal. A first-order filter following a ramp lags
-  it by exactly ``τ``, so the true latency map reported is ``τ`` at the pixel's intensity
-  averaged over the exposure (the blurry frame's luminance): the quantity a method can estimate.
+- ``"intensity"``: each pixel's photoreceptor is a first-order low-pass filter on the log-luminance
+  whose time constant is inversely proportional to the pixel's linear intensity ``I`` in [0, 1]
+  (as in v2e and IEBCS), ``τ = clip(latency_range_us[0] / I, *latency_range_us)``: bright pixels
+  (I = 1) lag by ``latency_range_us[0]`` (0.5 ms by default), dim ones up to
+  ``latency_range_us[1]`` (10 ms). The filter is updated exactly for an input that is linear
+  between steps, and it is run over a warm-up of ``4 τ_max`` before the first event so it starts
+  in its steady state. The delayed events are the threshold crossings of the *filtered* signal;
+  the ideal events those of the unfiltered one. A first-order filter following a ramp lags it by
+  exactly ``τ`` (and, for any monotone change, the level-crossing times lag by ``τ`` on average),
+  so the true latency map reported is ``τ`` at the pixel's intensity averaged over the exposure,
+  i.e. computed from the blurry frame's luminance: the quantity a method can estimate from it.
+- ``"intensity_delay"``: each ideal event is delayed by that same map (of the frame nearest in
+  time) at its pixel: an exact per-pixel ground truth, without the filter's smoothing.
 
-Everything random comes from one ``torch.Generator`` seeded by ``seed``.
+Shot noise (``noise_rate_hz``) is added, undelayed, to both streams. Everything random comes from
+one ``torch.Generator`` seeded by ``seed``, so a seed gives identical events.
 """
 
 from __future__ import annotations
 
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import kornia
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from evlatcorr.events import Events
@@ -44,7 +52,9 @@ from evlatcorr.frames import EventFrames
 __all__ = [
     "PHOTOGRAPHS_TRAIN",
     "PHOTOGRAPHS_TEST",
+    "LATENCY_MODELS",
     "load_photograph",
+    "luminance",
     "simulate",
     "simulate_dataset",
     "SimulatedSequence",
@@ -58,51 +68,80 @@ _FILES = {
     "retina": "retina.jpg", "immunohistochemistry": "ihc.png", "moon": "moon.png", "coins": "coins.png",
     "page": "page.png", "text": "text.png", "grass": "grass.png", "cell": "cell.png",
 }
+_ALIASES = {"ihc": "immunohistochemistry"}
 PHOTOGRAPHS_TEST = ("astronaut", "coffee", "chelsea", "rocket", "camera", "motorcycle_right", "brick", "gravel")
 PHOTOGRAPHS_TRAIN = ("motorcycle_left", "hubble_deep_field", "retina", "immunohistochemistry", "moon", "coins",
                      "page", "text", "grass", "cell")
-_LATENCY_MODELS = ("none", "constant", "intensity", "intensity_delay")
-_LOG_EPS = 1e-3  # log(I + eps): dark pixels do not fire on noise-level changes
+LATENCY_MODELS = ("none", "constant", "intensity", "intensity_delay")
+_LOG_EPS = 1e-3  # log(Y + eps): dark pixels do not fire on noise-level changes
+_MAX_DT_US = 200.0  # longest time step, whatever the motion
+_STEP_PX = 0.3  # longest image motion per step
 
 
-def load_photograph(name: str) -> Tensor:
+def luminance(rgb: Tensor) -> Tensor:
+    """Luminance ``0.299 R + 0.587 G + 0.114 B`` of images :math:`(..., 3, H, W)` as :math:`(..., 1, H, W)`.
+
+    Example:
+        >>> luminance(torch.ones(2, 3, 4, 5)).shape
+        torch.Size([2, 1, 4, 5])
+    """
+    if rgb.dim() < 3 or rgb.shape[-3] != 3:
+        raise ValueError(f"rgb must have shape (..., 3, H, W), got {tuple(rgb.shape)}")
+    return 0.299 * rgb[..., 0:1, :, :] + 0.587 * rgb[..., 1:2, :, :] + 0.114 * rgb[..., 2:3, :, :]
+
+
+def load_photograph(name: str, gain: float = 1.0) -> Tensor:
     """A scikit-image photograph as linear RGB :math:`(3, H, W)` in [0, 1] (grey repeated to 3 channels).
+
+    The 8-bit values are taken as linear intensities (no gamma), scaled by ``gain`` and clipped to
+    [0, 1], so ``gain < 1`` gives a dim scene.
+
+    Args:
+        name: one of :data:`PHOTOGRAPHS_TRAIN` or :data:`PHOTOGRAPHS_TEST` (``"ihc"`` is accepted too).
+        gain: intensity scale, > 0.
 
     Example:
         >>> load_photograph("camera").shape
         torch.Size([3, 512, 512])
     """
-    if name not in _FILES:
+    key = _ALIASES.get(name, name) if isinstance(name, str) else name
+    if key not in _FILES:
         raise ValueError(f"unknown photograph {name!r}; choose from {sorted(_FILES)}")
+    if not gain > 0 or not math.isfinite(gain):
+        raise ValueError(f"gain must be a positive number, got {gain}")
     import skimage.data
     import skimage.io
 
-    path = os.path.join(os.path.dirname(skimage.data.__file__), _FILES[name])
+    path = os.path.join(os.path.dirname(skimage.data.__file__), _FILES[key])
     img = np.asarray(skimage.io.imread(path))
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
-    img = img[..., :3].astype(np.float32)
-    img /= 255.0 if img.max() > 1.0 else 1.0
-    return torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1).contiguous()
+    img = img[..., :3]
+    scale = float(np.iinfo(img.dtype).max) if np.issubdtype(img.dtype, np.integer) else 1.0
+    out = torch.from_numpy(np.ascontiguousarray(img.astype(np.float32) / scale)).permute(2, 0, 1).contiguous()
+    return (out * gain).clamp_(0.0, 1.0)
 
 
-@dataclass
+@dataclass(eq=False)
 class SimulatedSequence:
     """Ground truth and inputs of one simulated sequence of ``F`` frames.
 
     Attributes:
-        blurry: :math:`(F, 3, H, W)` mean of the frames over each exposure, in [0, 1].
+        blurry: :math:`(F, 3, H, W)` mean of the colour frames over each exposure, in [0, 1].
         sharp: :math:`(F, 3, H, W)` frames at mid-exposure.
         exposure_start: :math:`(F,)` µs (float64).
         exposure_end: :math:`(F,)` µs.
-        ideal_events: events with exact timestamps (one sample, the whole sequence).
-        delayed_events: the same scene's events with latency.
+        ideal_events: events with exact timestamps (one sample, the whole sequence, time-sorted).
+        delayed_events: the same scene's events with latency (one sample, time-sorted).
         true_latency: :math:`(F, 1, H, W)` µs.
         target_times: :math:`(T,)` µs, times of ``target_frames`` (the gaps' midpoints, then any requested).
         target_frames: :math:`(T, 3, H, W)` sharp frames at ``target_times``.
-        threshold: contrast threshold used.
+        threshold: contrast threshold used (the mean when ``threshold_sigma > 0``).
         seed: the seed.
-        config: every simulation parameter.
+        config: every simulation parameter (JSON-serialisable).
+        threshold_map: :math:`(1, 1, H, W)` per-pixel thresholds (``None`` when read from a file).
+        renderer: renders sharp frames at given times (µs) as :math:`(T, 3, H, W)`; ``None`` when
+            read from a file. Use :meth:`render`.
     """
 
     blurry: Tensor
@@ -117,134 +156,326 @@ class SimulatedSequence:
     threshold: float
     seed: int
     config: dict[str, Any] = field(default_factory=dict)
+    threshold_map: Tensor | None = None
+    renderer: Callable[[Tensor], Tensor] | None = field(default=None, repr=False)
 
     @property
     def num_frames(self) -> int:
         return int(self.blurry.shape[0])
+
+    @property
+    def sensor_size(self) -> tuple[int, int]:
+        return int(self.blurry.shape[-2]), int(self.blurry.shape[-1])
+
+    def render(self, times: Sequence[float] | Tensor) -> Tensor:
+        """Sharp colour frames :math:`(T, 3, H, W)` at ``times`` (µs), from the simulated camera.
+
+        Example:
+            >>> seq = simulate("camera", num_frames=1, height=16, width=20, exposure_us=2000.0)
+            >>> seq.render([0.0, 1000.0]).shape
+            torch.Size([2, 3, 16, 20])
+        """
+        if self.renderer is None:
+            raise ValueError("this sequence cannot render new frames (it was read from a file); "
+                             "only its stored target_times are available")
+        t = torch.as_tensor(times, dtype=torch.float64).flatten().cpu()
+        if not bool(torch.isfinite(t).all()):
+            raise ValueError("times must be finite")
+        return self.renderer(t)
 
     def _events(self, which: str) -> Events:
         if which not in ("delayed", "ideal"):
             raise ValueError(f"which must be 'delayed' or 'ideal', got {which!r}")
         return self.delayed_events if which == "delayed" else self.ideal_events
 
-    def _windows(self, events: Events, starts: Tensor, ends: Tensor) -> Events:
-        parts = [events.window(float(s), float(e)) for s, e in zip(starts, ends)]
-        return Events.cat(parts)
+    @staticmethod
+    def _windows(events: Events, starts: Tensor, ends: Tensor) -> Events:
+        return Events.cat([events.window(float(s), float(e)) for s, e in zip(starts, ends)])
+
+    def _margins(self, before_us: float, after_us: float | None) -> tuple[float, Tensor]:
+        exposure = (self.exposure_end - self.exposure_start).to(torch.float64)
+        after = exposure if after_us is None else torch.full_like(exposure, float(after_us))
+        if not (math.isfinite(before_us) and before_us >= 0) or not bool(((after >= 0) & after.isfinite()).all()):
+            raise ValueError(f"before_us and after_us must be finite and >= 0, got {before_us}, {after_us}")
+        return float(before_us), after
 
     def frames(self, which: str = "delayed", before_us: float = 0.0, after_us: float | None = None) -> EventFrames:
-        """Deblurring batch: one sample per frame, events of ``[start - before, end + after)``.
+        """Deblurring batch: one sample per frame (``B = F``), events of ``[start - before, end + after)``.
 
-        ``after_us`` defaults to the exposure time, the default latency search range.
+        Args:
+            which: ``"delayed"`` (with latency) or ``"ideal"`` events.
+            before_us: events kept before each exposure start, µs.
+            after_us: events kept after each exposure end, µs; defaults to the exposure time, the
+                default latency search range (the simulation covers it plus the largest latency).
+
+        Returns:
+            :class:`EventFrames` with ``blurry``, ``events``, exposures and ``sharp`` (mid-exposure);
+            ``meta`` holds ``which``, ``true_latency`` :math:`(F, 1, H, W)` and ``frame_index``.
+
+        Example:
+            >>> seq = simulate("camera", num_frames=2, height=16, width=20, exposure_us=2000.0)
+            >>> seq.frames("delayed").batch_size
+            2
         """
-        after = float(self.config["exposure_us"]) if after_us is None else after_us
-        events = self._windows(self._events(which), self.exposure_start - before_us, self.exposure_end + after)
-        return EventFrames(self.blurry, events, self.exposure_start, self.exposure_end, sharp=self.sharp,
-                           meta={"which": which, "true_latency": self.true_latency})
+        events = self._events(which)
+        before, after = self._margins(before_us, after_us)
+        windowed = self._windows(events, self.exposure_start - before, self.exposure_end + after)
+        return EventFrames(self.blurry, windowed, self.exposure_start, self.exposure_end, sharp=self.sharp,
+                           meta={"which": which, "true_latency": self.true_latency,
+                                 "frame_index": list(range(self.num_frames)),
+                                 "latency_model": self.config.get("latency")})
 
-    def pairs(self, which: str = "delayed", before_us: float = 0.0, after_us: float | None = None) -> EventFrames:
-        """Interpolation batch: sample ``i`` pairs frame ``i`` and ``i + 1``; target = the gap's midpoint."""
+    def pair_times(self, times_per_pair: int = 1) -> Tensor:
+        """Target times :math:`(F - 1, T)` µs: ``T`` evenly spaced times strictly between the mid-exposures
+        of frames ``i`` and ``i + 1`` (for ``T = 1`` the midpoint of the gap between the exposures)."""
+        if not isinstance(times_per_pair, int) or times_per_pair < 1:
+            raise ValueError(f"times_per_pair must be a positive integer, got {times_per_pair}")
+        mid = ((self.exposure_start + self.exposure_end) / 2).to(torch.float64).cpu()
+        frac = torch.arange(1, times_per_pair + 1, dtype=torch.float64) / (times_per_pair + 1)
+        return mid[:-1, None] + frac[None] * (mid[1:] - mid[:-1])[:, None]
+
+    def pairs(self, which: str = "delayed", times_per_pair: int = 1, before_us: float = 0.0,
+              after_us: float | None = None) -> EventFrames:
+        """Interpolation batch: sample ``i`` (``B = F - 1``) pairs frame ``i`` and frame ``i + 1``.
+
+        Args:
+            which: ``"delayed"`` or ``"ideal"`` events.
+            times_per_pair: number ``T`` of target times per pair, evenly spaced between the two
+                mid-exposures (see :meth:`pair_times`); their ground truth frames are rendered
+                (``T = 1`` uses the stored gap midpoints, so it also works on sequences read from a file).
+            before_us: events kept before the first exposure's start, µs.
+            after_us: events kept after the second exposure's end, µs (default: the exposure time).
+
+        Returns:
+            :class:`EventFrames` with ``blurry`` (frame i), ``blurry_next`` (frame i + 1), both exposures,
+            the events of ``[start_i - before, end_{i+1} + after)``, ``sharp`` (frame i at mid-exposure),
+            ``target_times`` :math:`(F-1, T)` and ``target_frames`` :math:`(F-1, T, 3, H, W)`.
+
+        Example:
+            >>> seq = simulate("camera", num_frames=3, height=16, width=20, exposure_us=2000.0)
+            >>> p = seq.pairs("ideal", times_per_pair=3)
+            >>> p.batch_size, tuple(p.target_frames.shape)
+            (2, (2, 3, 3, 16, 20))
+        """
         if self.num_frames < 2:
             raise ValueError("pairs() needs a sequence of at least 2 frames")
-        after = float(self.config["exposure_us"]) if after_us is None else after_us
-        events = self._windows(self._events(which), self.exposure_start[:-1] - before_us,
-                               self.exposure_end[1:] + after)
-        p = self.num_frames - 1
+        events = self._events(which)
+        times = self.pair_times(times_per_pair)
+        n, t_per = times.shape
+        stored = self.target_times.to(torch.float64).cpu()
+        if stored.numel() >= n and torch.allclose(stored[:n, None], times, rtol=0, atol=1e-6) and t_per == 1:
+            targets = self.target_frames[:n, None]
+        else:
+            targets = self.render(times.flatten()).view(n, t_per, *self.blurry.shape[1:])
+        before, after = self._margins(before_us, after_us)
+        windowed = self._windows(events, self.exposure_start[:-1] - before, self.exposure_end[1:] + after[1:])
         return EventFrames(
-            self.blurry[:-1], events, self.exposure_start[:-1], self.exposure_end[:-1],
+            self.blurry[:-1], windowed, self.exposure_start[:-1], self.exposure_end[:-1],
             blurry_next=self.blurry[1:], exposure_start_next=self.exposure_start[1:],
-            exposure_end_next=self.exposure_end[1:], target_times=self.target_times[:p, None],
-            target_frames=self.target_frames[:p, None], sharp=self.sharp[:-1],
-            meta={"which": which, "true_latency": self.true_latency[:-1]},
+            exposure_end_next=self.exposure_end[1:], target_times=times.to(self.blurry.device),
+            target_frames=targets.to(self.blurry.device), sharp=self.sharp[:-1],
+            meta={"which": which, "true_latency": self.true_latency[:-1], "frame_index": list(range(n)),
+                  "true_latency_next": self.true_latency[1:], "latency_model": self.config.get("latency")},
         )
 
 
+class _Trajectory:
+    """A smooth camera trajectory: content displacement (px), rotation (rad) and log-zoom as functions of time.
+
+    ``motion="random"``: a drift of 55-68 % of ``max_speed`` in a random direction, two sinusoids per
+    axis (periods 40-120 ms, at most 12 % of ``max_speed`` per axis), a rotation and a zoom whose
+    speeds at the view's corners stay under 8 % and 7 % of ``max_speed``: no point of the view
+    moves faster than ``max_speed`` (to within the ~1 % zoom). A ``(vx, vy)`` tuple (px/ms) gives a
+    pure constant translation. Everything is relative to ``t_center`` (the view is centred on the photograph then).
+    """
+
+    def __init__(self, motion: str | tuple[float, float], max_speed_px_per_ms: float, radius: float,
+                 t_center: float, generator: torch.Generator) -> None:
+        self.t_center = t_center
+        self.translations: list[tuple[float, float, float, float]] = []  # (vx, vy, period, phase) sinusoids
+        self.rotations: list[tuple[float, float, float]] = []  # (amplitude rad/µs, period, phase)
+        self.zooms: list[tuple[float, float, float]] = []
+        self.spin = 0.0
+        if isinstance(motion, str):
+            u = torch.rand(17, generator=generator, dtype=torch.float64).tolist()
+            vmax = max_speed_px_per_ms / 1000.0  # px/µs
+            angle, drift = 2 * math.pi * u[0], vmax * (0.55 + 0.13 * u[1])
+            self.drift = (drift * math.cos(angle), drift * math.sin(angle))
+            for axis in range(2):
+                for k in range(2):
+                    a, p, ph = u[2 + 6 * axis + 3 * k: 5 + 6 * axis + 3 * k]
+                    amp = vmax * 0.06 * (0.5 + 0.5 * a)
+                    self.translations.append((amp if axis == 0 else 0.0, amp if axis == 1 else 0.0,
+                                              40_000.0 + 80_000.0 * p, 2 * math.pi * ph))
+            # rotation: |spin| + |oscillation| <= 0.04 + 0.04 of vmax at the view's corners
+            self.spin = (2 * u[14] - 1) * 0.04 * vmax / radius
+            self.rotations.append((0.04 * vmax / radius, 60_000.0 + 60_000.0 * u[15], 2 * math.pi * u[16]))
+            zu = torch.rand(3, generator=generator, dtype=torch.float64).tolist()
+            self.zooms.append((0.07 * vmax / radius * (0.5 + 0.5 * zu[0]), 50_000.0 + 70_000.0 * zu[1],
+                               2 * math.pi * zu[2]))
+        else:
+            self.drift = (float(motion[0]) / 1000.0, float(motion[1]) / 1000.0)
+
+    @staticmethod
+    def _integral(amp: float, period: float, phase: float, t: Tensor, t0: float) -> Tensor:
+        """∫_{t0}^{t} amp cos(2π s / period + phase) ds."""
+        w = 2 * math.pi / period
+        return amp / w * (torch.sin(w * t + phase) - math.sin(w * t0 + phase))
+
+    def pose(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Content displacement ``dx, dy`` (px), rotation (rad) and log-zoom at times ``t`` :math:`(N,)` µs."""
+        t = t.to(torch.float64)
+        rel = t - self.t_center
+        dx, dy = self.drift[0] * rel, self.drift[1] * rel
+        for vx, vy, period, phase in self.translations:
+            if vx:
+                dx = dx + self._integral(vx, period, phase, t, self.t_center)
+            if vy:
+                dy = dy + self._integral(vy, period, phase, t, self.t_center)
+        rot = self.spin * rel
+        for amp, period, phase in self.rotations:
+            rot = rot + self._integral(amp, period, phase, t, self.t_center)
+        zoom = torch.zeros_like(t)
+        for amp, period, phase in self.zooms:
+            zoom = zoom + self._integral(amp, period, phase, t, self.t_center)
+        return dx, dy, rot, zoom
+
+
 class _Camera:
-    """A smooth random camera trajectory over a photograph, rendered with Kornia."""
+    """Renders the view of a photograph along a trajectory with Kornia (source coordinates = photo pixels)."""
 
-    def __init__(self, photo: Tensor, height: int, width: int, speed_px_per_ms: float, duration_us: float,
-                 generator: torch.Generator) -> None:
-        g = generator
-        rnd = lambda *s: torch.rand(*s, generator=g, dtype=torch.float64)  # noqa: E731
-        angle = float(rnd(1)) * 2 * math.pi
-        speed = speed_px_per_ms * (0.8 + 0.4 * float(rnd(1))) / 1000.0  # px/µs
-        self.velocity = (speed * math.cos(angle), speed * math.sin(angle))
-        # wobble: one slow sinusoid per axis, amplitude up to 15% of the drift over a period
-        self.wobble = [(float(rnd(1)) * 0.15 * speed * 40_000, 30_000 + 50_000 * float(rnd(1)),
-                        2 * math.pi * float(rnd(1))) for _ in range(2)]
-        self.spin = (float(rnd(1)) - 0.5) * 2 * 0.2e-6  # rad/µs (≤ 0.2 mrad/ms)
-        self.zoom_rate = (float(rnd(1)) - 0.5) * 2 * 2e-6  # relative scale/ms-ish, tiny
-        travel = speed * duration_us + 2 * 0.15 * speed * 40_000
-        need = math.hypot(height, width) + 2 * travel + 8
-        scale = max(1.0, need / min(photo.shape[-2:]))
-        self.photo = torch.nn.functional.interpolate(photo[None], scale_factor=scale, mode="bilinear",
-                                                     align_corners=False, antialias=False).clamp(0, 1)
-        self.center = (self.photo.shape[-1] / 2.0, self.photo.shape[-2] / 2.0)
+    def __init__(self, photo: Tensor, height: int, width: int, trajectory: _Trajectory, span: tuple[float, float]):
         self.size = (height, width)
-        self.duration = duration_us
+        self.trajectory = trajectory
+        radius = 0.5 * math.hypot(height - 1, width - 1)
+        grid = torch.linspace(span[0], span[1], 2001, dtype=torch.float64)
+        dx, dy, _, zoom = trajectory.pose(grid)
+        shrink = math.exp(-float(zoom.min()))  # source extent of one sensor pixel at the smallest zoom
+        need_w = 2 * (float(dx.abs().max()) * shrink + radius * shrink) + 6
+        need_h = 2 * (float(dy.abs().max()) * shrink + radius * shrink) + 6
+        ph, pw = photo.shape[-2:]
+        self.scale = max(1.0, need_w / pw, need_h / ph)
+        if self.scale > 1.0:
+            size = (math.ceil(ph * self.scale), math.ceil(pw * self.scale))
+            photo = F.interpolate(photo[None], size=size, mode="bilinear", align_corners=False)[0].clamp(0, 1)
+        self.rgby = torch.cat([photo, luminance(photo)], 0)[None].contiguous()  # (1, 4, h, w)
+        self.lum = self.rgby[:, 3:4].contiguous()
+        self.center = ((self.rgby.shape[-1] - 1) / 2.0, (self.rgby.shape[-2] - 1) / 2.0)
 
-    def render(self, t: float) -> Tensor:
-        """Colour frame :math:`(3, H, W)` at time ``t`` (µs from the start)."""
-        dx = self.velocity[0] * (t - self.duration / 2)
-        dy = self.velocity[1] * (t - self.duration / 2)
-        (ax, px, fx), (ay, py, fy) = self.wobble
-        dx += ax * math.sin(2 * math.pi * t / px + fx)
-        dy += ay * math.sin(2 * math.pi * t / py + fy)
-        rot = self.spin * (t - self.duration / 2)
-        zoom = 1.0 + self.zoom_rate * (t - self.duration / 2) / 1000.0
-        cx, cy = self.center[0] + dx, self.center[1] + dy
+    def matrices(self, t: Tensor) -> Tensor:
+        """Source-to-sensor affine matrices :math:`(N, 2, 3)` at times ``t`` :math:`(N,)`."""
+        dx, dy, rot, logzoom = self.trajectory.pose(t)
+        z = torch.exp(logzoom)
+        c, s = torch.cos(rot) * z, torch.sin(rot) * z
+        # the view's centre in the photograph: content displaced by +d appears displaced by +d on the sensor
+        cx, cy = self.center[0] - dx / z, self.center[1] - dy / z
         h, w = self.size
-        c, s = math.cos(rot) * zoom, math.sin(rot) * zoom
-        # destination = A (source - centre) + view centre
-        m = torch.tensor([[[c, -s, (w - 1) / 2 - (c * cx - s * cy)],
-                           [s, c, (h - 1) / 2 - (s * cx + c * cy)]]], dtype=self.photo.dtype,
-                         device=self.photo.device)
-        out = kornia.geometry.transform.warp_affine(self.photo, m, dsize=(h, w), mode="bilinear",
-                                                    padding_mode="reflection", align_corners=True)
-        return out[0].clamp(0, 1)
+        m = torch.stack([torch.stack([c, -s, (w - 1) / 2 - (c * cx - s * cy)], -1),
+                         torch.stack([s, c, (h - 1) / 2 - (s * cx + c * cy)], -1)], -2)
+        return m.to(self.rgby)
+
+    def _warp(self, src: Tensor, t: Tensor) -> Tensor:
+        m = self.matrices(t)
+        return kornia.geometry.transform.warp_affine(src.expand(m.shape[0], -1, -1, -1), m, dsize=self.size,
+                                                     mode="bilinear", padding_mode="reflection",
+                                                     align_corners=True)
+
+    def luminance_at(self, t: float) -> Tensor:
+        """Luminance :math:`(H, W)` at time ``t``."""
+        return self._warp(self.lum, torch.tensor([t], dtype=torch.float64))[0, 0]
+
+    def rgby_at(self, t: float) -> Tensor:
+        """Colour and luminance :math:`(4, H, W)` at time ``t``."""
+        return self._warp(self.rgby, torch.tensor([t], dtype=torch.float64))[0]
+
+    def render(self, times: Tensor, chunk: int = 16) -> Tensor:
+        """Colour frames :math:`(T, 3, H, W)` at ``times`` µs."""
+        times = torch.as_tensor(times, dtype=torch.float64).flatten().cpu()
+        if times.numel() == 0:
+            return torch.zeros(0, 3, *self.size, dtype=self.rgby.dtype, device=self.rgby.device)
+        rgb = self.rgby[:, :3]
+        return torch.cat([self._warp(rgb, times[i:i + chunk]) for i in range(0, times.numel(), chunk)]).clamp(0, 1)
 
 
 class _EventGenerator:
-    """ESIM-style threshold crossings of a log signal, per pixel, step by step."""
+    """ESIM-style threshold crossings of a log signal, per pixel, step by step.
+
+    Args:
+        log_start: the signal :math:`(H, W)` at the start; it is each pixel's first reference level.
+        thresholds: contrast threshold per pixel :math:`(H, W)` (or broadcastable).
+    """
 
     def __init__(self, log_start: Tensor, thresholds: Tensor) -> None:
         self.ref = log_start.clone()
-        self.thr = thresholds
+        self.thr = torch.as_tensor(thresholds, dtype=log_start.dtype, device=log_start.device).expand_as(
+            log_start).contiguous()
         self.chunks: list[tuple[Tensor, Tensor, Tensor]] = []  # (flat pixel, t, p)
 
     def step(self, log_prev: Tensor, log_cur: Tensor, t_prev: float, dt: float) -> None:
-        diff = log_cur - self.ref
-        count = torch.floor(diff.abs() / self.thr)
-        fired = torch.nonzero(count.flatten() > 0).flatten()
+        """Emit the crossings of a signal going linearly from ``log_prev`` (at ``t_prev``) to ``log_cur`` (``+ dt``)."""
+        diff = (log_cur - self.ref).flatten()
+        thr = self.thr.flatten()
+        count = torch.floor(diff.abs() / thr)
+        fired = torch.nonzero(count > 0).flatten()
         if fired.numel() == 0:
             return
-        n = count.flatten()[fired].long()
-        sign = torch.sign(diff.flatten()[fired])
+        n = count[fired].long()
+        sign = torch.sign(diff[fired])
         pix = torch.repeat_interleave(fired, n)
         sgn = torch.repeat_interleave(sign, n)
-        start = torch.cumsum(n, 0) - n
-        k = torch.arange(int(n.sum()), device=n.device) - torch.repeat_interleave(start, n) + 1
-        level = self.ref.flatten()[pix] + sgn * k * self.thr.flatten()[pix]
+        first = torch.cumsum(n, 0) - n
+        k = torch.arange(pix.numel(), device=n.device) - torch.repeat_interleave(first, n) + 1
+        ref = self.ref.view(-1)
+        level = ref[pix] + sgn * k * thr[pix]
         lp, lc = log_prev.flatten()[pix], log_cur.flatten()[pix]
-        frac = ((level - lp) / (lc - lp).where((lc - lp).abs() > 1e-12, torch.ones_like(lc))).clamp(0, 1)
+        step = lc - lp
+        frac = ((level - lp) / step.where(step.abs() > 1e-12, torch.ones_like(step))).clamp(0, 1)
         self.chunks.append((pix, t_prev + frac.double() * dt, sgn.to(torch.int8)))
-        ref = self.ref.flatten()
-        ref[fired] += sign * n * self.thr.flatten()[fired]
+        ref[fired] += sign * n * thr[fired]
 
     def events(self, sensor_size: tuple[int, int], extra: tuple[Tensor, Tensor, Tensor] | None) -> Events:
+        """All events so far (plus ``extra`` = (flat pixel, t, p) ones) as one time-sorted sample."""
         chunks = self.chunks + ([extra] if extra is not None else [])
         _, width = sensor_size
+        device = self.ref.device
         if chunks:
-            pix = torch.cat([c[0] for c in chunks])
-            t = torch.cat([c[1] for c in chunks])
-            p = torch.cat([c[2] for c in chunks])
+            pix = torch.cat([c[0].to(device) for c in chunks])
+            t = torch.cat([c[1].to(device) for c in chunks])
+            p = torch.cat([c[2].to(device) for c in chunks])
         else:
-            pix, t, p = (torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.float64),
-                         torch.zeros(0, dtype=torch.int8))
-        return Events(pix % width, pix // width, t, p, sensor_size=sensor_size, sort=True)
+            pix = torch.zeros(0, dtype=torch.long, device=device)
+            t = torch.zeros(0, dtype=torch.float64, device=device)
+            p = torch.zeros(0, dtype=torch.int8, device=device)
+        order = torch.argsort(t, stable=True)
+        pix, t, p = pix[order], t[order], p[order]
+        return Events._trusted(pix % width, pix // width, t, p, torch.zeros_like(pix), sensor_size, 1)
 
 
-def _luminance(rgb: Tensor) -> Tensor:
-    return (0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]).clamp_min(0)
+def _merge(signal: Events, noise: tuple[Tensor, Tensor, Tensor] | None) -> Events:
+    """Signal events plus (flat pixel, t, p) noise events, time-sorted, one sample."""
+    if noise is None or noise[0].numel() == 0:
+        return signal
+    width = signal.sensor_size[1]
+    pix = torch.cat([signal.y * width + signal.x, noise[0]])
+    t = torch.cat([signal.t, noise[1]])
+    p = torch.cat([signal.p, noise[2]])
+    order = torch.argsort(t, stable=True)
+    pix, t, p = pix[order], t[order], p[order]
+    return Events._trusted(pix % width, pix // width, t, p, torch.zeros_like(pix), signal.sensor_size, 1)
+
+
+def _image_tensor(image: Tensor) -> Tensor:
+    if not isinstance(image, Tensor):
+        raise ValueError(f"image must be a photograph name or a tensor, got {type(image).__name__}")
+    if image.dim() == 2:
+        image = image[None]
+    if image.dim() != 3 or image.shape[0] not in (1, 3) or min(image.shape[-2:]) < 2:
+        raise ValueError(f"image must be an RGB (3, H, W) or grey (1, H, W) / (H, W) tensor, got {tuple(image.shape)}")
+    if not image.is_floating_point():
+        raise ValueError(f"image must be a floating point tensor in [0, 1], got {image.dtype}")
+    if not bool(torch.isfinite(image).all()) or float(image.min()) < 0 or float(image.max()) > 1:
+        raise ValueError("image must hold finite linear intensities in [0, 1]")
+    return image.float().expand(3, -1, -1).contiguous()
 
 
 def simulate(
@@ -261,37 +492,53 @@ def simulate(
     threshold: float = 0.2,
     threshold_sigma: float = 0.0,
     noise_rate_hz: float = 0.0,
-    speed_px_per_ms: float = 1.0,
+    max_speed_px_per_ms: float = 1.5,
+    motion: str | tuple[float, float] = "random",
     brightness: float = 1.0,
     margin_us: float | None = None,
-    target_times: Sequence[float] | None = None,
+    target_times: Sequence[float] | Tensor | None = None,
     dt_us: float | None = None,
     seed: int = 0,
     device: str | torch.device = "cpu",
 ) -> SimulatedSequence:
-    """Simulate blurry frames and their ideal and delayed events.
+    """Simulate blurry colour frames and their ideal and delayed events (see the module docstring).
+
+    The timeline starts at 0 µs with the first event; exposure ``i`` is
+    ``[margin + i * frame_interval, margin + i * frame_interval + exposure)`` and the events end
+    ``margin`` plus the model's largest latency after the last exposure, so every frame has delayed
+    events up to ``exposure_end + margin`` of any latency up to the largest (the default latency
+    search range is the exposure time, the default margin).
 
     Args:
-        image: a photograph name (:data:`PHOTOGRAPHS_TRAIN`, :data:`PHOTOGRAPHS_TEST`) or an RGB
-            tensor :math:`(3, H, W)` in [0, 1].
+        image: a photograph name (:data:`PHOTOGRAPHS_TRAIN`, :data:`PHOTOGRAPHS_TEST`) or an image
+            tensor :math:`(3, H, W)`, :math:`(1, H, W)` or :math:`(H, W)` of linear intensities in [0, 1].
+            It is upsampled when smaller than the camera's path needs.
         num_frames: number of consecutive exposures ``F``.
         height: sensor height ``H``.
         width: sensor width ``W``.
-        exposure_us: exposure time of each frame.
-        frame_interval_us: time between exposure starts (≥ exposure).
-        latency: ``"none"``, ``"constant"``, ``"intensity"`` or ``"intensity_delay"`` (see the module docstring).
-        latency_us: the constant latency.
-        latency_range_us: ``(bright, dim)`` latency limits of the intensity model.
+        exposure_us: exposure time of each frame, µs.
+        frame_interval_us: time between exposure starts (≥ exposure), µs.
+        latency: ``"none"``, ``"constant"``, ``"intensity"`` or ``"intensity_delay"``.
+        latency_us: the constant latency, µs.
+        latency_range_us: ``(bright, dim)`` time constants of the intensity models, µs;
+            ``τ = clip(bright / I, bright, dim)``.
         threshold: contrast threshold (log units).
-        threshold_sigma: relative per-pixel threshold mismatch (Gaussian std).
-        noise_rate_hz: shot-noise events per pixel per second (random polarity), in both streams.
-        speed_px_per_ms: mean image speed; 1 px/ms blurs 20 px in a 20 ms exposure.
-        brightness: multiplies the scene's linear intensity (dim scenes are late scenes).
-        margin_us: events before the first exposure; after the last one the simulation runs
-            ``exposure_us`` plus the largest latency (so the default latency search sees every late event).
+        threshold_sigma: per-pixel threshold mismatch, relative: thresholds are
+            ``threshold * (1 + threshold_sigma * N(0, 1))``, clipped at ``0.2 * threshold``.
+        noise_rate_hz: shot-noise events per pixel per second (Poisson, random polarity, uniform
+            times), in both streams.
+        max_speed_px_per_ms: largest image speed anywhere in the view (random motion); the default
+            blurs a 20 ms exposure by about 15-25 px.
+        motion: ``"random"`` (smooth random drift, wobble, rotation, zoom) or a constant translation
+            ``(vx, vy)`` of the image content in px/ms (then ``max_speed_px_per_ms`` is ignored).
+        brightness: multiplies the photograph's intensity before anything else (clipped to [0, 1]);
+            dim scenes have late events under the intensity models.
+        margin_us: events simulated before the first exposure, µs (default ``exposure_us``); after the
+            last exposure they run ``margin_us`` plus the model's largest latency (``latency_us``,
+            ``latency_range_us[1]`` or 0).
         target_times: extra times (µs) for ground-truth sharp frames; the gaps' midpoints come first.
-        dt_us: time step; default keeps the motion ≤ 0.25 px per step, at most 200 µs.
-        seed: random seed (motion, mismatch, noise).
+        dt_us: time step; default ``min(200, 0.3 / max_speed)`` µs so the image moves ≤ 0.3 px per step.
+        seed: random seed (motion, threshold mismatch, noise).
         device: where to simulate.
 
     Returns:
@@ -301,150 +548,208 @@ def simulate(
         >>> seq = simulate("camera", num_frames=1, height=32, width=40, exposure_us=5000.0, seed=1)
         >>> seq.blurry.shape, seq.true_latency.unique().tolist()
         (torch.Size([1, 3, 32, 40]), [4000.0])
+        >>> batch = seq.frames("delayed")  # EventFrames for EventLatencyCorrector
     """
-    if latency not in _LATENCY_MODELS:
-        raise ValueError(f"latency must be one of {_LATENCY_MODELS}, got {latency!r}")
+    # validation ---------------------------------------------------------------------------------
+    if latency not in LATENCY_MODELS:
+        raise ValueError(f"latency must be one of {LATENCY_MODELS}, got {latency!r}")
+    if not isinstance(num_frames, int) or num_frames < 1:
+        raise ValueError(f"num_frames must be a positive integer, got {num_frames}")
+    if not isinstance(height, int) or not isinstance(width, int) or height < 2 or width < 2:
+        raise ValueError(f"height and width must be integers >= 2, got {height}x{width}")
+    numbers = dict(exposure_us=exposure_us, frame_interval_us=frame_interval_us, latency_us=latency_us,
+                   threshold=threshold, threshold_sigma=threshold_sigma, noise_rate_hz=noise_rate_hz,
+                   max_speed_px_per_ms=max_speed_px_per_ms, brightness=brightness)
+    for key, value in numbers.items():
+        try:
+            numbers[key] = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"{key} must be a finite number, got {value!r}") from None
+        if not math.isfinite(numbers[key]):
+            raise ValueError(f"{key} must be a finite number, got {value!r}")
+    exposure_us, frame_interval_us, latency_us, threshold, threshold_sigma, noise_rate_hz, max_speed_px_per_ms, \
+        brightness = numbers.values()
     if exposure_us <= 0:
         raise ValueError(f"exposure_us must be positive, got {exposure_us}")
     if frame_interval_us < exposure_us:
         raise ValueError(f"frame_interval_us ({frame_interval_us}) must be >= exposure_us ({exposure_us})")
     if threshold <= 0:
         raise ValueError(f"threshold must be positive, got {threshold}")
-    if num_frames < 1 or height < 2 or width < 2:
-        raise ValueError(f"need num_frames >= 1 and a sensor of at least 2x2, got {num_frames}, {height}x{width}")
-    if latency == "constant" and latency_us < 0:
+    if latency_us < 0:
         raise ValueError(f"latency_us must be >= 0, got {latency_us}")
-    lo_lat, hi_lat = latency_range_us
-    if latency.startswith("intensity") and not 0 < lo_lat <= hi_lat:
-        raise ValueError(f"latency_range_us must be 0 < bright <= dim, got {latency_range_us}")
-    if brightness <= 0 or speed_px_per_ms < 0 or noise_rate_hz < 0 or threshold_sigma < 0:
-        raise ValueError("brightness must be positive and speed, noise rate, threshold_sigma non-negative")
+    if len(latency_range_us) != 2 or not 0 < float(latency_range_us[0]) <= float(latency_range_us[1]) < math.inf:
+        raise ValueError(f"latency_range_us must be (bright, dim) with 0 < bright <= dim, got {latency_range_us}")
+    for key in ("threshold_sigma", "noise_rate_hz", "max_speed_px_per_ms"):
+        if numbers[key] < 0:
+            raise ValueError(f"{key} must be >= 0, got {numbers[key]}")
+    if brightness <= 0:
+        raise ValueError(f"brightness must be positive, got {brightness}")
+    if isinstance(motion, str):
+        if motion != "random":
+            raise ValueError(f"motion must be 'random' or a (vx, vy) translation in px/ms, got {motion!r}")
+        speed = float(max_speed_px_per_ms)
+    else:
+        try:
+            velocity = (float(motion[0]), float(motion[1])) if len(motion) == 2 else ()
+        except (TypeError, ValueError):
+            velocity = ()
+        if len(velocity) != 2 or not all(math.isfinite(v) for v in velocity):
+            raise ValueError(f"motion must be 'random' or a (vx, vy) translation in px/ms, got {motion!r}")
+        motion = velocity
+        speed = math.hypot(*velocity)
+    if margin_us is not None and not (math.isfinite(margin_us) and margin_us >= 0):
+        raise ValueError(f"margin_us must be >= 0, got {margin_us}")
+    if dt_us is not None and not (math.isfinite(dt_us) and dt_us > 0):
+        raise ValueError(f"dt_us must be positive, got {dt_us}")
+    extra_times = torch.as_tensor([] if target_times is None else target_times, dtype=torch.float64).flatten().cpu()
+    if not bool(torch.isfinite(extra_times).all()):
+        raise ValueError("target_times must be finite")
+    if isinstance(image, str):
+        photo = load_photograph(image)
+    else:
+        photo = _image_tensor(image)
 
+    # timeline -----------------------------------------------------------------------------------
     device = torch.device(device)
-    g = torch.Generator().manual_seed(seed)
-    photo = load_photograph(image) if isinstance(image, str) else image.float()
-    if photo.dim() != 3 or photo.shape[0] != 3:
-        raise ValueError(f"image must be a photograph name or an RGB tensor (3, H, W), got {tuple(photo.shape)}")
-    max_latency = {"none": 0.0, "constant": latency_us, "intensity": hi_lat, "intensity_delay": hi_lat}[latency]
-    before = exposure_us if margin_us is None else margin_us
-    starts = torch.arange(num_frames, dtype=torch.float64) * frame_interval_us + before
-    ends = starts + exposure_us
-    t_end = float(ends[-1]) + exposure_us + max_latency + 1000.0
-    gaps = ((ends[:-1] + starts[1:]) / 2).tolist()
-    wanted = gaps + [float(t) for t in (target_times or [])]
+    g = torch.Generator().manual_seed(int(seed))
+    lo_lat, hi_lat = float(latency_range_us[0]), float(latency_range_us[1])
+    max_latency = {"none": 0.0, "constant": float(latency_us), "intensity": hi_lat, "intensity_delay": hi_lat}[latency]
+    margin = float(exposure_us) if margin_us is None else float(margin_us)
+    starts = torch.arange(num_frames, dtype=torch.float64) * float(frame_interval_us) + margin
+    ends = starts + float(exposure_us)
+    t_end = float(ends[-1]) + margin + max_latency
+    dt = float(dt_us) if dt_us is not None else min(_MAX_DT_US, _STEP_PX / max(speed / 1000.0, 1e-12))
+    n_main = max(1, math.ceil(t_end / dt - 1e-6))
+    n_warm = math.ceil(4 * hi_lat / dt) if latency == "intensity" else 0
+    gaps = ((ends[:-1] + starts[1:]) / 2)
+    wanted = torch.cat([gaps, extra_times])
 
-    camera = _Camera(photo.to(device), height, width, speed_px_per_ms, t_end, g)
-    dt = dt_us if dt_us is not None else min(200.0, 0.25 / max(speed_px_per_ms * 1.2 / 1000.0, 1e-9))
-    steps = int(math.ceil(t_end / dt))
+    radius = 0.5 * math.hypot(height - 1, width - 1)
+    trajectory = _Trajectory(motion, float(max_speed_px_per_ms), max(radius, 1.0), t_end / 2, g)
+    span = (min(-n_warm * dt, float(wanted.min()) if wanted.numel() else 0.0),
+            max(t_end, float(wanted.max()) if wanted.numel() else 0.0))
+    photo = (photo.to(device) * float(brightness)).clamp(0, 1)
+    camera = _Camera(photo, height, width, trajectory, span)
 
-    thresholds = torch.full((height, width), threshold)
+    thresholds = torch.full((height, width), float(threshold), dtype=torch.float32)
     if threshold_sigma > 0:
-        thresholds = thresholds * (1 + threshold_sigma * torch.randn(height, width, generator=g))
-        thresholds = thresholds.clamp_min(0.2 * threshold)
+        mismatch = 1 + float(threshold_sigma) * torch.randn(height, width, generator=g)
+        thresholds = (thresholds * mismatch).clamp_min(0.2 * float(threshold))
     thresholds = thresholds.to(device)
 
-    def log_of(rgb: Tensor) -> tuple[Tensor, Tensor]:
-        lum = _luminance(rgb) * brightness
-        return torch.log(lum + _LOG_EPS), lum
+    # time stepping ------------------------------------------------------------------------------
+    def time_at(k: int) -> float:
+        return t_end if k == n_main else k * dt
 
-    frame0 = camera.render(0.0)
-    log_prev, lum_prev = log_of(frame0)
-    ideal = _EventGenerator(log_prev, thresholds)
-    filtered = log_prev.clone()
-    delayed = _EventGenerator(log_prev, thresholds) if latency == "intensity" else None
-    sums = torch.zeros(num_frames, 3, height, width, device=device)
-    counts = torch.zeros(num_frames, device=device)
+    def log_of(lum: Tensor) -> Tensor:
+        return torch.log(lum.clamp_min(0) + _LOG_EPS)
+
     starts_l, ends_l = starts.tolist(), ends.tolist()
-
-    def accumulate(frame: Tensor, t: float) -> None:
-        for i, (s, e) in enumerate(zip(starts_l, ends_l)):
-            if s <= t <= e:
-                sums[i] += frame
-                counts[i] += 1
-
-    accumulate(frame0, 0.0)
-    t_prev = 0.0
-    for k in range(1, steps + 1):
-        t = min(k * dt, t_end)
-        frame = camera.render(t)
-        log_cur, lum_cur = log_of(frame)
-        ideal.step(log_prev, log_cur, t_prev, t - t_prev)
-        if delayed is not None:
-            tau = (lo_lat / lum_cur.clamp_min(1e-6)).clamp(lo_lat, hi_lat)
-            new_filtered = filtered + (1 - torch.exp(-(t - t_prev) / tau)) * (log_cur - filtered)
-            delayed.step(filtered, new_filtered, t_prev, t - t_prev)
+    sums = torch.zeros(num_frames, 3, height, width, device=device)
+    intensity_filter = latency == "intensity"
+    lum_prev = camera.luminance_at(time_at(-n_warm))
+    log_prev = log_of(lum_prev)
+    filtered = log_prev.clone()
+    ideal = delayed = None
+    rgb_prev: Tensor | None = None
+    t_prev = time_at(-n_warm)
+    if n_warm == 0:
+        ideal = _EventGenerator(log_prev, thresholds)
+        delayed = _EventGenerator(filtered, thresholds) if intensity_filter else None
+    for k in range(-n_warm + 1, n_main + 1):
+        t = time_at(k)
+        step = t - t_prev
+        overlaps = [i for i in range(num_frames) if t > starts_l[i] and t_prev < ends_l[i]]
+        if overlaps:
+            rgby = camera.rgby_at(t)
+            rgb, lum = rgby[:3], rgby[3]
+            if rgb_prev is None:
+                rgb_prev = camera.rgby_at(t_prev)[:3]
+            for i in overlaps:
+                a, b = max(t_prev, starts_l[i]), min(t, ends_l[i])
+                m = ((a + b) / 2 - t_prev) / step
+                sums[i] += (b - a) * ((1 - m) * rgb_prev + m * rgb)
+        else:
+            rgb, lum = None, camera.luminance_at(t)
+        log_cur = log_of(lum)
+        if intensity_filter:
+            # exact first-order low-pass update for an input linear over the step
+            tau = (lo_lat / (0.5 * (lum + lum_prev)).clamp_min(1e-12)).clamp(lo_lat, hi_lat)
+            slope_tau = (log_cur - log_prev) / step * tau
+            new_filtered = log_cur - slope_tau + (filtered - log_prev + slope_tau) * torch.exp(-step / tau)
+            if delayed is not None:
+                delayed.step(filtered, new_filtered, t_prev, step)
             filtered = new_filtered
-        accumulate(frame, t)
-        log_prev, t_prev = log_cur, t
+        if ideal is not None:
+            ideal.step(log_prev, log_cur, t_prev, step)
+        if k == 0:  # end of the warm-up: the event streams start here
+            ideal = _EventGenerator(log_cur, thresholds)
+            delayed = _EventGenerator(filtered, thresholds) if intensity_filter else None
+        log_prev, lum_prev, rgb_prev, t_prev = log_cur, lum, rgb, t
+    assert ideal is not None  # n_main >= 1, so the streams exist
 
-    # sample each exposure finely even if dt is coarse relative to it
-    for i in range(num_frames):
-        if counts[i] < 8:
-            for t in torch.linspace(starts_l[i], ends_l[i], 16).tolist():
-                sums[i] += camera.render(t)
-                counts[i] += 1
-    blurry = (sums / counts.view(-1, 1, 1, 1)) * brightness
-    sharp = torch.stack([camera.render((s + e) / 2) for s, e in zip(starts_l, ends_l)]) * brightness
-    targets = (torch.stack([camera.render(t) for t in wanted]) * brightness if wanted
-               else torch.zeros(0, 3, height, width, device=device))
+    # frames -------------------------------------------------------------------------------------
+    blurry = (sums / float(exposure_us)).clamp(0, 1)
+    sharp = camera.render((starts + ends) / 2)
+    targets = camera.render(wanted)
 
+    # noise, latency -----------------------------------------------------------------------------
     noise = None
     if noise_rate_hz > 0:
-        n = int(torch.poisson(torch.tensor(noise_rate_hz * t_end * 1e-6 * height * width, dtype=torch.float64),
-                              generator=g))
+        mean = torch.tensor(float(noise_rate_hz) * t_end * 1e-6 * height * width, dtype=torch.float64)
+        n = int(torch.poisson(mean, generator=g))
         noise = (torch.randint(0, height * width, (n,), generator=g).to(device),
                  (torch.rand(n, generator=g, dtype=torch.float64) * t_end).to(device),
                  (torch.randint(0, 2, (n,), generator=g) * 2 - 1).to(torch.int8).to(device))
-    ideal_events = ideal.events((height, width), noise)
+    sensor = (height, width)
+    signal = ideal.events(sensor, None)
+    ideal_events = _merge(signal, noise)
+    lum_blur = luminance(blurry)
+    tau_map = (lo_lat / lum_blur.clamp_min(1e-12)).clamp(lo_lat, hi_lat)
     if latency == "intensity":
         assert delayed is not None
-        delayed_events = delayed.events((height, width), noise)
-        lum_blur = (0.299 * blurry[:, 0] + 0.587 * blurry[:, 1] + 0.114 * blurry[:, 2]).unsqueeze(1)
-        true_latency = (lo_lat / lum_blur.clamp_min(1e-6)).clamp(lo_lat, hi_lat)
+        delayed_events = _merge(delayed.events(sensor, None), noise)
+        true_latency = tau_map
     elif latency == "intensity_delay":
-        lum_blur = (0.299 * blurry[:, 0] + 0.587 * blurry[:, 1] + 0.114 * blurry[:, 2]).unsqueeze(1)
-        true_latency = (lo_lat / lum_blur.clamp_min(1e-6)).clamp(lo_lat, hi_lat)
-        # each signal event is delayed by the map of the frame nearest in time, at its pixel
-        signal = ideal.events((height, width), None)
+        true_latency = tau_map
         mids = ((starts + ends) / 2).to(device)
-        nearest = (signal.t[:, None] - mids[None]).abs().argmin(1)
+        nearest = torch.searchsorted((mids[1:] + mids[:-1]) / 2, signal.t)  # frame whose mid-exposure is nearest
         delay = true_latency[:, 0].flatten(1)[nearest, signal.y * width + signal.x].double()
-        parts = [Events._trusted(signal.x, signal.y, signal.t + delay, signal.p, signal.batch, (height, width), 1)]
-        if noise is not None:
-            parts.append(Events._trusted(noise[0] % width, noise[0] // width, noise[1], noise[2],
-                                         torch.zeros_like(noise[0]), (height, width), 1))
-        cat = Events.cat(parts)
-        delayed_events = Events(cat.x, cat.y, cat.t, cat.p, sensor_size=(height, width), sort=True)
+        shifted = Events._trusted(signal.x, signal.y, signal.t + delay, signal.p, signal.batch, sensor, 1)
+        order = torch.argsort(shifted.t, stable=True)
+        shifted = Events._trusted(shifted.x[order], shifted.y[order], shifted.t[order], shifted.p[order],
+                                  shifted.batch, sensor, 1)
+        delayed_events = _merge(shifted, noise)
     else:
-        lat = latency_us if latency == "constant" else 0.0
-        if noise is not None and lat:
-            # noise is not delayed: add it after shifting the signal events
-            signal = ideal.events((height, width), None)
-            shifted = Events._trusted(signal.x, signal.y, signal.t + lat, signal.p, signal.batch,
-                                      signal.sensor_size, 1)
-            delayed_events = Events.cat([shifted, Events._trusted(noise[0] % width, noise[0] // width, noise[1],
-                                                                  noise[2], torch.zeros_like(noise[0]),
-                                                                  (height, width), 1)])
-            delayed_events = Events(delayed_events.x, delayed_events.y, delayed_events.t, delayed_events.p,
-                                    sensor_size=(height, width), sort=True)
-        else:
-            delayed_events = Events._trusted(ideal_events.x, ideal_events.y, ideal_events.t + lat, ideal_events.p,
-                                             ideal_events.batch, (height, width), 1)
+        lat = float(latency_us) if latency == "constant" else 0.0
+        shifted = Events._trusted(signal.x, signal.y, signal.t + lat, signal.p, signal.batch, sensor, 1)
+        delayed_events = _merge(shifted, noise)
         true_latency = torch.full((num_frames, 1, height, width), lat, device=device)
 
     config = dict(image=image if isinstance(image, str) else "tensor", num_frames=num_frames, height=height,
-                  width=width, exposure_us=exposure_us, frame_interval_us=frame_interval_us, latency=latency,
-                  latency_us=latency_us, latency_range_us=tuple(latency_range_us), threshold=threshold,
-                  threshold_sigma=threshold_sigma, noise_rate_hz=noise_rate_hz, speed_px_per_ms=speed_px_per_ms,
-                  brightness=brightness, margin_us=before, dt_us=dt, seed=seed)
+                  width=width, exposure_us=float(exposure_us), frame_interval_us=float(frame_interval_us),
+                  latency=latency, latency_us=float(latency_us), latency_range_us=[lo_lat, hi_lat],
+                  threshold=float(threshold), threshold_sigma=float(threshold_sigma),
+                  noise_rate_hz=float(noise_rate_hz), max_speed_px_per_ms=float(max_speed_px_per_ms),
+                  motion=motion if isinstance(motion, str) else [float(v) for v in motion],
+                  brightness=float(brightness), margin_us=margin, dt_us=dt, t_end_us=t_end,
+                  warmup_us=n_warm * dt, photo_scale=camera.scale, seed=int(seed))
     return SimulatedSequence(
-        blurry=blurry.clamp(0, 1), sharp=sharp.clamp(0, 1), exposure_start=starts.to(device),
-        exposure_end=ends.to(device), ideal_events=ideal_events, delayed_events=delayed_events,
-        true_latency=true_latency.float(), target_times=torch.tensor(wanted, dtype=torch.float64, device=device),
-        target_frames=targets.clamp(0, 1), threshold=threshold, seed=seed, config=config,
+        blurry=blurry, sharp=sharp, exposure_start=starts.to(device), exposure_end=ends.to(device),
+        ideal_events=ideal_events, delayed_events=delayed_events, true_latency=true_latency.float(),
+        target_times=wanted.to(device), target_frames=targets, threshold=float(threshold), seed=int(seed),
+        config=config, threshold_map=thresholds[None, None], renderer=camera.render,
     )
 
 
 def simulate_dataset(names: Sequence[str], *, seed: int = 0, **kwargs: Any) -> list[SimulatedSequence]:
-    """One sequence per photograph, each with its own motion (seed + index)."""
+    """One sequence per photograph, each with its own motion (seed ``seed + index``).
+
+    Example:
+        >>> seqs = simulate_dataset(["camera", "coins"], num_frames=1, height=16, width=20, exposure_us=2000.0)
+        >>> [s.seed for s in seqs]
+        [0, 1]
+    """
+    if isinstance(names, str) or not names:
+        raise ValueError(f"names must be a non-empty sequence of photograph names, got {names!r}")
     return [simulate(name, seed=seed + i, **kwargs) for i, name in enumerate(names)]
