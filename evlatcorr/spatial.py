@@ -3,10 +3,11 @@
 ``ψ(L) = scale · Σ_{i=0..K} a_i f(L)^i`` per pixel (paper Eq. 15), with ``L`` the blurry frame's
 luminance (the mean intensity over the exposure, ``B / 2Δτ`` for a frame normalised to [0, 1]) and
 
-    f(L) = log(L + ε) / log(ε)          (ε = 0.01)
+    f(L) = log((L + ε) / (1 + ε)) / log(ε / (1 + ε))          (ε = 0.01)
 
-a fixed map that is monotone decreasing (dim pixels → 1, white → ≈ 0) and keeps every power
-``f^i`` in [0, 1], so the coefficients are of the same order and Adam steps are well conditioned.
+a fixed map that is monotone decreasing (black → 1, white → 0 exactly) and keeps every power
+``f^i`` in [0, 1], so the coefficients are of the same order and Adam steps are well conditioned
+(a raw intensity basis would crowd the dim pixels, where latency changes fastest, near 0).
 The log follows the photoreceptor: latency grows like 1 / intensity, i.e. fast in log intensity
 at the dark end. ``scale`` (1000 µs) makes the coefficients milliseconds. They start at zero (the
 no-latency assumption).
@@ -51,7 +52,7 @@ class PolynomialLatency(nn.Module):
 
     Args:
         order: polynomial order ``K`` (≥ 0; the paper uses 5).
-        eps: ε of ``f(L) = log(L + ε) / log(ε)``.
+        eps: ε of ``f(L) = log((L + ε) / (1 + ε)) / log(ε / (1 + ε))``.
         scale_us: µs per unit of the polynomial (coefficients in ms by default).
 
     Example:
@@ -77,8 +78,12 @@ class PolynomialLatency(nn.Module):
         """Luminance ``L`` :math:`(B, 1, H, W)` of a blurry frame in [0, 1]."""
         return kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
 
+    def _log_range(self) -> float:
+        return math.log(self.eps / (1 + self.eps))  # negative: f decreases
+
     def transform(self, intensity: Tensor) -> Tensor:
-        return torch.log(intensity.clamp(0, 1) + self.eps) / math.log(self.eps)
+        """``f(L)`` in [0, 1]: 1 for black, 0 for white, decreasing in between."""
+        return torch.log((intensity.clamp(0, 1) + self.eps) / (1 + self.eps)) / self._log_range()
 
     def powers(self, f: Tensor) -> Tensor:
         return torch.stack([f**i for i in range(self.order + 1)], dim=-1)
@@ -90,7 +95,7 @@ class PolynomialLatency(nn.Module):
     def slope(self, intensity: Tensor) -> Tensor:
         """dψ/dL at given intensities, µs per unit intensity (Eq. 20's inner term)."""
         f = self.transform(intensity)
-        df_dl = 1.0 / ((intensity.clamp(0, 1) + self.eps) * math.log(self.eps))
+        df_dl = 1.0 / ((intensity.clamp(0, 1) + self.eps) * self._log_range())
         i = torch.arange(1, self.order + 1, device=f.device, dtype=f.dtype)
         dpsi_df = (i * self.coefficients[1:].to(f) * f[..., None] ** (i - 1)).sum(-1) if self.order else 0 * f
         return self.scale_us * df_dl * dpsi_df
@@ -222,7 +227,8 @@ def fit_spatial_latency(
 def save_curve(model: PolynomialLatency, path: str | Path, **extra: Any) -> None:
     """Save the coefficients and f's settings (a small torch file)."""
     torch.save({"coefficients": model.coefficients.detach().cpu(), "order": model.order, "eps": model.eps,
-                "scale_us": model.scale_us, "format": "evlatcorr-curve", **extra}, path)
+                "scale_us": model.scale_us, "f": "log((L+eps)/(1+eps))/log(eps/(1+eps))", "format": "evlatcorr-curve",
+                **extra}, path)
 
 
 def load_curve(path: str | Path) -> PolynomialLatency:
@@ -258,20 +264,32 @@ class SpatialLatencyCorrector(nn.Module):
         lr: Adam learning rate of the test-time optimisation.
         train_bins: EDI sub-intervals used while fitting (the output latent uses ``num_bins``).
         order: polynomial order for test-time fitting.
+        weights: loss weights of the test-time fit (default α=1, β=1, η=20, ζ=0.1).
+        progress: show a progress bar while fitting; default: when ``steps >= 100``.
+
+    Example:
+        >>> corrector = SpatialLatencyCorrector(steps=50)
+        >>> corrector
+        SpatialLatencyCorrector(curve=fit per batch, steps=50)
     """
 
     def __init__(self, curve: str | Path | None = None, threshold: float | str = 0.2, num_bins: int = 500,
                  search_range: tuple[float, float] | None = None, num_candidates: int = 100,
                  epsilon: float = DEFAULT_EPSILON, window: int = DEFAULT_WINDOW, sigma_us: float = DEFAULT_SIGMA_US,
                  steps: int = 60, lr: float = 0.05, train_bins: int = 100, order: int = 5,
-                 weights: LossWeights | None = None) -> None:
+                 weights: LossWeights | None = None, progress: bool | None = None) -> None:
         super().__init__()
         if isinstance(threshold, str):
             raise ValueError("mode='spatial' needs a numeric threshold")
+        if steps < 1 or train_bins < 2:
+            raise ValueError(f"steps must be >= 1 and train_bins >= 2, got {steps} and {train_bins}")
+        if order < 0:
+            raise ValueError(f"order K must be >= 0, got {order}")
         self.model = load_curve(curve) if curve is not None else None
         self.threshold, self.num_bins, self.search_range = float(threshold), num_bins, search_range
         self.num_candidates, self.epsilon, self.window, self.sigma_us = num_candidates, epsilon, window, sigma_us
         self.steps, self.lr, self.train_bins, self.order, self.weights = steps, lr, train_bins, order, weights
+        self.progress = steps >= 100 if progress is None else progress
 
     def extra_repr(self) -> str:
         return f"curve={'trained' if self.model is not None else 'fit per batch'}, steps={self.steps}"
@@ -287,7 +305,7 @@ class SpatialLatencyCorrector(nn.Module):
                 model, _ = fit_spatial_latency(frames, PolynomialLatency(self.order), self.steps, self.lr,
                                                self.threshold, self.train_bins, self.search_range,
                                                self.num_candidates, self.weights, self.epsilon, self.window,
-                                               self.sigma_us, start_from_constant=True)
+                                               self.sigma_us, progress=self.progress, start_from_constant=True)
         with torch.no_grad():
             high = frames.exposure_time if self.search_range is None else torch.full_like(
                 frames.exposure_time, self.search_range[1])

@@ -26,7 +26,8 @@ from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
 from evlatcorr.spatial import LossWeights, PolynomialLatency, constant_reference, save_curve, spatial_objective
 
-__all__ = ["split_frames", "collate_event_frames", "EventFramesDataModule", "LatencyCorrectionModule"]
+__all__ = ["split_frames", "collate_event_frames", "EventFramesDataModule", "LatencyCorrectionModule",
+           "simulated_training_frames"]
 
 
 def split_frames(frames: EventFrames) -> list[EventFrames]:
@@ -50,6 +51,10 @@ def collate_event_frames(items: Sequence[EventFrames]) -> EventFrames:
                        sharp=sharp)
 
 
+def _as_dataset(items: Sequence[EventFrames] | Dataset) -> Dataset:
+    return items if isinstance(items, Dataset) else _ListDataset(items)
+
+
 class _ListDataset(Dataset):
     def __init__(self, items: Sequence[EventFrames]) -> None:
         self.items = list(items)
@@ -62,23 +67,32 @@ class _ListDataset(Dataset):
 
 
 class EventFramesDataModule(L.LightningDataModule):
-    """A ``LightningDataModule`` over any sequence of ``EventFrames`` (typically one frame each).
+    """A ``LightningDataModule`` over any ``EventFrames`` dataset (typically one frame per item).
 
     Args:
-        train: training frames.
-        val: optional validation frames.
-        batch_size: frames per step (paper: 1).
+        train: training frames: a sequence of ``EventFrames`` or a map-style ``Dataset`` yielding
+            them (read lazily, e.g. from files).
+        val: optional validation frames, same kinds.
+        batch_size: frames per step (paper: 1); items are batched by :func:`collate_event_frames`.
         num_workers: data-loader workers.
+
+    Example:
+        >>> ev = Events(torch.tensor([0, 1]), torch.tensor([0, 2]), torch.tensor([10.0, 150.0]),
+        ...             torch.tensor([1, -1]), sensor_size=(4, 4))
+        >>> item = EventFrames(torch.rand(1, 1, 4, 4), ev, torch.zeros(1), torch.full((1,), 100.0))
+        >>> batch = next(iter(EventFramesDataModule([item, item], batch_size=2).train_dataloader()))
+        >>> batch.batch_size, batch.events.batch_size
+        (2, 2)
     """
 
-    def __init__(self, train: Sequence[EventFrames], val: Sequence[EventFrames] | None = None, batch_size: int = 1,
-                 num_workers: int = 0) -> None:
+    def __init__(self, train: Sequence[EventFrames] | Dataset, val: Sequence[EventFrames] | Dataset | None = None,
+                 batch_size: int = 1, num_workers: int = 0) -> None:
         super().__init__()
         if len(train) == 0:
             raise ValueError("the training dataset is empty: give at least one EventFrames")
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        self.train_set, self.val_set = _ListDataset(train), _ListDataset(val or [])
+        self.train_set, self.val_set = _as_dataset(train), _as_dataset(val if val is not None else [])
         self.batch_size, self.num_workers = batch_size, num_workers
 
     def train_dataloader(self) -> DataLoader:

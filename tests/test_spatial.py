@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -8,6 +10,7 @@ from evlatcorr.simulate import simulate
 from evlatcorr.spatial import (
     LossWeights,
     PolynomialLatency,
+    SpatialLatencyCorrector,
     fit_spatial_latency,
     load_curve,
     save_curve,
@@ -32,7 +35,34 @@ class TestPolynomialLatency:
     def test_transform_is_decreasing_and_bounded(self):
         psi = PolynomialLatency()
         f = psi.transform(torch.linspace(0, 1, 101))
-        assert bool((f[1:] < f[:-1]).all()) and f[0] == pytest.approx(1.0) and abs(float(f[-1])) < 0.01
+        assert bool((f[1:] < f[:-1]).all()) and f[0] == pytest.approx(1.0) and abs(float(f[-1])) < 1e-6
+        assert f[50] == pytest.approx(0.14806, abs=1e-4)  # log(0.51 / 1.01) / log(0.01 / 1.01)
+
+    def test_values_by_hand(self):
+        psi = PolynomialLatency(order=2, scale_us=1000.0)
+        with torch.no_grad():
+            psi.coefficients.copy_(torch.tensor([0.5, 2.0, 3.0]))
+        img = torch.tensor([0.0, 1.0, 0.5]).view(1, 1, 1, 3)
+        f = math.log(0.51 / 1.01) / math.log(0.01 / 1.01)
+        expected = torch.tensor([5500.0, 500.0, 1000.0 * (0.5 + 2 * f + 3 * f * f)]).view(1, 1, 1, 3)
+        torch.testing.assert_close(psi(img), expected)
+        rgb = img.expand(1, 3, 1, 3)  # grey RGB gives the same luminance
+        torch.testing.assert_close(psi(rgb), expected)
+
+    def test_non_contiguous(self):
+        psi = PolynomialLatency(order=2)
+        with torch.no_grad():
+            psi.coefficients.copy_(torch.tensor([0.5, 2.0, 3.0]))
+        x = torch.rand(2, 1, 6, 5).transpose(-1, -2)
+        assert not x.is_contiguous()
+        torch.testing.assert_close(psi(x), psi(x.contiguous()))
+
+    def test_device(self, device):
+        psi = PolynomialLatency(order=2).to(device)
+        with torch.no_grad():
+            psi.coefficients.fill_(1.0)
+        out = psi(torch.rand(1, 1, 4, 4, device=device))
+        assert out.device.type == device.type and bool((out >= 1000.0).all())
 
     def test_slope_matches_autograd(self):
         psi = PolynomialLatency(order=4)
@@ -47,6 +77,13 @@ class TestPolynomialLatency:
             PolynomialLatency(order=-1)
         with pytest.raises(ValueError, match="eps"):
             PolynomialLatency(eps=2.0)
+        with pytest.raises(ValueError, match="steps"):
+            SpatialLatencyCorrector(steps=0)
+        with pytest.raises(ValueError, match="order"):
+            EventLatencyCorrector(mode="spatial", order=-2)
+        with pytest.raises(ValueError, match="numeric threshold"):
+            EventLatencyCorrector(mode="spatial", threshold="auto")
+        assert SpatialLatencyCorrector(steps=150).progress and not SpatialLatencyCorrector(steps=60).progress
 
 
 def test_gradients_reach_every_coefficient(frames):
@@ -79,7 +116,7 @@ def test_fit_decreases_loss_and_is_monotone(frames):
                                          weights=LossWeights(dev=1.0))
     assert history[-1] < history[0]
     ramp = torch.linspace(0.02, 1.0, 50)
-    slope = model.slope(ramp)
+    slope = model.slope(ramp).detach()
     assert float(slope.max()) <= 1e-3 * float(slope.abs().max()) + 50.0  # non-increasing up to a tolerance (us)
 
 
