@@ -391,7 +391,9 @@ def resolve_checkpoint(name_or_path: str | Path | None, model_name: str) -> Path
         if not d.is_dir():
             continue
         candidates = [*d.glob(f"{model_name}*.safetensors"), *d.glob(f"{model_name}*{_INDEX_SUFFIX}")]
-        stems = sorted({_stem_of(f).name for f in candidates})
+        # "<model>-<variant>" stems (refid-4-1, refid-deblur) belong to other layouts: exact name only
+        stems = sorted({_stem_of(f).name for f in candidates} - {s for s in (_stem_of(f).name for f in candidates)
+                                                                   if s.startswith(f"{model_name}-")})
         if not stems:
             continue
         if model_name in stems:
@@ -410,8 +412,8 @@ def resolve_checkpoint(name_or_path: str | Path | None, model_name: str) -> Path
         return _shard_files(d / stem)[0]
     raise FileNotFoundError(
         f"no default checkpoint for {model_name}: no {model_name}*.safetensors in "
-        f"{', '.join(str(d) for d in searched)}. Trained weights are not shipped yet: pass checkpoint=<path> "
-        f"(official .pth / Lightning .ckpt / .safetensors) or checkpoint=None for random weights")
+        f"{', '.join(str(d) for d in searched)}. Train them with `python -m evlatcorr.train` or pass "
+        f"checkpoint=<path> (official .pth / Lightning .ckpt / .safetensors), or checkpoint=None for random weights")
 
 
 def _safetensors_files_or_none(path: Path) -> list[Path] | None:

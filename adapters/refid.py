@@ -622,9 +622,10 @@ class REFIDAdapter(nn.Module):
             instead of raising.
         select: ``"all"`` (every output frame) or ``"nearest"`` (the frame nearest each
             ``frames.target_times``).
+        clamp: clamp ``output`` to [0, 1] (training leaves it off so every pixel gets a gradient).
 
     Returns (forward):
-        ``frames`` with ``output`` :math:`(B, T, C, H, W)` clamped to [0, 1] (C as ``blurry``: grey input is
+        ``frames`` with ``output`` :math:`(B, T, C, H, W)`, clamped to [0, 1] by default (C as ``blurry``: grey input is
         read as RGB and the output's channel mean is returned), and ``meta["output_times"]``
         :math:`(B, T)` µs, the time of each output frame.
 
@@ -636,7 +637,7 @@ class REFIDAdapter(nn.Module):
 
     def __init__(self, checkpoint: str | None = None, mode: str = "interpolation", m: int = 11, n: int = 1,
                  frame_offset: float = 0.5, normalize: str = "events", pad: bool = False,
-                 select: str = "all") -> None:
+                 select: str = "all", clamp: bool = True) -> None:
         super().__init__()
         _check_layout(m, n, mode, frame_offset)
         if normalize not in _NORMALIZE:
@@ -644,7 +645,7 @@ class REFIDAdapter(nn.Module):
         if select not in ("all", "nearest"):
             raise ValueError(f"select must be 'all' or 'nearest', got {select!r}")
         self.mode, self.m, self.n, self.frame_offset = mode, m, n, float(frame_offset)
-        self.normalize, self.pad, self.select = normalize, bool(pad), select
+        self.normalize, self.pad, self.select, self.clamp = normalize, bool(pad), select, bool(clamp)
         self.net = REFIDNet(img_chn=(2 * m + 4) if mode == "interpolation" else (m + 2))
         from evlatcorr.adapters.checkpoint import load_weights, resolve_checkpoint
 
@@ -678,7 +679,9 @@ class REFIDAdapter(nn.Module):
         if ph or pw:
             x = F.pad(x, (0, pw, 0, ph), mode="replicate")
             event = F.pad(event, (0, pw, 0, ph))
-        out = self.net(x, event)[..., :height, :width].clamp(0.0, 1.0)
+        out = self.net(x, event)[..., :height, :width]
+        if self.clamp:
+            out = out.clamp(0.0, 1.0)
         if frames.blurry.shape[1] == 1:
             out = out.mean(2, keepdim=True)
         out = out.to(frames.blurry.dtype)

@@ -249,6 +249,11 @@ def test_resolve_default(tmp_path, monkeypatch):
     save_weights(Net(), tmp_path / "gem_reblur.safetensors")
     with pytest.raises(ValueError, match="several default checkpoints for gem"):
         resolve_checkpoint("default", "gem")
+    # "<model>-<variant>" files are other layouts (REFID 4+1): only their exact name finds them
+    save_weights(Net(), tmp_path / "refid-4-1.safetensors")
+    with pytest.raises(FileNotFoundError, match="no default checkpoint for refid"):
+        resolve_checkpoint("default", "refid")
+    assert resolve_checkpoint("default", "refid-4-1") == tmp_path / "refid-4-1.safetensors"
 
 
 def test_checkpoint_dirs_env(tmp_path, monkeypatch):
