@@ -1,0 +1,59 @@
+"""The weights shipped under checkpoints/ load by name and restore an unseen simulated scene on the CPU."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from torchmetrics.functional.image import peak_signal_noise_ratio
+
+from evlatcorr.adapters import EFNetAdapter, GEMAdapter, REFIDAdapter
+from evlatcorr.simulate import PHOTOGRAPHS_TEST, simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = {
+    "efnet": lambda: EFNetAdapter(checkpoint="default"),
+    "gem": lambda: GEMAdapter(checkpoint="default"),
+    "refid-4-1": lambda: REFIDAdapter(checkpoint="default", m=4, n=1),
+}
+
+
+def _psnr(image: torch.Tensor, target: torch.Tensor) -> float:
+    return float(peak_signal_noise_ratio(image.clamp(0, 1), target, data_range=1.0))
+
+
+def test_checkpoint_cards_list_their_files_and_stay_under_the_size_limits():
+    cards = [p for p in sorted((ROOT / "checkpoints").glob("*.json")) if not p.name.endswith(".index.json")]
+    assert {c.stem for c in cards} == set(SHIPPED)
+    total = 0
+    for card in cards:
+        meta = json.loads(card.read_text())
+        assert meta["steps"] > 0 and meta["val_psnr"] > meta["val_blurry_psnr"]
+        assert not set(meta["data"]["photographs"]) & set(PHOTOGRAPHS_TEST)  # never trained on test scenes
+        for name in meta["files"]:
+            size = (ROOT / "checkpoints" / name).stat().st_size
+            assert size <= 15_000_000
+            total += size
+    assert total < 100_000_000
+
+
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_shipped_weights_beat_the_blurry_input(name):
+    torch.manual_seed(0)
+    adapter = SHIPPED[name]().eval()
+    seq = simulate("camera", num_frames=2, height=96, width=128, exposure_us=20000.0, frame_interval_us=25000.0,
+                   latency="none", seed=3)
+    with torch.no_grad():
+        if name.startswith("refid"):
+            pairs = seq.pairs("ideal")
+            out = adapter(pairs)
+            times = out.meta["output_times"]
+            index = int((times[0] - pairs.target_times[0, 0]).abs().argmin())
+            restored, target = out.output[:, index], pairs.target_frames[:, 0]
+        else:
+            frames = seq.frames("ideal")
+            restored, target = adapter(frames).output, frames.sharp
+    blurry = _psnr(seq.blurry[:1], target)
+    assert _psnr(restored, target) > blurry + 1.0
