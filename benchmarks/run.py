@@ -1,6 +1,7 @@
 """The paper's Table 1 on simulated data, as a Lightning test loop.
 
-    python benchmarks/run.py                 # 8 unseen test scenes, 256x336, 20 ms exposure, 4 ms latency
+    python benchmarks/run.py                 # 4 unseen test scenes, 256x336, 20 ms exposure, 4 ms latency
+    python benchmarks/run.py --scenes 8      # all 8 test photographs (about twice as long)
     python benchmarks/run.py --quick         # CI-sized run (2 small scenes)
     python benchmarks/run.py --latency-model intensity --devices 2 --strategy ddp
 
@@ -12,7 +13,11 @@ checkpoint) are reported as n/a with the reason; the others still run.
 
 Data: scenes simulated from the test photographs (never used for training), generated once and
 cached as evlatcorr HDF5 files under ``~/.cache/evlatcorr/benchmark/<config>/``, reproducible
-by seed. ``--data DIR`` reads evlatcorr HDF5 sequence files instead.
+by seed. ``--data PATH`` reads our HDF5 sequence files instead, or a recording with sharp frames in
+any format ``evlatcorr.io`` reads (HighREV, event_utils HDF5, ...): its events are the "GT input" and
+the same events delayed by ``--latency-us`` (or ``--latency-model intensity``) "W/o corr.", the
+paper's synthetic protocol on real events; such data has no ground truth between exposures, so
+the interpolation rows are n/a.
 """
 
 from __future__ import annotations
@@ -47,7 +52,8 @@ from evlatcorr.benchmark import (  # noqa: E402
     SceneDataModule,
     format_table,
 )
-from evlatcorr.io import read_sequence, write_sequence  # noqa: E402
+from evlatcorr.benchmark_data import scenes_from_recording  # noqa: E402
+from evlatcorr.io import is_sequence_file, num_sequences, read_sequence, write_sequence  # noqa: E402
 from evlatcorr.metrics import load_lpips_network  # noqa: E402
 from evlatcorr.simulate import PHOTOGRAPHS_TEST, simulate  # noqa: E402
 
@@ -62,12 +68,21 @@ METHODS = {
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", type=Path, help="folder of evlatcorr HDF5 sequence files (default: simulated test set)")
-    p.add_argument("--ckpt", action="append", default=[], metavar="NAME=PATH", help="checkpoint for efnet/gem/refid")
+    p.add_argument("--data", type=Path, help="our HDF5 sequence file(s) (a file or a folder), or a recording with "
+                   "sharp frames in any format evlatcorr.io reads (HighREV folder, event_utils HDF5, ...) into "
+                   "which the latency is injected (default: the simulated test set)")
+    p.add_argument("--frames-per-scene", type=int, default=4, help="frames taken from each sequence of a --data "
+                   "recording")
+    p.add_argument("--ckpt", action="append", default=[], metavar="NAME=PATH",
+                   help="checkpoint for efnet/gem/refid (official or ours); default: the shipped checkpoints/")
+    p.add_argument("--refid-n", type=int, default=1, help="REFID's n (sharp frames in the gap) of a --ckpt refid "
+                   "file; its m is read from the weights (shipped: m=4, n=1)")
     p.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {','.join(METHODS)}")
     p.add_argument("--latency-model", choices=("constant", "intensity"), default="constant")
     p.add_argument("--latency-us", type=float, default=4000.0, help="constant latency of the simulated test set")
-    p.add_argument("--scenes", type=int, default=len(PHOTOGRAPHS_TEST))
+    p.add_argument("--scenes", type=int, default=None, help=f"scenes scored: test photographs (1-"
+                   f"{len(PHOTOGRAPHS_TEST)}, default 4, which keeps the run under 10 minutes on 2 CPU cores), "
+                   "or the first sequences of --data (default all)")
     p.add_argument("--size", type=int, nargs=2, default=(256, 336), metavar=("H", "W"))
     p.add_argument("--num-bins", type=int, default=500)
     p.add_argument("--device", default="cpu", help="cpu or cuda")
@@ -82,6 +97,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.quick:
         args.scenes, args.size, args.num_bins, args.spatial_steps = 2, (64, 80), 100, 10
+    if args.data is None:
+        args.scenes = 4 if args.scenes is None else args.scenes
+        if not 1 <= args.scenes <= len(PHOTOGRAPHS_TEST):
+            p.error(f"--scenes must be between 1 and {len(PHOTOGRAPHS_TEST)} (the test photographs)")
+    elif args.scenes is not None and args.scenes < 1:
+        p.error("--scenes must be >= 1")
+    if args.frames_per_scene < 1:
+        p.error("--frames-per-scene must be >= 1")
     unknown = set(args.methods.split(",")) - set(METHODS)
     if unknown:
         p.error(f"unknown methods {sorted(unknown)}; choose from {sorted(METHODS)}")
@@ -93,15 +116,17 @@ def scene_from_sequence(name: str, seq) -> BenchmarkScene:
                           seq.pairs("delayed"), seq.true_latency)
 
 
-def prepare_data(args: argparse.Namespace) -> list[Path]:
-    """Simulate the test set once (cached by configuration), or list the files of --data."""
+def prepare_data(args: argparse.Namespace) -> list[Any]:
+    """The test scenes' sources: simulated once (cached by configuration) or from ``--data``.
+
+    Returns ``(file, index)`` items for our HDF5 sequence files (read when their turn comes) and
+    ready :class:`BenchmarkScene` objects for recordings of other formats (their events are the
+    "GT input", the same events delayed by the injected latency "W/o corr.").
+    """
     if args.data is not None:
-        files = sorted(args.data.glob("*.h5")) if args.data.is_dir() else [args.data]
-        if not files:
-            raise SystemExit(f"run.py: error: no .h5 files in {args.data}")
-        return files
+        return data_sources(args)
     config = dict(scenes=list(PHOTOGRAPHS_TEST[:args.scenes]), size=list(args.size), latency=args.latency_model,
-                  latency_us=args.latency_us, seed=args.seed, exposure_us=20000.0, interval_us=25000.0, v=1)
+                  latency_us=args.latency_us, seed=args.seed, exposure_us=20000.0, interval_us=25000.0, v=2)
     key = hashlib.sha1(json.dumps(config, sort_keys=True).encode()).hexdigest()[:10]
     root = Path(os.environ.get("EVLATCORR_CACHE", Path.home() / ".cache" / "evlatcorr")) / "benchmark" / key
     root.mkdir(parents=True, exist_ok=True)
@@ -114,8 +139,45 @@ def prepare_data(args: argparse.Namespace) -> list[Path]:
                            frame_interval_us=25000.0, latency=args.latency_model, latency_us=args.latency_us,
                            seed=args.seed + 100 + i)
             write_sequence(path, seq)
-        files.append(path)
+        files.append((path, 0))
     return files
+
+
+def data_sources(args: argparse.Namespace) -> list[Any]:
+    """``--data``: a folder of our HDF5 sequence files, one such file, or any recording with sharp frames."""
+    path: Path = args.data
+    if not path.exists():
+        raise SystemExit(f"run.py: error: {path}: no such file or directory")
+    candidates = sorted(path.glob("*.h5")) if path.is_dir() else [path]
+    sequence_files = [f for f in candidates if is_sequence_file(f)]
+    if sequence_files:
+        skipped = sorted(set(candidates) - set(sequence_files))
+        if skipped:
+            print(f"skipping {len(skipped)} .h5 files that hold no simulated sequence: "
+                  f"{', '.join(f.name for f in skipped[:5])}", flush=True)
+        return [(f, i) for f in sequence_files for i in range(num_sequences(f))][:args.scenes]
+    try:
+        scenes = list(scenes_from_recording(path, latency=args.latency_model, latency_us=args.latency_us,
+                                            frames_per_scene=args.frames_per_scene, max_scenes=args.scenes))
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"run.py: error: cannot read {path}: {exc}") from exc
+    print(f"{path}: {len(scenes)} scenes of up to {args.frames_per_scene} frames with sharp ground truth; "
+          "recorded events as GT input, the same delayed as W/o corr.", flush=True)
+    return scenes
+
+
+def refid_layout_of(path: str, n: int = 1) -> tuple[int, int]:
+    """REFID's ``(m, n)`` for a checkpoint: ``m`` from its image head (``2m + 4`` input channels)."""
+    from evlatcorr.adapters.checkpoint import load_state_dict_file, resolve_checkpoint
+
+    state = load_state_dict_file(resolve_checkpoint(path, "refid"))
+    key = next((k for k in state if k.endswith("head_img.conv2d.weight")), None)
+    if key is None:
+        raise ValueError(f"{path} is not a REFID checkpoint (no head_img.conv2d.weight)")
+    channels = int(state[key].shape[1])
+    if channels % 2 or channels < 8:
+        raise ValueError(f"{path}: head_img has {channels} input channels; blurry frame interpolation needs 2m + 4")
+    return (channels - 4) // 2, n
 
 
 def build_methods(args: argparse.Namespace) -> tuple[list[Method], dict[str, str]]:
@@ -125,21 +187,24 @@ def build_methods(args: argparse.Namespace) -> tuple[list[Method], dict[str, str
         title, task = METHODS[key]
         if key == "edi":
             methods.append(Method(title, EDIAdapter(num_bins=args.num_bins), task))
-        elif key == "edi-interp":
+            continue
+        if key == "edi-interp":
             methods.append(Method(title, EDIAdapter("interpolation", num_bins=args.num_bins), task))
-        else:
-            adapter = getattr(evlatcorr.adapters, f"{key.upper() if key != 'efnet' else 'EFNet'}Adapter", None)
-            if adapter is None:
-                missing[title] = "adapter not implemented in this version of evlatcorr.adapters"
-                continue
-            if key not in ckpts:
-                missing[title] = (f"no checkpoint: pass --ckpt {key}=PATH (official or ours); none is shipped yet and "
-                                  "a randomly initialised network would score nothing meaningful")
-                continue
-            try:
-                methods.append(Method(title, adapter(checkpoint=ckpts[key]), task))
-            except (FileNotFoundError, ValueError) as exc:
-                missing[title] = f"checkpoint not loaded ({exc})"
+            continue
+        source = ckpts.get(key, "default")
+        try:
+            if key == "efnet":
+                adapter = evlatcorr.adapters.EFNetAdapter(checkpoint=source)
+            elif key == "gem":
+                adapter = evlatcorr.adapters.GEMAdapter(checkpoint=source)
+            else:
+                m, n = (4, 1) if source == "default" else refid_layout_of(source, args.refid_n)
+                # "default": the shipped refid-4-1 weights (4 sharp frames per 20 ms exposure, 1 in the 5 ms gap)
+                adapter = evlatcorr.adapters.REFIDAdapter(checkpoint=source, m=m, n=n)
+            methods.append(Method(title, adapter.eval(), task))
+        except (FileNotFoundError, ValueError, KeyError, RuntimeError) as exc:
+            what = "no shipped checkpoint" if source == "default" else f"checkpoint {source} not loaded"
+            missing[title] = f"{what} ({exc})"
     return methods, missing
 
 
@@ -234,11 +299,18 @@ def main(argv: list[str] | None = None) -> int:
     figures = Figures()
     module = BenchmarkModule(methods, correctors, lpips_net, on_scene=figures)
 
-    def load(i: int) -> BenchmarkScene:
+    unreadable: dict[str, str] = {}
+
+    def load(i: int) -> BenchmarkScene | None:
+        if isinstance(files[i], BenchmarkScene):
+            return files[i]
+        path, index = files[i]
         try:
-            return scene_from_sequence(files[i].stem, read_sequence(files[i]))
-        except (OSError, ValueError) as exc:
-            raise SystemExit(f"run.py: error: cannot read {files[i]}: {exc}") from exc
+            return scene_from_sequence(path.stem if index == 0 else f"{path.stem}_{index}", read_sequence(path, index))
+        except (OSError, ValueError, KeyError) as exc:  # one bad file costs its scene, not the run
+            print(f"\nskipping {path} (sequence {index}): cannot read it: {exc}", flush=True)
+            unreadable[f"{path}:{index}"] = str(exc)
+            return None
 
     devices: int | str = int(args.devices) if args.devices.isdigit() else args.devices
     trainer = L.Trainer(accelerator=args.device if args.device != "cuda" else "gpu", devices=devices,
@@ -247,6 +319,8 @@ def main(argv: list[str] | None = None) -> int:
     trainer.test(module, SceneDataModule(load, len(files)))
     if not trainer.is_global_zero:
         return 0
+    if len(unreadable) == len(files):
+        raise SystemExit(f"run.py: error: none of the {len(files)} scenes could be read")
     results = module.results()
     for title, why in missing.items():
         for name in module.inputs:
@@ -262,9 +336,18 @@ def main(argv: list[str] | None = None) -> int:
     for name, err in results["latency_error"].items():
         latency_lines.append(f"| {name} | {err['mae_us']:.0f} | {err['max_us']:.0f} |")
     truth = (f"{args.latency_us:.0f} us constant" if args.latency_model == "constant" else "intensity-dependent")
-    header = (f"Simulated test set: {len(files)} scenes ({args.size[1]}x{args.size[0]}), 20 ms exposure, latency "
-              f"{truth}; EDI {args.num_bins} bins; LPIPS {'AlexNet' if lpips_net is not None else 'n/a: ' + lpips_why}")
+    read = len(files) - len(unreadable)
+    if args.data is None:
+        data = f"Simulated test set: {read} scenes ({args.size[1]}x{args.size[0]}), 20 ms exposure, latency {truth}"
+    elif isinstance(files[0], BenchmarkScene):
+        h, w = files[0].frames_ideal.sensor_size
+        data = (f"{args.data}: {read} sequences ({w}x{h} centre crop, up to {args.frames_per_scene} frames each), "
+                f"latency {truth} injected into the recorded events")
+    else:
+        data = f"{args.data}: {read} simulated sequences"
+    header = f"{data}; EDI {args.num_bins} bins; LPIPS {'AlexNet' if lpips_net is not None else 'n/a: ' + lpips_why}"
     notes = "".join(f"\n- {k}: n/a, {v}" for k, v in results["failures"].items())
+    notes += "".join(f"\n- skipped {k}: {v}" for k, v in unreadable.items())
     md = f"{header}\n\n{table}\n\n{chr(10).join(latency_lines)}\n{notes}\n\nwall time {wall:.0f} s\n"
     (args.out / "results.md").write_text(md)
     with open(args.out / "results.csv", "w", newline="") as fh:
@@ -274,7 +357,8 @@ def main(argv: list[str] | None = None) -> int:
     figures_written = figures.write(args.out)
     (args.out / "results.json").write_text(json.dumps({
         **results, "config": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-        "data": [str(f) for f in files], "seed": args.seed, "wall_time_s": wall, "figures": figures_written,
+        "data": [f.name if isinstance(f, BenchmarkScene) else f"{f[0]}:{f[1]}" for f in files],
+        "unreadable": unreadable, "seed": args.seed, "wall_time_s": wall, "figures": figures_written,
         "versions": {"evlatcorr": evlatcorr.__version__, "torch": torch.__version__, "lightning": L.__version__,
                      "python": platform.python_version()},
     }, indent=2, default=lambda v: None if isinstance(v, float) and math.isnan(v) else str(v)))

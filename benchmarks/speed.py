@@ -9,6 +9,13 @@ one-pass search, frames per second.
 
     python benchmarks/speed.py                  # DAVIS346 frame, 500 bins, 20 ms, ~1 M events, 100 candidates
     python benchmarks/speed.py --repeats 3 --naive-repeats 1 --height 130 --width 173
+    python benchmarks/speed.py --part adapters --device cuda   # corrector vs EFNet/GEM/REFID forward
+
+``--part adapters`` times, at the benchmark's resolution (256x336, 20 ms exposure), the constant
+corrector (``EventLatencyCorrector()``: search, shift, EDI latent) against each adapter's forward pass
+(event representation + network, eval mode, no grad) on the same frame, and prints the corrector's
+cost as a percentage of each (``corrector/EFNet: <p> %``). Weights do not change the time; the shipped
+ones are used when present.
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from evlatcorr import EventLatencyCorrector  # noqa: E402
 from evlatcorr.edi import edi_deblur  # noqa: E402
 from evlatcorr.etf import etf_loss  # noqa: E402
 from evlatcorr.search import search_constant_latency  # noqa: E402
@@ -66,6 +74,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="repeats of the one-pass search")
     parser.add_argument("--naive-repeats", type=int, default=3, help="repeats of the naive loop")
     parser.add_argument("--device", action="append", help="cpu and/or cuda (default: cpu, and cuda if present)")
+    parser.add_argument("--part", choices=("search", "adapters", "all"), default="all")
+    parser.add_argument("--adapter-size", type=int, nargs=2, default=(256, 336), metavar=("H", "W"),
+                        help="frame size of --part adapters (the benchmark's)")
     args = parser.parse_args()
     devices = args.device or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
 
@@ -73,7 +84,45 @@ def main() -> None:
           f"{args.candidates} candidates, true latency 4000 us; torch {torch.__version__}, "
           f"{torch.get_num_threads()} CPU threads")
     for name in devices:
-        bench_device(torch.device(name), args)
+        if args.part in ("search", "all"):
+            bench_device(torch.device(name), args)
+        if args.part in ("adapters", "all"):
+            bench_adapters(torch.device(name), args)
+
+
+def _adapters() -> dict[str, torch.nn.Module]:
+    from evlatcorr.adapters import EFNetAdapter, GEMAdapter, REFIDAdapter
+
+    def make(cls, **kw):
+        try:
+            return cls(checkpoint="default", **kw)
+        except FileNotFoundError:
+            return cls(**kw)
+
+    return {"EFNet": make(EFNetAdapter), "GEM": make(GEMAdapter), "REFID 4+1": make(REFIDAdapter, m=4, n=1)}
+
+
+def bench_adapters(device: torch.device, args: argparse.Namespace) -> None:
+    height, width = args.adapter_size
+    seq = simulate("astronaut", num_frames=2, height=height, width=width, exposure_us=20_000.0,
+                   frame_interval_us=25_000.0, latency="constant", latency_us=4000.0, seed=0)
+    frames, pairs = seq.frames("delayed").to(device), seq.pairs("delayed").to(device)
+    frame = frames.replace(blurry=frames.blurry[:1], events=frames.events.sample(0),
+                           exposure_start=frames.exposure_start[:1], exposure_end=frames.exposure_end[:1],
+                           sharp=None, meta={})
+    corrector = EventLatencyCorrector(num_bins=args.bins, num_candidates=args.candidates).to(device)
+    print(f"[{device.type}] adapters at {width}x{height}, one frame ({len(frame.events)} events), "
+          f"median of {args.repeats}")
+    with torch.no_grad():
+        corrector(frame)
+        t_corr = statistics.median(timed(lambda: corrector(frame), device)[0] for _ in range(args.repeats))
+        print(f"[{device.type}] constant corrector: {t_corr * 1000:.1f} ms")
+        for name, adapter in _adapters().items():
+            adapter = adapter.to(device).eval()
+            batch = pairs if name.startswith("REFID") else frame
+            adapter(batch)  # warm-up
+            t = statistics.median(timed(lambda a=adapter, b=batch: a(b), device)[0] for _ in range(args.repeats))
+            print(f"[{device.type}] {name} forward: {t * 1000:.1f} ms; corrector/{name}: {100 * t_corr / t:.1f} %")
 
 
 def bench_device(device: torch.device, args: argparse.Namespace) -> None:

@@ -48,23 +48,27 @@ class BenchmarkScene:
         frames_ideal: deblurring batch (F frames) with ideal events and ``sharp`` at mid-exposure.
         frames_delayed: the same frames with delayed events.
         pairs_ideal: interpolation batch (F-1 pairs) with ideal events, ``target_times`` (P, 1) and
-            ``target_frames`` (P, 1, C, H, W).
-        pairs_delayed: the same pairs with delayed events.
+            ``target_frames`` (P, 1, C, H, W); ``None`` when the data has no frames between exposures
+            (the interpolation rows are then n/a).
+        pairs_delayed: the same pairs with delayed events (``None`` with ``pairs_ideal``).
         true_latency: (F, 1, H, W) µs.
     """
 
     name: str
     frames_ideal: EventFrames
     frames_delayed: EventFrames
-    pairs_ideal: EventFrames
-    pairs_delayed: EventFrames
+    pairs_ideal: EventFrames | None
+    pairs_delayed: EventFrames | None
     true_latency: Tensor
     extra: dict[str, Any] = field(default_factory=dict)
 
     def to(self, device: torch.device | str) -> BenchmarkScene:
+        def move(frames: EventFrames | None) -> EventFrames | None:
+            return None if frames is None else frames.to(device)
+
         return BenchmarkScene(self.name, self.frames_ideal.to(device), self.frames_delayed.to(device),
-                              self.pairs_ideal.to(device), self.pairs_delayed.to(device),
-                              self.true_latency.to(device), self.extra)
+                              move(self.pairs_ideal), move(self.pairs_delayed), self.true_latency.to(device),
+                              self.extra)
 
 
 @dataclass
@@ -124,7 +128,9 @@ class BenchmarkModule(L.LightningModule):
     def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
         return batch.to(device) if isinstance(batch, BenchmarkScene) else batch
 
-    def test_step(self, scene: BenchmarkScene, batch_idx: int) -> None:
+    def test_step(self, scene: BenchmarkScene | None, batch_idx: int) -> None:
+        if scene is None:  # unreadable: the data module's loader already said why
+            return
         outputs: dict[str, Any] = {"latency": {}, "restored": {}}
         frames = {GT: scene.frames_ideal, NO_CORR: scene.frames_delayed}
         pairs = {GT: scene.pairs_ideal, NO_CORR: scene.pairs_delayed}
@@ -136,7 +142,8 @@ class BenchmarkModule(L.LightningModule):
             err = (latency - scene.true_latency).abs()
             self.latency_mae[_key("latency", name)].update(err.mean())
             self.latency_max[_key("latency", name)].update(err.max())
-            pairs[name] = pair_with_latency(scene.pairs_delayed, latency[:-1], latency[1:])
+            if scene.pairs_delayed is not None:
+                pairs[name] = pair_with_latency(scene.pairs_delayed, latency[:-1], latency[1:])
             outputs.setdefault("meta", {})[name] = corrected.meta
         for method in self.methods:
             for name in self.inputs:
@@ -144,6 +151,9 @@ class BenchmarkModule(L.LightningModule):
                 if method.name in self.failures:
                     continue
                 batch = frames[name] if method.task == "deblur" else pairs[name]
+                if batch is None:
+                    self.failures[method.name] = f"scene {scene.name} has no ground truth between exposures"
+                    continue
                 try:
                     restored, target = _run(method, batch)
                 except torch.cuda.OutOfMemoryError as exc:  # keep the other rows

@@ -29,6 +29,8 @@ def test_quick_benchmark_end_to_end(tmp_path):
     assert [row["method"] for row in results["table"]] == [m for m in methods for _ in inputs]
     assert set(rows) == {(m, i) for m in methods for i in inputs}
     assert rows[("EDI deblurring", "GT input")]["psnr"] > rows[("EDI deblurring", "W/o corr.")]["psnr"]
+    for method in ("EFNet", "GEM", "REFID"):  # the shipped checkpoints are found and run
+        assert all(rows[(method, i)]["psnr"] == rows[(method, i)]["psnr"] for i in inputs), results["failures"]
     assert set(results["latency_error"]) == {"W/ corr. const.", "W/ corr. spatial"}
     md = (out / "results.md").read_text()
     assert "Diff (%) const." in md and "| PSNR ↑ | SSIM ↑ | LPIPS ↓ |" in md

@@ -462,6 +462,16 @@ def _require(g: h5py.Group, names: Iterable[str], path: Any, group: str) -> None
             raise RecordingError(f"{path}: missing dataset /{name}{where}")
 
 
+def is_sequence_file(path: str | Path) -> bool:
+    """Whether ``path`` is one of our HDF5 files holding sequences with ideal and delayed events
+    (written by :func:`write_sequence` / :func:`write_dataset`), as opposed to events alone."""
+    try:
+        with h5py.File(path, "r") as f:
+            return all("ideal_events" in f[g] for g in _sequence_groups(f, path))
+    except (OSError, RecordingError):
+        return False
+
+
 def num_sequences(path: str | Path) -> int:
     """Number of sequences in one of our files (1 for a single-sequence file)."""
     with _open(path) as f:

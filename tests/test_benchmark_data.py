@@ -1,0 +1,135 @@
+"""Benchmark scenes from recorded data: latency injected into real-format recordings (HighREV layout)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from evlatcorr.benchmark_data import delay_events, intensity_latency, scenes_from_recording
+from evlatcorr.events import Events
+from evlatcorr.frames import EventFrames
+from evlatcorr.io import RecordingError, write_sequence
+from evlatcorr.simulate import simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def write_highrev_split(root: Path, sequences: dict[str, object]) -> None:
+    """A HighREV split folder from simulated sequences: for each frame one event piece over its exposure
+    and one up to the next exposure (dropped from the exposure by the reader), x/y swapped, 8-bit images."""
+    for d in ("blur", "sharp", "event"):
+        (root / d).mkdir(parents=True, exist_ok=True)
+    for name, seq in sequences.items():
+        ev = seq.ideal_events
+        for k in range(seq.num_frames):
+            stem = f"{name}_{k:05d}"
+            for folder, image in (("blur", seq.blurry[k]), ("sharp", seq.sharp[k])):
+                array = (image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+                Image.fromarray(array).save(root / folder / f"{stem}.png")
+            start, end = float(seq.exposure_start[k]), float(seq.exposure_end[k])
+            stop = float(seq.exposure_start[k + 1]) if k + 1 < seq.num_frames else end + 20000.0
+            for j, (lo, hi) in enumerate([(start, end), (end, stop)]):  # the pieces partition time
+                piece = ev.window(lo, hi)
+                np.savez(root / "event" / f"{stem}_{j:02d}.npz", x=piece.y.numpy()[:, None],
+                         y=piece.x.numpy()[:, None], timestamp=piece.t.numpy()[:, None],
+                         polarity=(piece.p.numpy() > 0).astype(np.uint8)[:, None])
+
+
+@pytest.fixture(scope="module")
+def highrev(tmp_path_factory):
+    root = tmp_path_factory.mktemp("highrev") / "val"
+    seqs = {name: simulate(name, num_frames=2, height=36, width=52, exposure_us=20000.0,
+                           frame_interval_us=25000.0, latency="none", seed=i)
+            for i, name in enumerate(("camera", "rocket"))}
+    write_highrev_split(root, seqs)
+    return root
+
+
+def test_delay_events_known_answer():
+    ev = Events(torch.tensor([0, 1, 1]), torch.zeros(3), torch.tensor([-2500.0, 100.0, 9000.0]), torch.ones(3),
+                sensor_size=(1, 2))
+    fr = EventFrames(torch.rand(1, 1, 1, 2), ev, torch.tensor([0.0]), torch.tensor([5000.0]))
+    # per-pixel latency: pixel 0 lags 3 ms (its early event enters the window), pixel 1 lags 2 ms
+    out = delay_events(fr, torch.tensor([[[[3000.0, 2000.0]]]]))
+    assert out.events.t.tolist() == [500.0, 2100.0]  # 9000 + 2000 falls past end + exposure (10 ms)
+    assert out.events.x.tolist() == [0, 1]
+
+
+def test_intensity_latency_follows_the_simulator_law():
+    lat = intensity_latency(torch.tensor([1.0, 0.5, 0.01]).view(1, 1, 1, 3))
+    assert lat.flatten().tolist() == [500.0, 1000.0, 10000.0]
+
+
+def test_scenes_from_highrev_inject_the_latency(highrev):
+    scenes = list(scenes_from_recording(highrev, latency_us=3000.0, frames_per_scene=2))
+    assert [s.name for s in scenes] == ["camera", "rocket"]
+    for s in scenes:
+        assert s.frames_ideal.sensor_size == (32, 48)  # centre crop to multiples of 16
+        assert s.pairs_ideal is None and s.pairs_delayed is None
+        assert s.true_latency.shape == (2, 1, 32, 48) and bool((s.true_latency == 3000.0).all())
+        # every delayed event is an ideal one 3 ms late
+        ideal, delayed = s.frames_ideal.events, s.frames_delayed.events
+        assert len(delayed) > 0
+        start, end = s.frames_ideal.exposure_start, s.frames_ideal.exposure_end
+        lo, hi = start + 1.0, end + (end - start) - 3001.0  # inside both windows, away from their edges
+        early = delayed.shift(3000.0)
+        early = early.select((early.t >= lo[early.batch]) & (early.t < hi[early.batch]))
+        same = ideal.window(lo, hi)
+        torch.testing.assert_close(early.t, same.t)
+        assert early.x.tolist() == same.x.tolist() and early.batch.tolist() == same.batch.tolist()
+    one = list(scenes_from_recording(highrev, latency="intensity", max_scenes=1))
+    assert len(one) == 1 and one[0].true_latency.min() >= 500.0 and one[0].true_latency.max() <= 10000.0
+
+
+def test_recording_without_sharp_frames_is_a_clear_error(highrev, tmp_path):
+    import shutil
+
+    shutil.copytree(highrev, tmp_path / "val")
+    shutil.rmtree(tmp_path / "val" / "sharp")
+    with pytest.raises(RecordingError, match="no frame has a ground-truth sharp frame"):
+        list(scenes_from_recording(tmp_path / "val"))
+
+
+def _run_benchmark(*argv: str) -> dict:
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import run
+    finally:
+        sys.path.pop(0)
+    assert run.main(list(argv)) == 0
+    out = Path(argv[argv.index("--out") + 1])
+    return json.loads((out / "results.json").read_text())
+
+
+def test_benchmark_on_a_highrev_folder(highrev, tmp_path):
+    results = _run_benchmark("--data", str(highrev), "--methods", "edi,edi-interp", "--num-bins", "100",
+                             "--spatial-steps", "3", "--out", str(tmp_path / "out"))
+    rows = {(r["method"], r["input"]): r for r in results["table"]}
+    assert rows[("EDI deblurring", "GT input")]["psnr"] > rows[("EDI deblurring", "W/o corr.")]["psnr"]
+    assert rows[("EDI deblurring", "W/ corr. const.")]["psnr"] > rows[("EDI deblurring", "W/o corr.")]["psnr"]
+    assert "no ground truth between exposures" in results["failures"]["EDI interpolation"]
+    assert results["data"] == ["camera", "rocket"]
+    assert "injected into the recorded events" in (tmp_path / "out" / "results.md").read_text()
+
+
+def test_benchmark_skips_an_unreadable_sequence_file(tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    write_sequence(data / "a.h5", simulate("camera", num_frames=2, height=32, width=48, exposure_us=20000.0,
+                                           frame_interval_us=25000.0, latency="constant", latency_us=3000.0))
+    write_sequence(data / "b.h5", simulate("rocket", num_frames=2, height=32, width=48, exposure_us=20000.0,
+                                           frame_interval_us=25000.0, latency="constant", latency_us=3000.0))
+    import h5py
+
+    with h5py.File(data / "b.h5", "a") as f:  # damaged after it was listed: its sharp frames are gone
+        del f["frames/sharp"]
+    results = _run_benchmark("--data", str(data), "--methods", "edi", "--num-bins", "100", "--spatial-steps", "3",
+                             "--out", str(tmp_path / "out"))
+    assert list(results["unreadable"]) == [f"{data / 'b.h5'}:0"]
+    assert results["table"][0]["psnr"] == results["table"][0]["psnr"]  # a.h5 was still scored
