@@ -315,13 +315,13 @@ def main(argv: list[str] | None = None) -> int:
     devices: int | str = int(args.devices) if args.devices.isdigit() else args.devices
     trainer = L.Trainer(accelerator=args.device if args.device != "cuda" else "gpu", devices=devices,
                         strategy=args.strategy, logger=False, enable_model_summary=False,
-                        enable_progress_bar=True)
+                        enable_progress_bar=True, use_distributed_sampler=False)  # scenes split by rank
     trainer.test(module, SceneDataModule(load, len(files)))
+    results = module.results()  # on every rank: computing the metrics syncs them across processes
     if not trainer.is_global_zero:
         return 0
     if len(unreadable) == len(files):
         raise SystemExit(f"run.py: error: none of the {len(files)} scenes could be read")
-    results = module.results()
     for title, why in missing.items():
         for name in module.inputs:
             results["table"].append({"method": title, "input": name, "psnr": math.nan, "ssim": math.nan,

@@ -18,7 +18,7 @@ from typing import Any
 import lightning as L
 import torch
 from torch import Tensor, nn
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, Subset
 from torchmetrics import MaxMetric, MeanMetric
 
 from evlatcorr.frames import EventFrames
@@ -215,7 +215,12 @@ class _SceneList(Dataset):
 
 
 class SceneDataModule(L.LightningDataModule):
-    """Test scenes, one per step (a scene already holds a batch of frames)."""
+    """Test scenes, one per step (a scene already holds a batch of frames).
+
+    Under DDP each process takes every ``world_size``-th scene, with no scene repeated (a
+    ``DistributedSampler`` would pad with repeats and bias the means), so run the ``Trainer`` with
+    ``use_distributed_sampler=False``.
+    """
 
     def __init__(self, load: Callable[[int], BenchmarkScene], size: int, num_workers: int = 0) -> None:
         super().__init__()
@@ -225,7 +230,13 @@ class SceneDataModule(L.LightningDataModule):
         self.num_workers = num_workers
 
     def test_dataloader(self) -> DataLoader:
-        return DataLoader(self.dataset, batch_size=None, shuffle=False, num_workers=self.num_workers,
+        trainer = self.trainer
+        rank, world = (trainer.global_rank, trainer.world_size) if trainer is not None else (0, 1)
+        if world > 1 and getattr(trainer._accelerator_connector, "use_distributed_sampler", False):
+            raise ValueError("SceneDataModule splits the scenes across processes itself: build the Trainer "
+                             "with use_distributed_sampler=False")
+        mine = Subset(self.dataset, list(range(rank, len(self.dataset), world)))
+        return DataLoader(mine, batch_size=None, shuffle=False, num_workers=self.num_workers,
                           collate_fn=lambda scene: scene)
 
 

@@ -40,3 +40,22 @@ def test_quick_benchmark_end_to_end(tmp_path):
     r2 = subprocess.run(cmd + ["--methods", "edi"], capture_output=True, text=True, timeout=600, cwd=tmp_path,
                         env={"EVLATCORR_CACHE": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin"})
     assert r2.returncode == 0 and "simulating" not in r2.stdout
+
+
+@pytest.mark.slow
+def test_ddp_on_two_cpu_processes_gives_the_same_table(tmp_path):
+    # 3 scenes on 2 processes: no scene may be counted twice (a DistributedSampler would pad)
+    args = [sys.executable, str(ROOT / "benchmarks" / "run.py"), "--size", "64", "80", "--num-bins", "100",
+            "--spatial-steps", "5", "--scenes", "3", "--methods", "edi,edi-interp"]
+    env = {"EVLATCORR_CACHE": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin"}
+    tables = []
+    for extra in ([], ["--devices", "2", "--strategy", "ddp"]):
+        out = tmp_path / f"out{len(tables)}"
+        r = subprocess.run(args + extra + ["--out", str(out)], capture_output=True, text=True, timeout=600,
+                           cwd=tmp_path, env=env)
+        assert r.returncode == 0, r.stderr[-3000:]
+        tables.append(json.loads((out / "results.json").read_text())["table"])
+    assert [(r["method"], r["input"]) for r in tables[0]] == [(r["method"], r["input"]) for r in tables[1]]
+    for single, ddp in zip(*tables):  # the same up to the order of floating-point sums
+        assert single["psnr"] == pytest.approx(ddp["psnr"], rel=1e-5)
+        assert single["ssim"] == pytest.approx(ddp["ssim"], rel=1e-5)
