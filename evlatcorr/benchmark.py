@@ -107,7 +107,8 @@ class BenchmarkModule(L.LightningModule):
         methods: the table's row groups.
         correctors: input name -> corrector module for ``"W/ corr. const."`` / ``"W/ corr. spatial"``.
         lpips_network: LPIPS network or None (LPIPS reported as NaN).
-        on_scene: optional callback ``(scene, outputs) -> None`` for figures.
+        on_scene: optional callback ``(scene, outputs) -> None`` for figures; ``outputs`` holds
+            ``latency[input]``, ``restored[(method, input)]``, ``target[method]`` and ``meta[input]``.
     """
 
     def __init__(self, methods: Sequence[Method], correctors: dict[str, nn.Module],
@@ -161,7 +162,8 @@ class BenchmarkModule(L.LightningModule):
                     torch.cuda.empty_cache()
                     continue
                 self.quality[key].update(restored, target)
-                outputs["restored"][key] = restored
+                outputs["restored"][(method.name, name)] = restored
+                outputs.setdefault("target", {})[method.name] = target
         if self.on_scene is not None:
             self.on_scene(scene, outputs)
 
