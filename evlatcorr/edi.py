@@ -13,6 +13,7 @@ grid of the same spacing that also covers the latency range and the reference ti
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import kornia
 import torch
@@ -24,6 +25,8 @@ from evlatcorr.frames import EventFrames
 from evlatcorr.integral import cumulative_event_grid, sample_grid
 
 __all__ = [
+    "EventGrid",
+    "event_grid",
     "latency_map",
     "edi_log_ratio",
     "edi_deblur",
@@ -58,6 +61,88 @@ def trapezoid_log_weights(num_bins: int, device: torch.device, dtype: torch.dtyp
     return w.log()
 
 
+@dataclass(frozen=True)
+class EventGrid:
+    """The cumulative event integral of a batch on a grid aligned to each exposure's sub-intervals.
+
+    Built once by :func:`event_grid`, it serves every EDI whose reads (exposure and reference time,
+    shifted by the latency) fall inside its span: a test-time fit reads the same grid at every step.
+
+    Attributes:
+        cum: :math:`(B, M + 1, H, W)` cumulative polarity at the grid boundaries.
+        start: time of boundary 0 per sample :math:`(B,)`, µs (float64).
+        width_us: grid spacing per sample :math:`(B,)`, µs: the exposure time / ``num_bins``.
+        num_bins: sub-intervals of the exposure the grid was built for.
+        integral: ``"step"`` or ``"linear"``.
+    """
+
+    cum: Tensor
+    start: Tensor
+    width_us: Tensor
+    num_bins: int
+    integral: str
+
+    @property
+    def end(self) -> Tensor:
+        """Time of the last boundary per sample :math:`(B,)`, µs."""
+        return self.start + (self.cum.shape[1] - 1) * self.width_us
+
+
+def event_grid(
+    events: Events,
+    exposure_start: Tensor,
+    exposure_end: Tensor,
+    num_bins: int = 500,
+    latency_range: tuple[Tensor | float, Tensor | float] = (0.0, 0.0),
+    time: Tensor | None = None,
+    integral: str = "step",
+    dtype: torch.dtype = torch.float32,
+) -> EventGrid:
+    """The cumulative event grid an EDI reads, for any latency in ``latency_range``.
+
+    Args:
+        events: a batch of ``B`` samples.
+        exposure_start: :math:`(B,)` µs.
+        exposure_end: :math:`(B,)` µs.
+        num_bins: sub-intervals of the exposure; the grid spacing is the exposure time / ``num_bins``.
+        latency_range: lowest and highest latency to be read, µs, scalars or :math:`(B,)`.
+        time: reference time per sample :math:`(B,)` (default: mid-exposure).
+        integral: ``"step"`` or ``"linear"`` (see :mod:`evlatcorr.integral`).
+        dtype: dtype of ``cum``.
+
+    Returns:
+        the grid, with spare bins on each side of the span read.
+
+    Example:
+        >>> ev = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([50.0]), torch.tensor([1]),
+        ...             sensor_size=(1, 1))
+        >>> grid = event_grid(ev, torch.tensor([0.0]), torch.tensor([100.0]), num_bins=10,
+        ...                   latency_range=(0.0, 30.0))
+        >>> grid.start.item(), grid.end.item()
+        (-10.0, 150.0)
+    """
+    b = events.batch_size
+    device = events.device
+    start = check_batch_vector(exposure_start, b, "exposure_start").to(device, torch.float64)
+    end = check_batch_vector(exposure_end, b, "exposure_end").to(device, torch.float64)
+    check_exposure(start, end)
+    if num_bins < 1:
+        raise ValueError(f"num_bins must be >= 1, got {num_bins}")
+    ref = (start + end) / 2 if time is None else check_batch_vector(time, b, "time").to(device, torch.float64)
+    lat_lo = check_batch_vector(latency_range[0], b, "latency_range[0]").to(device, torch.float64)
+    lat_hi = check_batch_vector(latency_range[1], b, "latency_range[1]").to(device, torch.float64)
+    if bool((lat_hi < lat_lo).any()):
+        raise ValueError(f"latency_range must be (low, high) with low <= high, got {latency_range}")
+    width_us = (end - start) / num_bins
+    t_lo = torch.minimum(start, ref) + lat_lo
+    t_hi = torch.maximum(end, ref) + lat_hi
+    # Aligned to the exposure start (not to the latencies), so moving a latency does not move the grid.
+    g0 = start + (torch.floor((t_lo - start) / width_us) - 1) * width_us
+    m = int(torch.ceil((t_hi - g0) / width_us).max().item()) + 2
+    cum = cumulative_event_grid(events, g0, width_us, m, integral=integral, dtype=dtype)
+    return EventGrid(cum, g0, width_us, num_bins, integral)
+
+
 def edi_log_ratio(
     events: Events,
     exposure_start: Tensor,
@@ -68,6 +153,7 @@ def edi_log_ratio(
     time: Tensor | None = None,
     integral: str = "step",
     dtype: torch.dtype = torch.float32,
+    grid: EventGrid | None = None,
 ) -> Tensor:
     """``log R`` of Eq. (5)/(7): the log of the mean event-driven brightness ratio over the exposure.
 
@@ -81,6 +167,8 @@ def edi_log_ratio(
         time: reference time per sample :math:`(B,)` (default: mid-exposure); may lie outside.
         integral: ``"step"`` or ``"linear"`` (see :mod:`evlatcorr.integral`).
         dtype: computation dtype (float64 for gradcheck).
+        grid: a prebuilt :func:`event_grid` of these events, exposures and ``num_bins`` covering the
+            latencies read (``integral`` is then the grid's); built here when None.
 
     Returns:
         :math:`(B, 1, H, W)`; the latent image at ``time`` is ``B · exp(−log R)``.
@@ -97,18 +185,13 @@ def edi_log_ratio(
     theta = check_batch_vector(threshold, b, "threshold").to(device, dtype).view(b, 1, 1, 1)
     if bool((theta <= 0).any()):
         raise ValueError(f"threshold must be positive, got {theta.min().item()}")
-
-    width_us = (end - start) / num_bins
-    # Grid spacing = sub-interval length; it starts at the earliest time read and spans the latest.
     lat_lo = lat.detach().amin(dim=(1, 2, 3)).to(torch.float64)
     lat_hi = lat.detach().amax(dim=(1, 2, 3)).to(torch.float64)
-    t_lo = torch.minimum(start, ref) + lat_lo
-    t_hi = torch.maximum(end, ref) + lat_hi
-    # The grid is aligned to the exposure start (not to the latencies), so moving a latency does not
-    # move the grid; one spare bin on each side.
-    g0 = start + (torch.floor((t_lo - start) / width_us) - 1) * width_us
-    m = int(torch.ceil((t_hi - g0) / width_us).max().item()) + 2
-    cum = cumulative_event_grid(events, g0, width_us, m, integral=integral, dtype=dtype)
+    if grid is None:
+        grid = event_grid(events, start, end, num_bins, (lat_lo, lat_hi), ref, integral, dtype)
+    else:
+        _check_grid_covers(grid, start, end, ref, lat_lo, lat_hi, num_bins)
+    cum, g0, width_us = grid.cum.to(dtype), grid.start, grid.width_us
 
     # fractional grid positions: exposure samples (B, n+1, H, W) and the reference (B, 1, H, W)
     offset = ((start - g0) / width_us).to(dtype).view(b, 1, 1, 1) + lat / width_us.to(dtype).view(b, 1, 1, 1)
@@ -118,6 +201,20 @@ def edi_log_ratio(
     c_ref = sample_grid(cum, ref_pos)
     logw = trapezoid_log_weights(num_bins, device, dtype).view(1, -1, 1, 1)
     return torch.logsumexp(theta * (c_exposure - c_ref) + logw, dim=1, keepdim=True)
+
+
+def _check_grid_covers(grid: EventGrid, start: Tensor, end: Tensor, ref: Tensor, lat_lo: Tensor, lat_hi: Tensor,
+                       num_bins: int) -> None:
+    """A prebuilt grid must match the exposure's sub-intervals and span every time read."""
+    if grid.num_bins != num_bins or not torch.allclose(grid.width_us, (end - start) / num_bins):
+        raise ValueError(f"grid was built for num_bins={grid.num_bins} and other exposures; this EDI needs "
+                         f"num_bins={num_bins}")
+    t_lo = torch.minimum(start, ref) + lat_lo
+    t_hi = torch.maximum(end, ref) + lat_hi
+    if bool((t_lo < grid.start).any()) or bool((t_hi > grid.end).any()):
+        raise ValueError(f"grid spans [{grid.start.min().item():.1f}, {grid.end.max().item():.1f}] us but this EDI "
+                         f"reads [{t_lo.min().item():.1f}, {t_hi.max().item():.1f}] us: build it with a wider "
+                         "latency_range")
 
 
 def edi_deblur(
@@ -130,6 +227,7 @@ def edi_deblur(
     num_bins: int = 500,
     time: Tensor | None = None,
     integral: str = "step",
+    grid: EventGrid | None = None,
 ) -> Tensor:
     """Latent sharp image from a blurry frame and its events (EDI deblurring, Eq. 6/9).
 
@@ -143,6 +241,8 @@ def edi_deblur(
         num_bins: sub-intervals of the exposure (paper: 500).
         time: time of the latent image per sample :math:`(B,)`, µs; default mid-exposure.
         integral: ``"step"`` (classic EDI) or ``"linear"`` (Eq. 16-18, smooth in the latency).
+        grid: a prebuilt :func:`event_grid` to read instead of building one (e.g. once per
+            test-time fit); it must cover the latencies read.
 
     Returns:
         latent image :math:`(B, C, H, W)` (not clipped: over-compensation can exceed 1).
@@ -163,7 +263,8 @@ def edi_deblur(
         threshold = estimate_threshold(blurry, events, exposure_start, exposure_end, latency=latency,
                                        num_bins=num_bins)
     dtype = blurry.dtype if blurry.dtype in (torch.float32, torch.float64) else torch.float32
-    log_r = edi_log_ratio(events, exposure_start, exposure_end, threshold, latency, num_bins, time, integral, dtype)
+    log_r = edi_log_ratio(events, exposure_start, exposure_end, threshold, latency, num_bins, time, integral, dtype,
+                          grid)
     return blurry * torch.exp(-log_r).to(blurry.dtype)
 
 

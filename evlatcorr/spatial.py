@@ -38,7 +38,7 @@ import kornia
 import torch
 from torch import Tensor, nn
 
-from evlatcorr.edi import edi_deblur
+from evlatcorr.edi import EventGrid, edi_deblur, event_grid
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
 from evlatcorr.frames import EventFrames
 from evlatcorr.search import search_constant_latency
@@ -126,6 +126,7 @@ def spatial_objective(
     epsilon: float = DEFAULT_EPSILON,
     window: int = DEFAULT_WINDOW,
     sigma_us: float = DEFAULT_SIGMA_US,
+    grid: EventGrid | None = None,
 ) -> dict[str, Tensor]:
     """The terms of Eq. (19)-(21) and their weighted sum ``"total"`` for one batch.
 
@@ -135,6 +136,8 @@ def spatial_objective(
         l_const: the frames' constant latencies :math:`(B,)` µs.
         l_max: upper bound of the latency :math:`(B,)` µs.
         etf_const: ETF at ``l_const`` :math:`(B,)`, the normaliser of ``L_ETF``.
+        grid: the batch's linear :func:`~evlatcorr.edi.event_grid` for ``num_bins`` over latencies
+            ``[0, l_max]``, when it is read more than once (test-time fitting); built here when None.
     """
     w = weights or LossWeights()
     latency = model(frames.blurry)  # (B, 1, H, W) µs
@@ -142,7 +145,7 @@ def spatial_objective(
     l_max_map = l_max.to(latency).view(b, 1, 1, 1)
     clipped = torch.minimum(latency.clamp_min(0.0), l_max_map)
     latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, threshold,
-                        clipped, num_bins, integral="linear")
+                        clipped, num_bins, integral="linear", grid=grid)
     mean_latency = clipped.mean(dim=(1, 2, 3))
     etf = etf_loss(latent, mean_latency, l_const.to(latency), epsilon, window, sigma_us)
     # latencies as fractions of each frame's exposure time: dimensionless, so the paper's weights hold
@@ -158,7 +161,8 @@ def spatial_objective(
 
 
 def constant_reference(frames: EventFrames, threshold: float, num_bins: int, search_range: tuple[float, float] | None,
-                       num_candidates: int, epsilon: float, window: int, sigma_us: float) -> tuple[Tensor, Tensor]:
+                       num_candidates: int, epsilon: float, window: int, sigma_us: float,
+                       grid: EventGrid | None = None) -> tuple[Tensor, Tensor]:
     """``l_const`` per frame and the ETF (linear integral) of its latent image."""
     res = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
                                   threshold, num_bins, search_range, num_candidates, True, None, epsilon, window,
@@ -166,7 +170,7 @@ def constant_reference(frames: EventFrames, threshold: float, num_bins: int, sea
     l_const = res.latency.to(frames.device)
     with torch.no_grad():
         latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, threshold,
-                            l_const, num_bins, integral="linear")
+                            l_const, num_bins, integral="linear", grid=grid)
         etf = etf_loss(latent, l_const.float(), l_const.float(), epsilon, window, sigma_us)
     return l_const, etf
 
@@ -200,13 +204,17 @@ def fit_spatial_latency(
         raise ValueError(f"steps must be >= 1, got {steps}")
     model = model if model is not None else PolynomialLatency()
     model = model.to(frames.device)
+    l_max = frames.exposure_time if search_range is None else torch.full_like(frames.exposure_time, search_range[1])
+    # every step reads the same events at other latencies in [0, l_max] (and l_const): integrate them once
+    l_min = 0.0 if search_range is None else min(0.0, search_range[0])
+    grid = event_grid(frames.events, frames.exposure_start, frames.exposure_end, num_bins, (l_min, l_max),
+                      integral="linear", dtype=frames.blurry.dtype)
     l_const, etf_const = constant_reference(frames, threshold, num_bins, search_range, num_candidates, epsilon,
-                                            window, sigma_us)
+                                            window, sigma_us, grid)
     if start_from_constant:
         with torch.no_grad():  # ψ ≡ mean l_const: the fit only has to learn the variation around it
             model.coefficients.zero_()
             model.coefficients[0] = float(l_const.mean()) / model.scale_us
-    l_max = frames.exposure_time if search_range is None else torch.full_like(frames.exposure_time, search_range[1])
     optimiser = torch.optim.Adam(model.parameters(), lr=lr)
     history = []
     iterator: Any = range(steps)
@@ -217,7 +225,7 @@ def fit_spatial_latency(
     for _ in iterator:
         optimiser.zero_grad()
         terms = spatial_objective(model, frames, l_const, l_max, etf_const, threshold, num_bins, weights, epsilon,
-                                  window, sigma_us)
+                                  window, sigma_us, grid)
         terms["total"].backward()
         optimiser.step()
         history.append(float(terms["total"].detach()))
