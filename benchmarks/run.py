@@ -1,7 +1,7 @@
 """The paper's Table 1 on simulated data, as a Lightning test loop.
 
     python benchmarks/run.py                 # 3 unseen test scenes, 256x336, 20 ms exposure, 4 ms latency
-    python benchmarks/run.py --scenes 8      # all 8 test photographs (about twice as long)
+    python benchmarks/run.py --scenes 8      # all 8 test photographs (about 20 minutes on 2 CPU cores)
     python benchmarks/run.py --quick         # CI-sized run (2 small scenes)
     python benchmarks/run.py --latency-model intensity --devices 2 --strategy ddp
 

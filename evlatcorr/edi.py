@@ -123,12 +123,7 @@ def event_grid(
     """
     b = events.batch_size
     device = events.device
-    start = check_batch_vector(exposure_start, b, "exposure_start").to(device, torch.float64)
-    end = check_batch_vector(exposure_end, b, "exposure_end").to(device, torch.float64)
-    check_exposure(start, end)
-    if num_bins < 1:
-        raise ValueError(f"num_bins must be >= 1, got {num_bins}")
-    ref = (start + end) / 2 if time is None else check_batch_vector(time, b, "time").to(device, torch.float64)
+    start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
     lat_lo = check_batch_vector(latency_range[0], b, "latency_range[0]").to(device, torch.float64)
     lat_hi = check_batch_vector(latency_range[1], b, "latency_range[1]").to(device, torch.float64)
     if bool((lat_hi < lat_lo).any()):
@@ -175,12 +170,7 @@ def edi_log_ratio(
     """
     b = events.batch_size
     device = events.device
-    start = check_batch_vector(exposure_start, b, "exposure_start").to(device, torch.float64)
-    end = check_batch_vector(exposure_end, b, "exposure_end").to(device, torch.float64)
-    check_exposure(start, end)
-    if num_bins < 1:
-        raise ValueError(f"num_bins must be >= 1, got {num_bins}")
-    ref = (start + end) / 2 if time is None else check_batch_vector(time, b, "time").to(device, torch.float64)
+    start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
     lat = latency_map(latency, b, events.sensor_size, device, dtype)
     theta = check_batch_vector(threshold, b, "threshold").to(device, dtype).view(b, 1, 1, 1)
     if bool((theta <= 0).any()):
@@ -201,6 +191,19 @@ def edi_log_ratio(
     c_ref = sample_grid(cum, ref_pos)
     logw = trapezoid_log_weights(num_bins, device, dtype).view(1, -1, 1, 1)
     return torch.logsumexp(theta * (c_exposure - c_ref) + logw, dim=1, keepdim=True)
+
+
+def _exposure_times(events: Events, exposure_start: Tensor, exposure_end: Tensor, num_bins: int,
+                    time: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """Validated exposure start, end and reference time (default mid-exposure), float64 :math:`(B,)`."""
+    b, device = events.batch_size, events.device
+    start = check_batch_vector(exposure_start, b, "exposure_start").to(device, torch.float64)
+    end = check_batch_vector(exposure_end, b, "exposure_end").to(device, torch.float64)
+    check_exposure(start, end)
+    if num_bins < 1:
+        raise ValueError(f"num_bins must be >= 1, got {num_bins}")
+    ref = (start + end) / 2 if time is None else check_batch_vector(time, b, "time").to(device, torch.float64)
+    return start, end, ref
 
 
 def _check_grid_covers(grid: EventGrid, start: Tensor, end: Tensor, ref: Tensor, lat_lo: Tensor, lat_hi: Tensor,

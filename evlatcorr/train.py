@@ -705,10 +705,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             from evlatcorr.adapters.checkpoint import save_weights
 
             previous = args.export / f"{card['name']}.json"
-            if resume is not None and previous.is_file():
+            # a resumed run, or one continuing the shipped weights of this name, extends their history
+            continued = resume is not None or args.checkpoint == "default"
+            if continued and previous.is_file():
                 old = json.loads(previous.read_text())
                 card["commands"] = old.get("commands", [old["command"]]) + [card["command"]]
                 card["train_seconds"] = round(card["train_seconds"] + old["train_seconds"], 1)
+                if resume is None:  # the step count restarted on top of the shipped weights
+                    card["steps"] += int(old["steps"])
 
             adapter = module.adapter
             files = save_weights(adapter.net, args.export / f"{card['name']}.safetensors")
