@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -187,6 +188,19 @@ def test_cli_trains_exports_and_resumes(tmp_path):
     assert card["steps"] == 4
     with pytest.raises(SystemExit, match="does not exist"):
         main(_tiny_cli(tmp_path / "other", "--max-steps", "4", "--resume", "last"))
+
+
+def test_cli_continuing_the_shipped_weights_extends_their_card(tmp_path):
+    # --checkpoint default starts from checkpoints/efnet; exporting beside its card adds to its history
+    export = tmp_path / "ckpt"
+    export.mkdir()
+    shipped = json.loads((Path(__file__).resolve().parents[1] / "checkpoints" / "efnet.json").read_text())
+    (export / "efnet.json").write_text(json.dumps(shipped))
+    card = main(_tiny_cli(tmp_path, "--max-steps", "2", "--checkpoint", "default", "--export", str(export)))
+    assert card["steps"] == shipped["steps"] + 2
+    assert card["commands"][:-1] == shipped.get("commands", [shipped["command"]])
+    assert "--checkpoint default" in card["commands"][-1]
+    assert card["train_seconds"] > shipped["train_seconds"]
 
 
 def test_cli_refuses_test_photographs(tmp_path, capsys):
