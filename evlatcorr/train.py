@@ -711,6 +711,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                 old = json.loads(previous.read_text())
                 card["commands"] = old.get("commands", [old["command"]]) + [card["command"]]
                 card["train_seconds"] = round(card["train_seconds"] + old["train_seconds"], 1)
+                if "note" in old:
+                    card["note"] = old["note"]
                 if resume is None:  # the step count restarted on top of the shipped weights
                     card["steps"] += int(old["steps"])
 

@@ -199,7 +199,7 @@ def test_cli_continuing_the_shipped_weights_extends_their_card(tmp_path):
     card = main(_tiny_cli(tmp_path, "--max-steps", "2", "--checkpoint", "default", "--export", str(export)))
     assert card["steps"] == shipped["steps"] + 2
     assert card["commands"][:-1] == shipped.get("commands", [shipped["command"]])
-    assert "--checkpoint default" in card["commands"][-1]
+    assert "--checkpoint default" in card["commands"][-1] and card.get("note") == shipped.get("note")
     assert card["train_seconds"] > shipped["train_seconds"]
 
 
