@@ -341,6 +341,9 @@ def main(argv: list[str] | None = None) -> int:
     trainer = L.Trainer(accelerator=args.device if args.device != "cuda" else "gpu", devices=devices,
                         strategy=args.strategy, logger=False, enable_model_summary=False,
                         enable_progress_bar=True, use_distributed_sampler=False)  # scenes split by rank
+    if trainer.is_global_zero:
+        print(f"scoring {len(files)} scenes: {', '.join(m.name for m in methods)} x {', '.join(module.inputs)} "
+              "(one progress step per scene)", flush=True)
     trainer.test(module, SceneDataModule(load, len(files)))
     results = module.results()  # on every rank: computing the metrics syncs them across processes
     if not trainer.is_global_zero:
