@@ -11,7 +11,7 @@ from torch import Tensor, nn
 from evlatcorr.edi import edi_deblur, estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
-from evlatcorr.search import search_constant_latency
+from evlatcorr.search import DEFAULT_SCORE, search_constant_latency
 
 __all__ = ["EventLatencyCorrector", "correct_constant_latency"]
 
@@ -29,6 +29,7 @@ def correct_constant_latency(
     epsilon: float = DEFAULT_EPSILON,
     window: int = DEFAULT_WINDOW,
     sigma_us: float = DEFAULT_SIGMA_US,
+    score: str = DEFAULT_SCORE,
 ) -> EventFrames:
     """Estimate one latency per frame and remove it from the events (functional form).
 
@@ -43,11 +44,16 @@ def correct_constant_latency(
         epsilon: ETF edge amplifier.
         window: ETF contrast window.
         sigma_us: σ of the temporal prior, µs.
+        score: sharpness score of the search, ``"etf"`` or ``"sparsity"``
+            (see :func:`~evlatcorr.search.sharpness_score`).
 
     Returns:
         ``frames`` with ``latency`` :math:`(B, 1, H, W)`, ``corrected`` events, ``latent`` (EDI at
         mid-exposure from the corrected events) filled; ``meta["etf_curve"]`` holds the candidates
-        and their ETF values :math:`(B, K)` and ``meta["threshold"]`` the θ used.
+        and their scores :math:`(B, K)`, ``meta["threshold"]`` the θ used,
+        ``meta["latency_confidence"]`` :math:`(B,)` how clear each score curve's minimum was and
+        ``meta["latency_fallback"]`` :math:`(B,)` which frames had none and got the fallback
+        (``previous_latency``, else the range's lower end); a warning names them.
     """
     _check_has_events(frames)
     _warn_if_short(frames, search_range)
@@ -57,12 +63,17 @@ def correct_constant_latency(
             raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
         first = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
                                         0.2, num_bins, search_range, num_candidates, False, previous_latency,
-                                        epsilon, window, sigma_us)
+                                        epsilon, window, sigma_us, score=score)
         theta = estimate_threshold(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
                                    latency=first.latency, num_bins=num_bins)
     result = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
                                      theta, num_bins, search_range, num_candidates, refine, previous_latency,
-                                     epsilon, window, sigma_us)
+                                     epsilon, window, sigma_us, score=score)
+    if result.fallback is not None and bool(result.fallback.any()):
+        which = torch.nonzero(result.fallback).flatten().tolist()
+        warnings.warn(f"samples {which}: the sharpness score has no clear minimum inside the latency range the "
+                      "events cover (too few events or no texture); their latency is the fallback "
+                      f"{[round(float(result.latency[i])) for i in which]} us", stacklevel=2)
     height, width = frames.sensor_size
     latency = result.latency.to(frames.device, torch.float32).view(-1, 1, 1, 1).expand(-1, 1, height, width)
     corrected = frames.events.shift(result.latency)
@@ -70,6 +81,8 @@ def correct_constant_latency(
     meta = dict(frames.meta)
     meta["etf_curve"] = (result.candidates, result.etf)
     meta["threshold"] = theta
+    meta["latency_confidence"] = result.confidence
+    meta["latency_fallback"] = result.fallback
     return frames.replace(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
 
 
@@ -94,6 +107,7 @@ class EventLatencyCorrector(nn.Module):
         epsilon: ETF edge amplifier ε.
         window: ETF local-contrast window.
         sigma_us: σ of the ETF temporal prior (used when ``frames.meta["previous_latency"]`` is set).
+        score: sharpness score of the search, ``"etf"`` (paper) or ``"sparsity"``.
         curve: ``mode="spatial"`` only: a trained latency curve checkpoint.
         **spatial_kwargs: ``mode="spatial"`` only: options of the spatial corrector.
 
@@ -114,6 +128,7 @@ class EventLatencyCorrector(nn.Module):
         epsilon: float = DEFAULT_EPSILON,
         window: int = DEFAULT_WINDOW,
         sigma_us: float = DEFAULT_SIGMA_US,
+        score: str = DEFAULT_SCORE,
         curve: str | None = None,
         **spatial_kwargs: Any,
     ) -> None:
@@ -134,7 +149,9 @@ class EventLatencyCorrector(nn.Module):
         self.search_range = search_range
         self.num_candidates = num_candidates
         self.refine = refine
-        self.epsilon, self.window, self.sigma_us = epsilon, window, sigma_us
+        if score not in ("etf", "sparsity"):
+            raise ValueError(f"score must be 'etf' or 'sparsity', got {score!r}")
+        self.epsilon, self.window, self.sigma_us, self.score = epsilon, window, sigma_us, score
         self.spatial: nn.Module | None = None
         if mode == "spatial":
             from evlatcorr.spatial import SpatialLatencyCorrector
@@ -155,7 +172,7 @@ class EventLatencyCorrector(nn.Module):
         previous = frames.meta.get("previous_latency")
         return correct_constant_latency(frames, self.threshold, self.num_bins, self.search_range,
                                         self.num_candidates, self.refine, previous, self.epsilon, self.window,
-                                        self.sigma_us)
+                                        self.sigma_us, self.score)
 
 
 def _check_has_events(frames: EventFrames) -> None:
@@ -181,7 +198,8 @@ def _warn_if_short(frames: EventFrames, search_range: tuple[float, float] | None
         i = int(torch.nonzero(short)[0, 0])
         warnings.warn(
             f"events of sample {i} end at {float(last[i]):.0f} us but the latency search reads up to "
-            f"{float(need[i]):.0f} us (exposure_end + search range): late events are missing and large "
-            "latencies will be underestimated; pass events further past exposure_end or a smaller search_range",
+            f"{float(need[i]):.0f} us (exposure_end + search range): latencies above "
+            f"{max(0.0, float(last[i] - frames.exposure_end[i])):.0f} us are not searched (their window would run "
+            "past the last event); pass events further past exposure_end to search them",
             stacklevel=3,
         )

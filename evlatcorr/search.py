@@ -25,8 +25,11 @@ from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf
 from evlatcorr.events import Events
 from evlatcorr.integral import cumulative_event_grid
 
-__all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range"]
+__all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score"]
 
+DEFAULT_SCORE = "sparsity"
+# floor c of the sparsity score's log(I / mean(I) + c)
+_LOG_FLOOR = 0.25
 # Memory bound of one strip of the prefix-sum table (float64), in elements.
 _STRIP_ELEMENTS = 4_000_000
 
@@ -41,6 +44,11 @@ class ConstantSearchResult:
         etf: ETF of the coarse candidates :math:`(B, K)` (the paper's Fig. 2b curve).
         fine_candidates: list per sample of the refined candidates, µs.
         fine_etf: list per sample of their ETF values.
+        confidence: :math:`(B,)` in [0, 1]: how clearly the score curve has an interior minimum
+            (its relative depth below the curve's median, 0 when the minimum lies on the upper edge
+            of the range searched).
+        fallback: :math:`(B,)` bool: the curve had no clear minimum and ``latency`` is the fallback
+            (``previous_latency`` when given, else the lower end of the range).
     """
 
     latency: Tensor
@@ -48,6 +56,8 @@ class ConstantSearchResult:
     etf: Tensor
     fine_candidates: list[Tensor]
     fine_etf: list[Tensor]
+    confidence: Tensor | None = None
+    fallback: Tensor | None = None
 
 
 def default_search_range(exposure_time: Tensor) -> tuple[Tensor, Tensor]:
@@ -70,6 +80,7 @@ def search_constant_latency(
     window: int = DEFAULT_WINDOW,
     sigma_us: float = DEFAULT_SIGMA_US,
     integral: str = "step",
+    score: str = DEFAULT_SCORE,
 ) -> ConstantSearchResult:
     """Find the constant latency per sample that minimises the ETF of the EDI latent image.
 
@@ -89,6 +100,11 @@ def search_constant_latency(
         sigma_us: σ of the temporal prior, µs.
         integral: ``"step"`` (impulse events) or ``"linear"`` (each event spread since the previous one
             at its pixel, Eq. 16-18; see :mod:`evlatcorr.integral`).
+        score: ``"etf"`` (paper Eq. 14) or ``"sparsity"`` (see :func:`sharpness_score`).
+
+    Candidates whose window ``[exposure_start + l, exposure_end + l]`` runs past a sample's last
+    event are never scored. When the curve has no interior minimum (see ``confidence``), the
+    latency falls back to ``previous_latency`` or, without it, the lower end of the range.
 
     Returns:
         a :class:`ConstantSearchResult`.
@@ -119,61 +135,135 @@ def search_constant_latency(
     prev = None if previous_latency is None else check_batch_vector(previous_latency, b, "previous_latency")
 
     grey = kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
+    # a candidate's window [start + l, end + l] must not run past the sample's last event: past it
+    # the EDI sees "no change" where the events were merely cut off, which looks sharp to any score
+    last = torch.full((b,), -math.inf, dtype=torch.float64, device=events.device)
+    if len(events):
+        last = last.scatter_reduce(0, events.batch, events.t.to(torch.float64), reduce="amax", include_self=True)
+    reach = (last - end).cpu()
     results = []
     for i in range(b):
         ev = events.sample(i)
         results.append(_search_one(
             grey[i:i + 1], ev, float(start[i]), float(end[i]), float(theta[i]), num_bins,
-            float(lows[i]), float(highs[i]), num_candidates, refine,
-            None if prev is None else prev[i:i + 1], epsilon, window, sigma_us, integral,
+            float(lows[i]), float(highs[i]), float(reach[i]), num_candidates, refine,
+            None if prev is None else prev[i:i + 1], epsilon, window, sigma_us, integral, score,
         ))
     return ConstantSearchResult(
-        latency=torch.tensor([r[0] for r in results], dtype=torch.float64, device=blurry.device),
-        candidates=torch.stack([r[1] for r in results]).to(blurry.device),
-        etf=torch.stack([r[2] for r in results]).to(blurry.device),
-        fine_candidates=[r[3] for r in results],
-        fine_etf=[r[4] for r in results],
+        latency=torch.tensor([r.latency for r in results], dtype=torch.float64, device=blurry.device),
+        candidates=torch.stack([r.candidates for r in results]).to(blurry.device),
+        etf=torch.stack([r.scores for r in results]).to(blurry.device),
+        fine_candidates=[r.fine_candidates for r in results],
+        fine_etf=[r.fine_scores for r in results],
+        confidence=torch.tensor([r.confidence for r in results], dtype=torch.float64, device=blurry.device),
+        fallback=torch.tensor([r.fallback for r in results], dtype=torch.bool, device=blurry.device),
     )
 
 
+@dataclass
+class _OneResult:
+    latency: float
+    candidates: Tensor
+    scores: Tensor
+    fine_candidates: Tensor
+    fine_scores: Tensor
+    confidence: float
+    fallback: bool
+
+
+def sharpness_score(latent: Tensor, latency: Tensor, previous: Tensor | None, score: str, epsilon: float,
+                    window: int, sigma_us: float) -> Tensor:
+    """Score of candidate latent images :math:`(K, 1, H, W)`, lower is sharper.
+
+    ``"etf"`` is the paper's ETF (Eq. 14). ``"sparsity"`` is the normalised sparsity of the
+    log-image gradient, ``‖∇ log(I/Ī + c)‖₁ / ‖∇ log(I/Ī + c)‖₂``: blur and ghost edges spread the
+    gradient over more pixels and raise it, and it does not change when the whole image is
+    brighter or darker (the ETF drifts with the latent's overall brightness, which a late window
+    changes). The temporal prior multiplies it by ``1 / sqrt(2π g)`` as in the ETF.
+    """
+    if score == "etf":
+        return etf_loss(latent, latency, previous, epsilon, window, sigma_us)
+    if score != "sparsity":
+        raise ValueError(f"score must be 'etf' or 'sparsity', got {score!r}")
+    # relative to each image's mean, so the score is exactly invariant to the brightness scale
+    mean = latent.clamp_min(0).mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
+    log_image = torch.log(latent.clamp_min(0) / mean + _LOG_FLOOR)
+    grad = kornia.filters.spatial_gradient(log_image, mode="diff", normalized=True).flatten(1)
+    value = grad.abs().sum(1) / (grad.pow(2).sum(1).sqrt() + 1e-12)
+    if previous is not None:
+        value = value * torch.exp((latency - previous.to(latency)) ** 2 / (4 * sigma_us**2))
+    return value
+
+
 def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: float, n: int,
-                low: float, high: float, num_candidates: int, refine: bool, prev: Tensor | None,
-                epsilon: float, window: int, sigma_us: float,
-                integral: str) -> tuple[float, Tensor, Tensor, Tensor, Tensor]:
-    """Search for one sample; ``grey`` is :math:`(1, 1, H, W)`."""
+                low: float, high: float, reach: float, num_candidates: int, refine: bool, prev: Tensor | None,
+                epsilon: float, window: int, sigma_us: float, integral: str, score: str) -> _OneResult:
+    """Search for one sample; ``grey`` is :math:`(1, 1, H, W)`; ``reach`` = last event - exposure end."""
     width_us = (end - start) / n
     step = max(1, round((high - low) / (num_candidates - 1) / width_us))  # candidate spacing in sub-intervals
     first = math.floor(low / width_us)
     num = max(2, math.ceil((high - low) / (step * width_us) - 1e-9) + 1)
     span = (num - 1) * step  # shifts 0..span (in sub-intervals, from the first candidate)
+    # shifts whose window stays inside the events (a bin of slack: the last event is in the last bin)
+    max_shift = min(span, math.floor(reach / width_us) + 1 - first) if math.isfinite(reach) else -1
     grid_start = start + first * width_us
-    table = _ShiftTable(events, grid_start, width_us, n, span, theta, integral)
-
-    def etf_of(shifts: Tensor) -> Tensor:
-        lat = (first + shifts).to(torch.float64) * width_us
-        log_r = table.log_ratio(shifts)  # (K, 1, H, W), latent at mid-exposure
-        latent = grey.to(log_r.dtype) * torch.exp(-log_r)
-        return etf_loss(latent.float(), lat.float(), None if prev is None else prev.expand(len(shifts)).float(),
-                        epsilon, window, sigma_us).double().cpu()
-
+    to_us = lambda s: (first + s).to(torch.float64).cpu() * width_us  # noqa: E731
     coarse = torch.arange(num, device=events.device) * step
-    coarse_etf = etf_of(coarse)
-    best = int(coarse[int(torch.argmin(coarse_etf))])
-    fine, fine_etf = coarse, coarse_etf
+    if max_shift < 0:  # no candidate window holds events: nothing to score
+        nan = torch.full((num,), math.nan, dtype=torch.float64)
+        fallback = low if prev is None else min(max(float(prev), low), high)
+        return _OneResult(fallback, to_us(coarse), nan, to_us(coarse), nan, 0.0, True)
+    table = _ShiftTable(events, grid_start, width_us, n, min(span, max_shift), theta, integral)
+
+    def score_of(shifts: Tensor) -> Tensor:
+        valid = shifts <= max_shift
+        out = torch.full((len(shifts),), math.inf, dtype=torch.float64)
+        if bool(valid.any()):
+            kept = shifts[valid]
+            lat = (first + kept).to(torch.float64) * width_us
+            log_r = table.log_ratio(kept)  # (K, 1, H, W), latent at mid-exposure
+            latent = grey.to(log_r.dtype) * torch.exp(-log_r)
+            out[valid.cpu()] = sharpness_score(
+                latent.float(), lat.float(), None if prev is None else prev.expand(len(kept)).float(), score,
+                epsilon, window, sigma_us).double().cpu()
+        return out
+
+    coarse_scores = score_of(coarse)
+    finite = torch.isfinite(coarse_scores)
+    k_best = int(torch.argmin(coarse_scores))
+    confidence = _confidence(coarse_scores[finite], k_best)
+    if confidence == 0.0:
+        fallback = low if prev is None else min(max(float(prev), low), high)
+        return _OneResult(fallback, to_us(coarse), coarse_scores, to_us(coarse), coarse_scores, 0.0, True)
+    best = int(coarse[k_best])
+    fine, fine_scores = coarse, coarse_scores
     offset = 0.0
     if refine:
-        fine = torch.arange(max(0, best - step), min(span, best + step) + 1, device=events.device)
-        fine_etf = etf_of(fine)
-        k = int(torch.argmin(fine_etf))
+        fine = torch.arange(max(0, best - step), min(span, max_shift, best + step) + 1, device=events.device)
+        fine_scores = score_of(fine)
+        k = int(torch.argmin(fine_scores))
         best = int(fine[k])
         if 0 < k < len(fine) - 1:
-            f_m, f_0, f_p = (float(v) for v in fine_etf[k - 1:k + 2])
+            f_m, f_0, f_p = (float(v) for v in fine_scores[k - 1:k + 2])
             curvature = f_m - 2 * f_0 + f_p
-            if curvature > 0:
+            if curvature > 0 and math.isfinite(curvature):
                 offset = max(-0.5, min(0.5, 0.5 * (f_m - f_p) / curvature))
     latency = (first + best + offset) * width_us
-    to_us = lambda s: (first + s).to(torch.float64).cpu() * width_us  # noqa: E731
-    return latency, to_us(coarse), coarse_etf, to_us(fine), fine_etf
+    return _OneResult(latency, to_us(coarse), coarse_scores, to_us(fine), fine_scores, confidence, False)
+
+
+def _confidence(scores: Tensor, k_best: int) -> float:
+    """How clearly a score curve (lower is better) has an interior minimum, in [0, 1].
+
+    0 when fewer than three candidates could be scored or the minimum is the last one (the curve
+    still falls at the top of the range: the minimum, if any, lies beyond what the events show);
+    otherwise the minimum's depth below the curve's median, relative to the median.
+    """
+    if scores.numel() < 3 or k_best == scores.numel() - 1:
+        return 0.0
+    median = float(scores.median())
+    depth = (median - float(scores.min())) / max(abs(median), 1e-12)
+    return max(0.0, min(1.0, depth))
 
 
 class _ShiftTable:

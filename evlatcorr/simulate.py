@@ -28,8 +28,22 @@ Latency models (``latency=``):
 - ``"intensity_delay"``: each ideal event is delayed by that same map (of the frame nearest in
   time) at its pixel: an exact per-pixel ground truth, without the filter's smoothing.
 
-Shot noise (``noise_rate_hz``) is added, undelayed, to both streams. Everything random comes from
-one ``torch.Generator`` seeded by ``seed``, so a seed gives identical events.
+Motion (``motion=``): ``"random"`` (above), a constant translation ``(vx, vy)`` px/ms, ``"rotation"``
+(about the view's centre) or ``"zoom"`` (about the view's centre), both at ``max_speed_px_per_ms``
+at the view's corners, in a random direction. With ``objects=`` (:class:`ObjectSpec`) the camera is
+static and sprites with soft-edged masks move at constant velocities over the background.
+
+Noise, the same in both streams (ideal and delayed differ only by the latency):
+
+- ``noise_rate_hz``: shot noise, Poisson events of random polarity at uniform times, undelayed;
+- ``leak_rate_hz``: leak events, ON events repeating at each pixel with a period drawn around
+  ``1 / leak_rate_hz`` (lognormal rates) and a random phase, undelayed;
+- ``threshold_sigma``: per-pixel contrast-threshold mismatch;
+- ``refractory_us``: an event is dropped when the previous event of its pixel (in the stream's own
+  times, noise included) is less than ``refractory_us`` earlier (see :func:`apply_refractory`).
+
+Everything random comes from one ``torch.Generator`` seeded by ``seed``, so a seed gives identical
+events.
 """
 
 from __future__ import annotations
@@ -53,6 +67,9 @@ __all__ = [
     "PHOTOGRAPHS_TRAIN",
     "PHOTOGRAPHS_TEST",
     "LATENCY_MODELS",
+    "MOTIONS",
+    "ObjectSpec",
+    "apply_refractory",
     "load_photograph",
     "luminance",
     "simulate",
@@ -73,6 +90,9 @@ PHOTOGRAPHS_TEST = ("astronaut", "coffee", "chelsea", "rocket", "camera", "motor
 PHOTOGRAPHS_TRAIN = ("motorcycle_left", "hubble_deep_field", "retina", "immunohistochemistry", "moon", "coins",
                      "page", "text", "grass", "cell")
 LATENCY_MODELS = ("none", "constant", "intensity", "intensity_delay")
+MOTIONS = ("random", "rotation", "zoom")  # named motions; a (vx, vy) tuple is a constant translation
+OBJECT_SHAPES = ("disc", "rect")
+_LEAK_SPREAD = 0.5  # std of log(rate) of the per-pixel leak rates
 _LOG_EPS = 1e-3  # log(Y + eps): dark pixels do not fire on noise-level changes
 _MAX_DT_US = 200.0  # longest time step, whatever the motion
 _STEP_PX = 0.3  # longest image motion per step
@@ -120,6 +140,37 @@ def load_photograph(name: str, gain: float = 1.0) -> Tensor:
     scale = float(np.iinfo(img.dtype).max) if np.issubdtype(img.dtype, np.integer) else 1.0
     out = torch.from_numpy(np.ascontiguousarray(img.astype(np.float32) / scale)).permute(2, 0, 1).contiguous()
     return (out * gain).clamp_(0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """A sprite moving at a constant velocity over a static background (``simulate(objects=...)``).
+
+    Attributes:
+        sprite: a photograph name (:data:`PHOTOGRAPHS_TRAIN`, :data:`PHOTOGRAPHS_TEST`), a procedural
+            scene ``(kind, seed)`` (:func:`evlatcorr.scenes.procedural_scene`, drawn at ``size``) or an
+            image :math:`(3, h, w)`, :math:`(1, h, w)` or :math:`(h, w)` in [0, 1]; photographs and
+            images are centre-cropped to the aspect ratio of ``size`` and resized to it.
+        size: ``(h, w)`` of the object on the sensor, px (≥ 2).
+        position: ``(x, y)`` of the object's centre on the sensor (px, may be outside it) at ``time_us``.
+        velocity: ``(vx, vy)`` px/ms.
+        shape: opacity mask: ``"disc"`` (the ellipse inscribed in ``size``) or ``"rect"`` (a rectangle
+            with corners rounded by a quarter of its shorter side); its edge is antialiased over 1 px.
+        time_us: the time at which the centre is at ``position``, µs (default: the first event's, 0).
+
+    Example:
+        >>> coins = ObjectSpec("coins", size=(20, 30), position=(10.0, 12.0), velocity=(1.0, 0.0))
+        >>> board = ObjectSpec(("checkerboard", 3), size=(16, 16), position=(30.0, 12.0), shape="rect")
+        >>> coins.shape, board.velocity
+        ('disc', (0.0, 0.0))
+    """
+
+    sprite: str | tuple[str, int] | Tensor
+    size: tuple[int, int]
+    position: tuple[float, float]
+    velocity: tuple[float, float] = (0.0, 0.0)
+    shape: str = "disc"
+    time_us: float = 0.0
 
 
 @dataclass(eq=False)
@@ -286,7 +337,10 @@ class _Trajectory:
     axis (periods 40-120 ms, at most 12 % of ``max_speed`` per axis), a rotation and a zoom whose
     speeds at the view's corners stay under 8 % and 7 % of ``max_speed``: no point of the view
     moves faster than ``max_speed`` (to within the ~1 % zoom). A ``(vx, vy)`` tuple (px/ms) gives a
-    pure constant translation. Everything is relative to ``t_center`` (the view is centred on the photograph then).
+    pure constant translation. ``"rotation"`` and ``"zoom"``: a constant rotation (rad/µs) or rate of
+    log-zoom (1/µs) about the view's centre of ``max_speed / radius``, a random sign: points at the
+    view's corners move at ``max_speed``. Everything is relative to ``t_center`` (the view is
+    centred on the photograph then).
     """
 
     def __init__(self, motion: str | tuple[float, float], max_speed_px_per_ms: float, radius: float,
@@ -296,7 +350,16 @@ class _Trajectory:
         self.rotations: list[tuple[float, float, float]] = []  # (amplitude rad/µs, period, phase)
         self.zooms: list[tuple[float, float, float]] = []
         self.spin = 0.0
-        if isinstance(motion, str):
+        self.zoom_rate = 0.0
+        if motion in ("rotation", "zoom"):
+            self.drift = (0.0, 0.0)
+            sign = 1.0 if float(torch.rand((), generator=generator, dtype=torch.float64)) < 0.5 else -1.0
+            rate = sign * max_speed_px_per_ms / 1000.0 / radius
+            if motion == "rotation":
+                self.spin = rate
+            else:
+                self.zoom_rate = rate
+        elif isinstance(motion, str):
             u = torch.rand(17, generator=generator, dtype=torch.float64).tolist()
             vmax = max_speed_px_per_ms / 1000.0  # px/µs
             angle, drift = 2 * math.pi * u[0], vmax * (0.55 + 0.13 * u[1])
@@ -335,7 +398,7 @@ class _Trajectory:
         rot = self.spin * rel
         for amp, period, phase in self.rotations:
             rot = rot + self._integral(amp, period, phase, t, self.t_center)
-        zoom = torch.zeros_like(t)
+        zoom = self.zoom_rate * rel
         for amp, period, phase in self.zooms:
             zoom = zoom + self._integral(amp, period, phase, t, self.t_center)
         return dx, dy, rot, zoom
@@ -395,6 +458,138 @@ class _Camera:
             return torch.zeros(0, 3, *self.size, dtype=self.rgby.dtype, device=self.rgby.device)
         rgb = self.rgby[:, :3]
         return torch.cat([self._warp(rgb, times[i:i + chunk]) for i in range(0, times.numel(), chunk)]).clamp(0, 1)
+
+
+class _ObjectCamera:
+    """A static background with sprites composited over it (alpha over), same interface as :class:`_Camera`.
+
+    Args:
+        background: colour :math:`(3, h, w)`; the static view of it is rendered as by a still camera.
+        sprites: premultiplied ``(R α, G α, B α, Y α, α)`` images :math:`(5, h_i, w_i)`, drawn in order
+            (later ones on top).
+        motions: ``(x0, y0, vx, vy)`` per sprite: the sprite's centre ``(x0, y0) + (vx, vy) t`` on the
+            sensor at time ``t`` (px, px/µs).
+    """
+
+    def __init__(self, background: Tensor, height: int, width: int, sprites: Sequence[Tensor],
+                 motions: Sequence[tuple[float, float, float, float]]) -> None:
+        still = _Camera(background, height, width, _Trajectory((0.0, 0.0), 0.0, 1.0, 0.0, torch.Generator()),
+                        (0.0, 0.0))
+        self.size = (height, width)
+        self.scale = still.scale
+        self.background = still.rgby_at(0.0)[None]  # (1, 4, H, W)
+        self.rgby = self.background  # dtype / device, as _Camera
+        self.sprites = [s[None].to(self.background) for s in sprites]
+        self.motions = list(motions)
+
+    def _compose(self, t: Tensor, channels: slice) -> Tensor:
+        t = t.to(torch.float64)
+        out = self.background[:, channels].expand(t.numel(), -1, -1, -1)
+        for sprite, (x0, y0, vx, vy) in zip(self.sprites, self.motions):
+            h, w = sprite.shape[-2:]
+            tx = x0 + vx * t - (w - 1) / 2  # where the sprite's pixel (0, 0) lands on the sensor
+            ty = y0 + vy * t - (h - 1) / 2
+            one, zero = torch.ones_like(t), torch.zeros_like(t)
+            m = torch.stack([torch.stack([one, zero, tx], -1), torch.stack([zero, one, ty], -1)], -2).to(sprite)
+            src = torch.cat([sprite[:, channels], sprite[:, 4:5]], 1).expand(t.numel(), -1, -1, -1)
+            warped = kornia.geometry.transform.warp_affine(src, m, dsize=self.size, mode="bilinear",
+                                                           padding_mode="zeros", align_corners=True)
+            out = warped[:, :-1] + (1 - warped[:, -1:]) * out
+        return out
+
+    def luminance_at(self, t: float) -> Tensor:
+        """Luminance :math:`(H, W)` at time ``t``."""
+        return self._compose(torch.tensor([t], dtype=torch.float64), slice(3, 4))[0, 0]
+
+    def rgby_at(self, t: float) -> Tensor:
+        """Colour and luminance :math:`(4, H, W)` at time ``t``."""
+        return self._compose(torch.tensor([t], dtype=torch.float64), slice(0, 4))[0]
+
+    def render(self, times: Tensor, chunk: int = 16) -> Tensor:
+        """Colour frames :math:`(T, 3, H, W)` at ``times`` µs."""
+        times = torch.as_tensor(times, dtype=torch.float64).flatten().cpu()
+        if times.numel() == 0:
+            return torch.zeros(0, 3, *self.size, dtype=self.rgby.dtype, device=self.rgby.device)
+        return torch.cat([self._compose(times[i:i + chunk], slice(0, 3))
+                          for i in range(0, times.numel(), chunk)]).clamp(0, 1)
+
+
+def _sprite(spec: ObjectSpec, brightness: float, device: torch.device) -> Tensor:
+    """Premultiplied ``(R α, G α, B α, Y α, α)`` image :math:`(5, h + 4, w + 4)` of an object (2 px clear border)."""
+    from evlatcorr.scenes import procedural_scene
+
+    h, w = spec.size
+    if isinstance(spec.sprite, tuple):
+        kind, seed = spec.sprite
+        rgb = procedural_scene(kind, max(h, 8), max(w, 8), seed)
+    else:
+        rgb = load_photograph(spec.sprite) if isinstance(spec.sprite, str) else _image_tensor(spec.sprite)
+    ph, pw = rgb.shape[-2:]
+    if ph * w > pw * h:  # centre crop to the object's aspect ratio
+        ch = max(1, round(pw * h / w))
+        rgb = rgb[:, (ph - ch) // 2:(ph - ch) // 2 + ch]
+    else:
+        cw = max(1, round(ph * w / h))
+        rgb = rgb[:, :, (pw - cw) // 2:(pw - cw) // 2 + cw]
+    if tuple(rgb.shape[-2:]) != (h, w):
+        rgb = F.interpolate(rgb[None], size=(h, w), mode="bilinear", align_corners=False, antialias=True)[0]
+    rgb = (rgb.to(device) * float(brightness)).clamp(0, 1)
+    # signed distance (px, negative inside) to the mask's edge, then a 1 px antialiased ramp
+    y = torch.arange(h + 4, dtype=torch.float64, device=device)[:, None] - (h + 3) / 2
+    x = torch.arange(w + 4, dtype=torch.float64, device=device)[None, :] - (w + 3) / 2
+    a, b = w / 2, h / 2
+    if spec.shape == "disc":
+        sd = (torch.sqrt((x / a) ** 2 + (y / b) ** 2) - 1) * min(a, b)
+    else:
+        r = min(a, b) / 2
+        qx, qy = x.abs() - (a - r), y.abs() - (b - r)
+        sd = torch.sqrt(qx.clamp_min(0) ** 2 + qy.clamp_min(0) ** 2) + torch.maximum(qx, qy).clamp_max(0) - r
+    alpha = (0.5 - sd).clamp(0, 1).to(rgb)[None]
+    rgby = F.pad(torch.cat([rgb, luminance(rgb)], 0), (2, 2, 2, 2))
+    return torch.cat([rgby * alpha, alpha], 0)
+
+
+def _sprite_name(sprite: str | tuple[str, int] | Tensor) -> str | list[Any]:
+    """JSON-serialisable description of a sprite: its name, ``[kind, seed]`` or ``"tensor"``."""
+    return sprite if isinstance(sprite, str) else list(sprite) if isinstance(sprite, tuple) else "tensor"
+
+
+def _check_objects(objects: Sequence[ObjectSpec]) -> list[ObjectSpec]:
+    if isinstance(objects, ObjectSpec) or not isinstance(objects, Sequence):
+        raise ValueError(f"objects must be a sequence of ObjectSpec, got {type(objects).__name__}")
+    out = []
+    for i, spec in enumerate(objects):
+        if not isinstance(spec, ObjectSpec):
+            raise ValueError(f"objects[{i}] must be an ObjectSpec, got {type(spec).__name__}")
+        try:
+            size = (int(spec.size[0]), int(spec.size[1])) if len(spec.size) == 2 else ()
+            pos = tuple(float(v) for v in spec.position)
+            vel = tuple(float(v) for v in spec.velocity)
+            time_us = float(spec.time_us)
+        except (TypeError, ValueError):
+            raise ValueError(f"objects[{i}] needs size (h, w), position (x, y), velocity (vx, vy) and time_us "
+                             f"as numbers, got {spec!r}") from None
+        if len(size) != 2 or min(size) < 2 or tuple(spec.size) != size:
+            raise ValueError(f"objects[{i}].size must be two integers >= 2, got {spec.size}")
+        if len(pos) != 2 or len(vel) != 2 or not all(math.isfinite(v) for v in (*pos, *vel, time_us)):
+            raise ValueError(f"objects[{i}] position, velocity and time_us must be finite (x, y), (vx, vy) and "
+                             f"a number, got {spec.position}, {spec.velocity}, {spec.time_us}")
+        if spec.shape not in OBJECT_SHAPES:
+            raise ValueError(f"objects[{i}].shape must be one of {OBJECT_SHAPES}, got {spec.shape!r}")
+        sprite = spec.sprite
+        if isinstance(sprite, (tuple, list)):
+            from evlatcorr.scenes import PROCEDURAL_SCENES
+
+            if (len(sprite) != 2 or sprite[0] not in PROCEDURAL_SCENES or isinstance(sprite[1], bool)
+                    or not isinstance(sprite[1], (int, np.integer))):
+                raise ValueError(f"objects[{i}].sprite as a procedural scene must be (kind, seed) with kind in "
+                                 f"{PROCEDURAL_SCENES} and an integer seed, got {sprite!r}")
+            sprite = (str(sprite[0]), int(sprite[1]))
+        elif not isinstance(sprite, (str, Tensor)):
+            raise ValueError(f"objects[{i}].sprite must be a photograph name, a procedural (kind, seed) or an "
+                             f"image tensor, got {type(sprite).__name__}")
+        out.append(ObjectSpec(sprite, size, pos, vel, spec.shape, time_us))
+    return out
 
 
 class _EventGenerator:
@@ -464,6 +659,57 @@ def _merge(signal: Events, noise: tuple[Tensor, Tensor, Tensor] | None) -> Event
     return Events._trusted(pix % width, pix // width, t, p, torch.zeros_like(pix), signal.sensor_size, 1)
 
 
+def apply_refractory(events: Events, refractory_us: float) -> Events:
+    """Drop each event whose pixel had an event less than ``refractory_us`` before it (a vectorised dead time).
+
+    The previous event counts whether it was kept or dropped, so this drops at least as many events
+    as a true dead time after each *kept* event (a pixel firing steadily faster than 1 /
+    ``refractory_us`` keeps only its first event), and kept events of a pixel are always at least
+    ``refractory_us`` apart. The change that happens during the dead time is lost, not emitted late.
+
+    Args:
+        events: events of one or more samples (pixels are per sample), time-sorted within each.
+        refractory_us: dead time, µs (≥ 0; 0 keeps everything).
+
+    Returns:
+        the kept events, in their order.
+
+    Example:
+        >>> ev = Events(torch.zeros(3), torch.zeros(3), torch.tensor([0.0, 50.0, 300.0]), torch.ones(3),
+        ...             sensor_size=(1, 1))
+        >>> apply_refractory(ev, 100.0).t.tolist()
+        [0.0, 300.0]
+    """
+    refractory_us = float(refractory_us)
+    if not (math.isfinite(refractory_us) and refractory_us >= 0):
+        raise ValueError(f"refractory_us must be >= 0, got {refractory_us}")
+    if refractory_us == 0 or len(events) < 2:
+        return events
+    pix = events.pixel_index()
+    order = torch.argsort(pix, stable=True)  # by pixel, in time order within each pixel
+    pix_o, t_o = pix[order], events.t[order]
+    close = (pix_o[1:] == pix_o[:-1]) & (t_o[1:] - t_o[:-1] < refractory_us)
+    keep = torch.ones_like(pix, dtype=torch.bool)
+    keep[order[1:][close]] = False
+    return events.select(keep)
+
+
+def _leak_events(height: int, width: int, t_end: float, rate_hz: float,
+                 g: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+    """Leak events (flat pixel, t, p = +1) in ``[0, t_end)``: per-pixel periodic at a lognormal rate, random phase."""
+    n_pix = height * width
+    rates = float(rate_hz) * torch.exp(_LEAK_SPREAD * torch.randn(n_pix, generator=g, dtype=torch.float64)
+                                       - _LEAK_SPREAD**2 / 2)  # Hz, mean rate_hz
+    period = 1e6 / rates  # µs
+    first = torch.rand(n_pix, generator=g, dtype=torch.float64) * period
+    count = torch.where(first < t_end, torch.floor((t_end - first) / period) + 1, torch.zeros_like(first)).long()
+    pix = torch.repeat_interleave(torch.arange(n_pix), count)
+    k = torch.arange(pix.numel()) - torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
+    t = first[pix] + k.double() * period[pix]
+    t = t.clamp_max(math.nextafter(t_end, 0.0))  # rounding
+    return pix, t, torch.ones(pix.numel(), dtype=torch.int8)
+
+
 def _image_tensor(image: Tensor) -> Tensor:
     if not isinstance(image, Tensor):
         raise ValueError(f"image must be a photograph name or a tensor, got {type(image).__name__}")
@@ -500,6 +746,9 @@ def simulate(
     dt_us: float | None = None,
     seed: int = 0,
     device: str | torch.device = "cpu",
+    objects: Sequence[ObjectSpec] | None = None,
+    leak_rate_hz: float = 0.0,
+    refractory_us: float = 0.0,
 ) -> SimulatedSequence:
     """Simulate blurry colour frames and their ideal and delayed events (see the module docstring).
 
@@ -528,11 +777,15 @@ def simulate(
         noise_rate_hz: shot-noise events per pixel per second (Poisson, random polarity, uniform
             times), in both streams.
         max_speed_px_per_ms: largest image speed anywhere in the view (random motion); the default
-            blurs a 20 ms exposure by about 15-25 px.
-        motion: ``"random"`` (smooth random drift, wobble, rotation, zoom) or a constant translation
+            blurs a 20 ms exposure by about 15-25 px. For ``"rotation"`` and ``"zoom"``, the speed at
+            the view's corners.
+        motion: ``"random"`` (smooth random drift, wobble, rotation, zoom), ``"rotation"`` or
+            ``"zoom"`` (constant, about the view's centre, random sign), or a constant translation
             ``(vx, vy)`` of the image content in px/ms (then ``max_speed_px_per_ms`` is ignored).
-        brightness: multiplies the photograph's intensity before anything else (clipped to [0, 1]);
-            dim scenes have late events under the intensity models.
+            With ``"zoom"`` the photograph is sized for the view from 0 µs on: during the
+            ``"intensity"`` filter's warm-up the view may reach past it (mirrored content).
+        brightness: multiplies the photograph's (and the objects') intensity before anything else
+            (clipped to [0, 1]); dim scenes have late events under the intensity models.
         margin_us: events simulated before the first exposure, µs (default ``exposure_us``); after the
             last exposure they run ``margin_us`` plus the model's largest latency (``latency_us``,
             ``latency_range_us[1]`` or 0).
@@ -540,6 +793,13 @@ def simulate(
         dt_us: time step; default ``min(200, 0.3 / max_speed)`` µs so the image moves ≤ 0.3 px per step.
         seed: random seed (motion, threshold mismatch, noise).
         device: where to simulate.
+        objects: sprites (:class:`ObjectSpec`) composited, in order, over the photograph seen by a
+            static camera (``motion`` must then be left at its default or be ``(0, 0)``); the step
+            follows the fastest object (``max_speed_px_per_ms`` is ignored).
+        leak_rate_hz: mean rate of leak events (ON, roughly periodic per pixel, rates lognormal
+            around it with a log-std of 0.5, random phases), in both streams, undelayed.
+        refractory_us: per-pixel dead time, µs, applied to each stream in its own times (noise
+            included) by :func:`apply_refractory`.
 
     Returns:
         a :class:`SimulatedSequence`.
@@ -559,7 +819,8 @@ def simulate(
         raise ValueError(f"height and width must be integers >= 2, got {height}x{width}")
     numbers = dict(exposure_us=exposure_us, frame_interval_us=frame_interval_us, latency_us=latency_us,
                    threshold=threshold, threshold_sigma=threshold_sigma, noise_rate_hz=noise_rate_hz,
-                   max_speed_px_per_ms=max_speed_px_per_ms, brightness=brightness)
+                   max_speed_px_per_ms=max_speed_px_per_ms, brightness=brightness, leak_rate_hz=leak_rate_hz,
+                   refractory_us=refractory_us)
     for key, value in numbers.items():
         try:
             numbers[key] = float(value)
@@ -568,7 +829,7 @@ def simulate(
         if not math.isfinite(numbers[key]):
             raise ValueError(f"{key} must be a finite number, got {value!r}")
     exposure_us, frame_interval_us, latency_us, threshold, threshold_sigma, noise_rate_hz, max_speed_px_per_ms, \
-        brightness = numbers.values()
+        brightness, leak_rate_hz, refractory_us = numbers.values()
     if exposure_us <= 0:
         raise ValueError(f"exposure_us must be positive, got {exposure_us}")
     if frame_interval_us < exposure_us:
@@ -579,14 +840,14 @@ def simulate(
         raise ValueError(f"latency_us must be >= 0, got {latency_us}")
     if len(latency_range_us) != 2 or not 0 < float(latency_range_us[0]) <= float(latency_range_us[1]) < math.inf:
         raise ValueError(f"latency_range_us must be (bright, dim) with 0 < bright <= dim, got {latency_range_us}")
-    for key in ("threshold_sigma", "noise_rate_hz", "max_speed_px_per_ms"):
+    for key in ("threshold_sigma", "noise_rate_hz", "max_speed_px_per_ms", "leak_rate_hz", "refractory_us"):
         if numbers[key] < 0:
             raise ValueError(f"{key} must be >= 0, got {numbers[key]}")
     if brightness <= 0:
         raise ValueError(f"brightness must be positive, got {brightness}")
     if isinstance(motion, str):
-        if motion != "random":
-            raise ValueError(f"motion must be 'random' or a (vx, vy) translation in px/ms, got {motion!r}")
+        if motion not in MOTIONS:
+            raise ValueError(f"motion must be one of {MOTIONS} or a (vx, vy) translation in px/ms, got {motion!r}")
         speed = float(max_speed_px_per_ms)
     else:
         try:
@@ -594,7 +855,7 @@ def simulate(
         except (TypeError, ValueError):
             velocity = ()
         if len(velocity) != 2 or not all(math.isfinite(v) for v in velocity):
-            raise ValueError(f"motion must be 'random' or a (vx, vy) translation in px/ms, got {motion!r}")
+            raise ValueError(f"motion must be one of {MOTIONS} or a (vx, vy) translation in px/ms, got {motion!r}")
         motion = velocity
         speed = math.hypot(*velocity)
     if margin_us is not None and not (math.isfinite(margin_us) and margin_us >= 0):
@@ -604,6 +865,13 @@ def simulate(
     extra_times = torch.as_tensor([] if target_times is None else target_times, dtype=torch.float64).flatten().cpu()
     if not bool(torch.isfinite(extra_times).all()):
         raise ValueError("target_times must be finite")
+    specs = None
+    if objects is not None:
+        specs = _check_objects(objects)
+        if motion != "random" and motion != (0.0, 0.0):
+            raise ValueError(f"objects move over a static background: leave motion at its default, got {motion!r}")
+        motion = (0.0, 0.0)
+        speed = max([math.hypot(*o.velocity) for o in specs], default=0.0)
     if isinstance(image, str):
         photo = load_photograph(image)
     else:
@@ -629,7 +897,16 @@ def simulate(
     span = (min(-n_warm * dt, float(wanted.min()) if wanted.numel() else 0.0),
             max(t_end, float(wanted.max()) if wanted.numel() else 0.0))
     photo = (photo.to(device) * float(brightness)).clamp(0, 1)
-    camera = _Camera(photo, height, width, trajectory, span)
+    camera: _Camera | _ObjectCamera
+    if specs is not None:
+        sprites = [_sprite(o, brightness, device) for o in specs]
+        motions = [(o.position[0] - o.velocity[0] / 1000.0 * o.time_us, o.position[1] - o.velocity[1] / 1000.0
+                    * o.time_us, o.velocity[0] / 1000.0, o.velocity[1] / 1000.0) for o in specs]
+        camera = _ObjectCamera(photo, height, width, sprites, motions)
+    else:
+        # a zoom's scale is exponential in time: size the photograph for the events' timeline, not the warm-up's
+        sized = (min(0.0, float(wanted.min()) if wanted.numel() else 0.0), span[1]) if motion == "zoom" else span
+        camera = _Camera(photo, height, width, trajectory, sized)
 
     thresholds = torch.full((height, width), float(threshold), dtype=torch.float32)
     if threshold_sigma > 0:
@@ -701,6 +978,9 @@ def simulate(
         noise = (torch.randint(0, height * width, (n,), generator=g).to(device),
                  (torch.rand(n, generator=g, dtype=torch.float64) * t_end).to(device),
                  (torch.randint(0, 2, (n,), generator=g) * 2 - 1).to(torch.int8).to(device))
+    if leak_rate_hz > 0:
+        leak = tuple(v.to(device) for v in _leak_events(height, width, t_end, leak_rate_hz, g))
+        noise = leak if noise is None else tuple(torch.cat([a, b]) for a, b in zip(noise, leak))
     sensor = (height, width)
     signal = ideal.events(sensor, None)
     ideal_events = _merge(signal, noise)
@@ -726,6 +1006,10 @@ def simulate(
         delayed_events = _merge(shifted, noise)
         true_latency = torch.full((num_frames, 1, height, width), lat, device=device)
 
+    if refractory_us > 0:
+        ideal_events = apply_refractory(ideal_events, refractory_us)
+        delayed_events = apply_refractory(delayed_events, refractory_us)
+
     config = dict(image=image if isinstance(image, str) else "tensor", num_frames=num_frames, height=height,
                   width=width, exposure_us=float(exposure_us), frame_interval_us=float(frame_interval_us),
                   latency=latency, latency_us=float(latency_us), latency_range_us=[lo_lat, hi_lat],
@@ -733,7 +1017,11 @@ def simulate(
                   noise_rate_hz=float(noise_rate_hz), max_speed_px_per_ms=float(max_speed_px_per_ms),
                   motion=motion if isinstance(motion, str) else [float(v) for v in motion],
                   brightness=float(brightness), margin_us=margin, dt_us=dt, t_end_us=t_end,
-                  warmup_us=n_warm * dt, photo_scale=camera.scale, seed=int(seed))
+                  warmup_us=n_warm * dt, photo_scale=camera.scale, seed=int(seed), leak_rate_hz=float(leak_rate_hz),
+                  refractory_us=float(refractory_us),
+                  objects=None if specs is None else [
+                      dict(sprite=_sprite_name(o.sprite), size=list(o.size), position=list(o.position),
+                           velocity=list(o.velocity), shape=o.shape, time_us=o.time_us) for o in specs])
     return SimulatedSequence(
         blurry=blurry, sharp=sharp, exposure_start=starts.to(device), exposure_end=ends.to(device),
         ideal_events=ideal_events, delayed_events=delayed_events, true_latency=true_latency.float(),

@@ -4,21 +4,23 @@ import pytest
 import torch
 
 from evlatcorr.edi import edi_deblur
-from evlatcorr.etf import etf_loss
-from evlatcorr.search import search_constant_latency
+from evlatcorr.search import search_constant_latency, sharpness_score
 from tests.conftest import random_events
 
 START, END = torch.tensor([0.0]), torch.tensor([100.0])
 
 
-def test_one_pass_equals_naive_edi_per_candidate():
-    # the prefix-sum table must give exactly the ETF of re-running EDI at each candidate
+@pytest.mark.parametrize("score", ["etf", "sparsity"])
+def test_one_pass_equals_naive_edi_per_candidate(score):
+    # the prefix-sum table must give exactly the score of re-running EDI at each candidate
     ev = random_events(3000, (8, 9), (0.0, 220.0), seed=5)
     blurry = torch.rand(1, 1, 8, 9) * 0.8 + 0.1
-    res = search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11, refine=False)
+    res = search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11, refine=False,
+                                  score=score)
     assert res.candidates.shape == (1, 11) and res.etf.shape == (1, 11)
-    naive = torch.stack([
-        etf_loss(edi_deblur(blurry, ev.shift(float(l)), START, END, 0.2, num_bins=50))[0]
+    naive = torch.cat([
+        sharpness_score(edi_deblur(blurry, ev.shift(float(l)), START, END, 0.2, num_bins=50), l.view(1).float(),
+                        None, score, 20.0, 7, 1000.0)
         for l in res.candidates[0]
     ])
     torch.testing.assert_close(res.etf[0].float(), naive, rtol=1e-4, atol=1e-5)
@@ -64,3 +66,37 @@ def test_device(device):
     res = search_constant_latency(torch.rand(1, 1, 4, 4, device=device), ev, START, END, num_bins=20,
                                   num_candidates=5)
     assert res.latency.device.type == device.type
+
+
+@pytest.mark.parametrize("score", ["etf", "sparsity"])
+def test_never_scores_a_window_past_the_last_event(score):
+    # events stop 30 us after the exposure end: no candidate above 30 us may be scored or returned
+    ev = random_events(3000, (8, 9), (0.0, END.item() + 30.0), seed=11)
+    blurry = torch.rand(1, 1, 8, 9) * 0.8 + 0.1
+    res = search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11, score=score)
+    last = ev.t.max().item() - END.item()
+    scored = res.candidates[0][torch.isfinite(res.etf[0])]
+    assert scored.max().item() <= last + 2.0  # the last event's sub-interval (2 us) is read whole
+    assert torch.isinf(res.etf[0][res.candidates[0] > last + 2.0]).all()
+    assert res.latency.item() <= last + 2.0
+
+
+def test_no_events_past_the_exposure_falls_back_to_previous_or_zero():
+    ev = random_events(500, (4, 4), (0.0, 90.0), seed=12)  # nothing after the exposure end
+    blurry = torch.rand(1, 1, 4, 4)
+    res = search_constant_latency(blurry, ev, START, END, num_bins=20, num_candidates=5)
+    assert res.fallback.tolist() == [True] and res.confidence.tolist() == [0.0]
+    assert res.latency.item() == 0.0
+    res = search_constant_latency(blurry, ev, START, END, num_bins=20, num_candidates=5,
+                                  previous_latency=torch.tensor([40.0]))
+    assert res.latency.item() == 40.0
+
+
+def test_sparsity_score_ignores_brightness_scale():
+    image = torch.rand(3, 1, 16, 16) * 0.5 + 0.1
+    lat = torch.zeros(3)
+    a = sharpness_score(image, lat, None, "sparsity", 20.0, 7, 1000.0)
+    b = sharpness_score(image * 1.7, lat, None, "sparsity", 20.0, 7, 1000.0)
+    torch.testing.assert_close(a, b, rtol=0.05, atol=0.0)  # only the log floor breaks exact invariance
+    with pytest.raises(ValueError, match="score"):
+        sharpness_score(image, lat, None, "psnr", 20.0, 7, 1000.0)

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -417,3 +418,176 @@ def test_device(device):
     cpu = simulate("camera", num_frames=2, noise_rate_hz=10.0, **SMALL)
     torch.testing.assert_close(seq.blurry.cpu(), cpu.blurry, atol=1e-4, rtol=0)
     assert abs(len(seq.ideal_events) - len(cpu.ideal_events)) <= 0.01 * len(cpu.ideal_events)
+
+
+# --- motion kinds, moving objects, leak and refractory noise -----------------------------------------------------
+TINY = dict(num_frames=1, height=24, width=32, exposure_us=4000.0, frame_interval_us=4000.0)
+
+
+def texture() -> torch.Tensor:
+    from evlatcorr.scenes import procedural_scene
+
+    return procedural_scene("noise", 64, 80, seed=0)
+
+
+def events_per_pixel(ev: Events, size: tuple[int, int]) -> torch.Tensor:
+    return per_pixel_sum(ev, torch.ones(len(ev)), size)
+
+
+@pytest.mark.parametrize("motion", ["rotation", "zoom"])
+def test_rotation_and_zoom_fire_more_at_the_corners(motion):
+    seq = simulate(texture(), motion=motion, max_speed_px_per_ms=2.0, seed=1, **TINY)
+    again = simulate(texture(), motion=motion, max_speed_px_per_ms=2.0, seed=1, **TINY)
+    assert torch.equal(seq.ideal_events.t, again.ideal_events.t) and torch.equal(seq.blurry, again.blurry)
+    assert seq.config["motion"] == motion and seq.config["dt_us"] == pytest.approx(150.0)  # 0.3 px / 2 px/ms
+    counts = events_per_pixel(seq.ideal_events, (24, 32))
+    yy, xx = torch.meshgrid(torch.arange(24.0) - 11.5, torch.arange(32.0) - 15.5, indexing="ij")
+    r = torch.sqrt(xx**2 + yy**2)
+    assert len(seq.ideal_events) > 1000
+    # image speed grows with the distance to the centre: the centre stays sharp and quiet
+    assert float(counts[r < 4].mean()) < 0.4 * float(counts[r > 14].mean())
+    assert float((seq.blurry - seq.sharp).abs()[..., r > 14].mean()) > 2 * float(
+        (seq.blurry - seq.sharp).abs()[..., r < 4].mean())
+
+
+def test_rotation_and_zoom_directions_are_seeded():
+    spins = {simulate(texture(), motion="rotation", max_speed_px_per_ms=2.0, seed=s, **TINY).render([0.0, 8000.0])
+             .sum().item() for s in range(6)}
+    assert len(spins) > 1  # the random sign differs across seeds
+
+
+def moving_disc_background() -> torch.Tensor:
+    background = torch.full((3, 40, 50), 0.4)
+    background[:, :, 25:] = 0.7  # a static edge: it must not fire
+    return background
+
+
+def moving_disc_sequence(**kwargs):
+    from evlatcorr.simulate import ObjectSpec
+
+    background = moving_disc_background()
+    disc = ObjectSpec(torch.full((3, 6, 6), 0.05), size=(8, 8), position=(6.0, 6.0), velocity=(1.0, 0.0),
+                      shape="disc", time_us=0.0)
+    return simulate(background, objects=[disc], **{**TINY, **kwargs}), disc
+
+
+def test_objects_move_over_a_static_background():
+    seq, disc = moving_disc_sequence()
+    ev = seq.ideal_events
+    assert len(ev) > 50 and seq.config["objects"][0]["velocity"] == [1.0, 0.0]
+    assert seq.config["dt_us"] == 200.0  # min(200, 0.3 px / 1 px/ms)
+    t_end = seq.config["t_end_us"]
+    # every event lies in the band the disc sweeps: rows 6 ± 5, columns from 6 - 5 to 6 + t_end / 1000 + 5
+    assert int(ev.y.min()) >= 1 and int(ev.y.max()) <= 11
+    assert int(ev.x.min()) >= 1 and int(ev.x.max()) <= 6 + t_end / 1000 + 5
+    # and the disc's edge moves by 1 px/ms: the mean event column follows it
+    early, late = ev.window(0.0, t_end / 3), ev.window(2 * t_end / 3, t_end + 1)
+    shift = float(late.x.float().mean() - early.x.float().mean())
+    assert abs(shift - 2 * t_end / 3 / 1000) < 1.5
+    # frames: away from the object's band the view is the still background (with its static edge)
+    frames = seq.render([0.0, 8000.0])
+    still = simulate(moving_disc_background(), motion=(0.0, 0.0), **TINY).render([0.0])
+    assert float(still.max() - still.min()) > 0.2
+    torch.testing.assert_close(frames[:, :, 13:], still[:, :, 13:].expand(2, -1, -1, -1), rtol=0, atol=1e-6)
+    assert float(frames[0, 0, 6, 6]) < 0.1 and float(frames[1, 0, 6, 14]) < 0.1  # the dark disc's centre
+    assert float(frames[1, 0, 6, 6]) == pytest.approx(0.4, abs=1e-4)  # it has left
+
+
+def test_objects_colour_and_luminance_agree():
+    seq, _ = moving_disc_sequence()
+    t = 3000.0
+    rgb = seq.render([t])
+    ev = seq.ideal_events
+    assert torch.equal(ev.p.unique(), torch.tensor([-1, 1], dtype=torch.int8))
+    # the blurry frame is the mean of the composited colour frames, as without objects
+    times = torch.linspace(float(seq.exposure_start[0]), float(seq.exposure_end[0]), 201)
+    frames = seq.render(times)
+    torch.testing.assert_close(seq.blurry[0], (frames[1:] + frames[:-1]).mean(0) / 2, rtol=0, atol=3e-3)
+    assert rgb.shape == (1, 3, 24, 32)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [(dict(shape="star"), "shape"), (dict(size=(1, 8)), "size"), (dict(velocity=(float("nan"), 0.0)), "finite"),
+     (dict(sprite=3), "sprite"), (dict(sprite=("plasma", 1)), "procedural"), (dict(sprite=("text", 1.5)), "seed")],
+)
+def test_bad_objects(kwargs, match):
+    from evlatcorr.simulate import ObjectSpec
+
+    spec = ObjectSpec(**{**dict(sprite="coins", size=(8, 8), position=(5.0, 5.0)), **kwargs})
+    with pytest.raises(ValueError, match=match):
+        simulate("camera", objects=[spec], **TINY)
+
+
+def test_objects_need_a_static_camera():
+    from evlatcorr.simulate import ObjectSpec
+
+    spec = ObjectSpec(("shapes", 3), size=(10, 12), position=(5.0, 5.0), velocity=(1.0, 1.0), shape="rect")
+    with pytest.raises(ValueError, match="static background"):
+        simulate("camera", objects=[spec], motion="rotation", **TINY)
+    with pytest.raises(ValueError, match="sequence of ObjectSpec"):
+        simulate("camera", objects=spec, **TINY)
+    seq = simulate("camera", objects=[spec], motion=(0.0, 0.0), **TINY)  # procedural sprite, rounded rectangle
+    assert len(seq.ideal_events) > 0 and seq.config["objects"][0]["sprite"] == ["shapes", 3]
+    photo = simulate("camera", objects=[dataclasses.replace(spec, sprite="text")], **TINY)  # the photograph
+    assert not torch.equal(photo.blurry, seq.blurry)
+
+
+def test_leak_events_rate_and_polarity():
+    seq = simulate("camera", motion=(0.0, 0.0), leak_rate_hz=20.0, seed=4, **TINY)
+    ev = seq.ideal_events
+    t_end = seq.config["t_end_us"]
+    expected = 20.0 * t_end * 1e-6 * 24 * 32
+    assert abs(len(ev) - expected) < 0.1 * expected
+    assert ev.p.unique().tolist() == [1]  # ON events only
+    assert torch.equal(seq.delayed_events.t, ev.t)  # like shot noise: not delayed
+    assert float(ev.t.min()) >= 0.0 and float(ev.t.max()) < t_end
+    # periodic per pixel: a long sequence gives several events per pixel at equal intervals
+    long = simulate("camera", motion=(0.0, 0.0), leak_rate_hz=200.0, seed=4, latency="none", **{**TINY,
+                    "exposure_us": 20000.0, "frame_interval_us": 20000.0}).ideal_events
+    pix = long.y * 32 + long.x
+    for p in pix.unique()[:10].tolist():
+        gaps = long.t[pix == p].diff()
+        if gaps.numel() >= 2:
+            torch.testing.assert_close(gaps, gaps[:1].expand_as(gaps), rtol=1e-9, atol=1e-6)
+    # rates differ between pixels (lognormal spread)
+    counts = events_per_pixel(long, (24, 32))
+    assert float(counts.std()) > 0.2 * float(counts.mean())
+
+
+def test_refractory_period():
+    from evlatcorr.simulate import apply_refractory
+
+    base = simulate("coffee", latency="constant", latency_us=500.0, noise_rate_hz=50.0, seed=2, **TINY)
+    seq = simulate("coffee", latency="constant", latency_us=500.0, noise_rate_hz=50.0, refractory_us=800.0, seed=2,
+                   **TINY)
+    for full, kept in ((base.ideal_events, seq.ideal_events), (base.delayed_events, seq.delayed_events)):
+        assert 0 < len(kept) < 0.9 * len(full)
+        order = torch.argsort(kept.y * 32 + kept.x, stable=True)
+        pix, t = (kept.y * 32 + kept.x)[order], kept.t[order]
+        same = pix[1:] == pix[:-1]
+        assert float((t[1:] - t[:-1])[same].min()) >= 800.0  # kept events of a pixel are a dead time apart
+        assert bool((kept.t[1:] >= kept.t[:-1]).all())
+    assert seq.config["refractory_us"] == 800.0
+    # the vectorised rule: an event is dropped when the previous one of its pixel (kept or not) is too close
+    ev = Events(torch.zeros(5), torch.zeros(5), torch.tensor([0.0, 60.0, 120.0, 400.0, 450.0]), torch.ones(5),
+                sensor_size=(1, 2))
+    assert apply_refractory(ev, 100.0).t.tolist() == [0.0, 400.0]
+    assert apply_refractory(ev, 0.0) is ev
+    with pytest.raises(ValueError, match="refractory_us"):
+        apply_refractory(ev, -1.0)
+
+
+@pytest.mark.parametrize("kwargs", [dict(leak_rate_hz=-1.0), dict(refractory_us=-5.0), dict(leak_rate_hz=float("nan"))])
+def test_bad_noise_parameters(kwargs):
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
+        simulate("camera", **{**TINY, **kwargs})
+
+
+def test_new_noise_is_seeded():
+    kw = dict(leak_rate_hz=5.0, refractory_us=300.0, noise_rate_hz=10.0, threshold_sigma=0.1, motion="zoom",
+              latency="intensity_delay", latency_range_us=(200.0, 2000.0), **TINY)
+    a, b = simulate("rocket", seed=9, **kw), simulate("rocket", seed=9, **kw)
+    for name in ("x", "y", "t", "p"):
+        assert torch.equal(getattr(a.delayed_events, name), getattr(b.delayed_events, name))
+        assert torch.equal(getattr(a.ideal_events, name), getattr(b.ideal_events, name))

@@ -1,0 +1,135 @@
+"""Accuracy of latency estimators on the seeded simulated suite (:mod:`evlatcorr.accuracy`).
+
+One frame per case (20 ms exposure, events up to 15 ms after its end), photographs and procedural
+scenes, translation / random / rotation / zoom / two moving objects, constant, delayed-map and
+photoreceptor latency, shot noise, leak, threshold mismatch and refractory period. For each case:
+the latency error, EDI PSNR against the sharp mid-exposure frame with ideal, uncorrected and
+corrected events, the share of the ideal-vs-uncorrected gap recovered, and for the photoreceptor
+model the share of the best constant shift's gain.
+
+    python benchmarks/accuracy.py --split test --mode constant              # 48 cases, 96x128
+    python benchmarks/accuracy.py --split dev --num 8 --mode both           # constant and spatial (test-time fit)
+    python benchmarks/accuracy.py --cases 'test-0*' --estimator mypkg.latency:estimate
+    python benchmarks/accuracy.py --estimator path/to/file.py:estimate --mode none
+
+``--estimator module:function`` (or ``file.py:function``) loads ``f(frames) -> latency map
+(B, 1, H, W) µs``; ``frames.meta["threshold"]`` holds the case's true contrast threshold (or
+``"auto"`` with ``--auto-threshold``). Writes ``results.md``, ``results.csv`` and ``results.json``
+under ``--out``.
+"""
+
+from __future__ import annotations
+
+import os
+
+# While another process keeps a core busy, OpenMP's busy-waiting threads made the simulator's
+# small-tensor steps 3-20x slower on a 2-core VM; passive waiting costs little otherwise. Must be
+# set before torch loads.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import fnmatch  # noqa: E402
+import platform  # noqa: E402
+import shlex  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+from evlatcorr.accuracy import (  # noqa: E402
+    DEFAULT_SIZE,
+    Case,
+    corrector_estimator,
+    load_estimator,
+    make_cases,
+    run_suite,
+    summarize,
+    to_markdown,
+    write_results,
+)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--split", choices=("test", "dev", "both"), default="test")
+    p.add_argument("--num", type=int, default=None, help="first N cases of each split")
+    p.add_argument("--size", type=int, nargs=2, default=DEFAULT_SIZE, metavar=("H", "W"))
+    p.add_argument("--mode", choices=("constant", "spatial", "both", "none"), default="constant",
+                   help="built-in EventLatencyCorrector modes to evaluate ('none': only --estimator)")
+    p.add_argument("--estimator", action="append", default=[], metavar="MODULE:FUNCTION",
+                   help="an extra estimator f(frames) -> latency map; repeatable")
+    p.add_argument("--auto-threshold", action="store_true",
+                   help="built-in correctors estimate the threshold (threshold='auto') instead of the true one")
+    p.add_argument("--search-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                   help="latency search range of the built-in correctors, µs (default: their own, 0 to the exposure)")
+    p.add_argument("--cases", nargs="+", default=None, metavar="NAME", help="case names or glob patterns")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    p.add_argument("--out", type=Path, default=Path("outputs/accuracy"))
+    args = p.parse_args(argv)
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+
+    splits = ("dev", "test") if args.split == "both" else (args.split,)
+    cases: list[Case] = [c for s in splits for c in make_cases(s, args.num, tuple(args.size))]
+    if args.cases:
+        cases = [c for c in cases if any(fnmatch.fnmatchcase(c.name, pat) for pat in args.cases)]
+        if not cases:
+            p.error(f"no case of split {args.split} matches {args.cases}")
+
+    threshold_of = (lambda case: "auto") if args.auto_threshold else (lambda case: case.threshold)
+    options = {} if args.search_range is None else {"search_range": tuple(args.search_range)}
+    modes = {"both": ("constant", "spatial"), "none": ()}.get(args.mode, (args.mode,))
+    estimators = {}
+    for mode in modes:
+        try:  # fail now, not after the first simulation (e.g. spatial without a numeric threshold)
+            corrector_estimator(mode, threshold_of(cases[0]), **options)
+        except ValueError as err:
+            p.error(f"--mode {mode}{' --auto-threshold' if args.auto_threshold else ''}: {err}")
+        estimators[mode] = lambda case, mode=mode: corrector_estimator(mode, threshold_of(case), **options)
+    for spec in args.estimator:
+        try:
+            fn = load_estimator(spec)
+        except (ValueError, ImportError) as err:
+            p.error(f"--estimator {spec}: {err}")
+        name = spec.rpartition(":")[2]
+        while name in estimators:
+            name += "'"
+        estimators[name] = lambda case, fn=fn: fn
+    if not estimators:
+        p.error("nothing to evaluate: --mode none needs --estimator")
+
+    print(f"{len(cases)} cases ({', '.join(splits)}), {args.size[0]}x{args.size[1]}, estimators: "
+          f"{', '.join(estimators)}; torch threads {torch.get_num_threads()}", flush=True)
+    t0 = time.perf_counter()
+    results = run_suite(cases, estimators, progress=lambda line: print(line, flush=True))
+    total = time.perf_counter() - t0
+    summary = summarize(results)
+    sim = sum(r["sim_time_s"] for r in results if r["estimator"] == next(iter(estimators)))
+    ref = sum(r["reference_time_s"] for r in results if r["estimator"] == next(iter(estimators)))
+    est = {name: sum(r["time_s"] for r in results if r["estimator"] == name) for name in estimators}
+    warned = sum(bool(r["warnings"]) for r in results)
+    messages = sorted({w for r in results for w in r["warnings"]})
+    header = "\n".join([
+        "# Latency estimator accuracy (simulated suite)", "",
+        f"`{shlex.join(['python', 'benchmarks/accuracy.py', *(sys.argv[1:] if argv is None else argv)])}`", "",
+        f"- {len(cases)} cases ({', '.join(splits)}) at {args.size[1]}x{args.size[0]} px, one 20 ms exposure each, "
+        "events up to 15 ms after its end; EDI with 500 bins and the true threshold.",
+        f"- estimators: {', '.join(estimators)}; threshold given to the built-in correctors: "
+        f"{'auto' if args.auto_threshold else 'the true one'}; search range: "
+        f"{'default (0 to the exposure time)' if args.search_range is None else args.search_range} µs.",
+        f"- {warned} of {len(results)} estimates raised warnings"
+        + (f" ({len(messages)} distinct), e.g. \"{messages[0][:300]}\"" if messages else "") + ".",
+        f"- total {total:.0f} s on {platform.machine()} with {torch.get_num_threads()} torch threads: simulation "
+        f"{sim:.0f} s, references (ideal / uncorrected EDI, best-shift scan) {ref:.0f} s, estimation "
+        + ", ".join(f"{n} {t:.0f} s" for n, t in est.items()) + ".", "", ""])
+    paths = write_results(results, args.out, summary, header)
+    print()
+    print(header + to_markdown(results, summary))
+    print("wrote " + ", ".join(str(p) for p in paths.values()))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,680 @@
+"""A seeded accuracy suite for latency estimators on simulated scenes (``benchmarks/accuracy.py``).
+
+Two splits of one-frame cases, each drawn from its own fixed seed:
+
+- ``"dev"``: :data:`~evlatcorr.simulate.PHOTOGRAPHS_TRAIN` photographs and procedural scenes with
+  one set of seeds; tune on it.
+- ``"test"``: :data:`~evlatcorr.simulate.PHOTOGRAPHS_TEST` photographs and procedural scenes with
+  disjoint seeds; report on it.
+
+Each factor (scene, dark background, brightness, motion kind, speed, direction, latency model,
+latency, each noise model, threshold) is drawn from its own generator stream, categorical factors
+as a shuffled balanced list, so every split covers every procedural kind, motion kind, latency
+model and noise model, and dark scenes. A case is a 20 ms exposure of a ``(96, 128)`` sensor
+whose events stop 15 ms after the exposure's end.
+
+:func:`evaluate_case` scores an estimator (delayed :class:`~evlatcorr.frames.EventFrames` in, a
+latency map :math:`(B, 1, H, W)` µs out): the latency error, and EDI PSNR against the sharp
+mid-exposure frame with ideal events, with the delayed events uncorrected and corrected by the
+estimated map; the recovery ``(corr − uncorr) / (ideal − uncorr)``; for the photoreceptor model
+(``"intensity"``) also the best constant shift's PSNR (an oracle) and the share of its gain the
+estimator achieves.
+
+Example:
+    >>> cases = make_cases("test")
+    >>> len(cases) >= 48, cases[0].split
+    (True, 'test')
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import importlib
+import importlib.util
+import json
+import math
+import statistics
+import time
+import warnings
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+from torchmetrics.functional.image import peak_signal_noise_ratio
+
+from evlatcorr.edi import edi_deblur, event_grid
+from evlatcorr.frames import EventFrames
+from evlatcorr.scenes import PROCEDURAL_SCENES, procedural_scene
+from evlatcorr.simulate import PHOTOGRAPHS_TEST, PHOTOGRAPHS_TRAIN, ObjectSpec, SimulatedSequence, simulate
+
+__all__ = [
+    "SPLITS",
+    "LATENCY_MODELS",
+    "MOTION_KINDS",
+    "DEFAULT_SIZE",
+    "Case",
+    "make_cases",
+    "simulate_case",
+    "case_reference",
+    "evaluate_case",
+    "corrector_estimator",
+    "load_estimator",
+    "run_suite",
+    "summarize",
+    "to_markdown",
+    "write_results",
+]
+
+Estimator = Callable[[EventFrames], Tensor]
+
+SPLITS = ("dev", "test")
+LATENCY_MODELS = ("constant", "intensity_delay", "intensity")
+MOTION_KINDS = ("translation", "random", "rotation", "zoom", "objects")
+DEFAULT_SIZE = (96, 128)
+EXPOSURE_US = 20_000.0
+AFTER_US = 15_000.0  # the events stop this long after the exposure's end
+BEST_SHIFTS_US = tuple(250.0 * i for i in range(61))  # the oracle's constant latencies, 0..15000 µs
+NO_GAP_DB = 0.1  # recovery is undefined when ideal events beat uncorrected ones by no more than this
+DARK_BRIGHTNESS = 0.1
+DARK_PHOTOGRAPHS = ("hubble_deep_field", "moon")  # photographs with large uniform dark regions
+SCENE_FACTOR = 3  # procedural scenes are this many times the sensor's size
+
+_NUM_CASES = {"dev": 40, "test": 48}
+_PHOTOGRAPHS = {"dev": PHOTOGRAPHS_TRAIN, "test": PHOTOGRAPHS_TEST}
+_SPLIT_SEED = {"dev": 1, "test": 2}  # case draws: generator seed 1000 * split seed + factor index
+_SCENE_SEED = {"dev": 100_000, "test": 200_000}  # procedural scenes and sprites: disjoint seed ranges
+_SIM_SEED = {"dev": 10_000, "test": 20_000}
+_MOTION_WEIGHTS = (0.3, 0.15, 0.2, 0.15, 0.2)
+_LATENCY_WEIGHTS = (0.5, 0.25, 0.25)
+_MOTION_TAGS = {"translation": "tr", "random": "rnd", "rotation": "rot", "zoom": "zoom", "objects": "obj"}
+_LATENCY_TAGS = {"constant": "const", "intensity_delay": "delay", "intensity": "photo"}
+
+
+@dataclass(frozen=True)
+class Case:
+    """One simulated frame of the suite and everything needed to simulate it again.
+
+    Attributes:
+        name: readable unique name, e.g. ``test-07-camera-b0.05-rot1.3-const4200`` (procedural
+            scenes as ``proc-<kind>``).
+        split: ``"dev"`` or ``"test"``.
+        scene: a photograph name, or a procedural kind (:data:`~evlatcorr.scenes.PROCEDURAL_SCENES`)
+            when ``scene_seed`` is set (``"text"`` is both).
+        scene_seed: seed of a procedural scene; None for a photograph.
+        dark_background: a procedural scene drawn with ``dark=True`` (large black regions).
+        brightness: scene intensity scale (0.03-1).
+        motion: one of :data:`MOTION_KINDS`: ``"translation"`` (constant, ``direction_deg``),
+            ``"random"`` (the simulator's smooth random motion), ``"rotation"``, ``"zoom"``, or
+            ``"objects"`` (two sprites over a static background).
+        speed_px_per_ms: image speed (the largest, or at the view's corners), px/ms.
+        direction_deg: direction of a translation or of the first object, degrees.
+        latency_model: one of :data:`LATENCY_MODELS`.
+        latency_us: the constant latency, µs (0 for the other models).
+        latency_range_us: ``(bright, dim)`` time constants of the intensity models, µs.
+        noise_rate_hz: shot noise, events per pixel per second.
+        leak_rate_hz: leak events per pixel per second.
+        threshold_sigma: relative per-pixel threshold mismatch.
+        refractory_us: per-pixel dead time, µs.
+        threshold: contrast threshold (log units); the true one is given to the estimators and EDI.
+        objects: ``(scene, seed)`` of each object's sprite when ``motion == "objects"`` (seed None: a
+            photograph).
+        seed: simulation seed (motion, noise, objects' placement).
+        size: sensor ``(H, W)``.
+        exposure_us: exposure time, µs.
+        after_us: how long the events run on after the exposure's end, µs.
+    """
+
+    name: str
+    split: str
+    scene: str
+    scene_seed: int | None
+    dark_background: bool
+    brightness: float
+    motion: str
+    speed_px_per_ms: float
+    direction_deg: float
+    latency_model: str
+    latency_us: float
+    latency_range_us: tuple[float, float]
+    noise_rate_hz: float
+    leak_rate_hz: float
+    threshold_sigma: float
+    refractory_us: float
+    threshold: float
+    objects: tuple[tuple[str, int | None], ...] = ()
+    seed: int = 0
+    size: tuple[int, int] = DEFAULT_SIZE
+    exposure_us: float = EXPOSURE_US
+    after_us: float = AFTER_US
+
+    @property
+    def procedural(self) -> bool:
+        """The scene is procedural (not a photograph)."""
+        return self.scene_seed is not None
+
+    @property
+    def dark(self) -> bool:
+        """A dim scene: ``brightness <= 0.1``."""
+        return self.brightness <= DARK_BRIGHTNESS
+
+    @property
+    def dark_regions(self) -> bool:
+        """The scene has large uniform dark regions (a dark procedural background or a dark photograph)."""
+        return self.dark_background or (not self.procedural and self.scene in DARK_PHOTOGRAPHS)
+
+    @property
+    def noise_models(self) -> tuple[str, ...]:
+        """The noise models switched on: ``"shot"``, ``"leak"``, ``"mismatch"``, ``"refractory"``."""
+        on = (self.noise_rate_hz > 0, self.leak_rate_hz > 0, self.threshold_sigma > 0, self.refractory_us > 0)
+        return tuple(n for n, o in zip(("shot", "leak", "mismatch", "refractory"), on) if o)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The fields as JSON-serialisable values (tuples as lists)."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+
+# --- cases -----------------------------------------------------------------------------------------------------------
+def _generator(split: str, factor: int) -> torch.Generator:
+    return torch.Generator().manual_seed(1000 * _SPLIT_SEED[split] + factor)
+
+
+def _balanced(choices: Sequence[Any], weights: Sequence[float], n: int, g: torch.Generator) -> list[Any]:
+    """``n`` draws in proportion to ``weights`` (largest remainders), shuffled: a weight >= 1/n is always drawn."""
+    total = sum(weights)
+    exact = [w / total * n for w in weights]
+    counts = [math.floor(e) for e in exact]
+    for i in sorted(range(len(exact)), key=lambda i: counts[i] - exact[i])[: n - sum(counts)]:
+        counts[i] += 1
+    items = [c for c, k in zip(choices, counts) for _ in range(k)]
+    return [items[i] for i in torch.randperm(n, generator=g).tolist()]
+
+
+def _stratified(n: int, g: torch.Generator) -> list[float]:
+    """``n`` numbers in [0, 1), one in each of ``n`` equal strata, shuffled (Latin hypercube in 1-D)."""
+    perm = torch.randperm(n, generator=g).double()
+    return ((perm + torch.rand(n, generator=g, dtype=torch.float64)) / n).tolist()
+
+
+def _log_uniform(u: float, lo: float, hi: float) -> float:
+    return math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo)))
+
+
+def make_cases(split: str, num: int | None = None, size: tuple[int, int] = DEFAULT_SIZE) -> list[Case]:
+    """The suite's cases of one split, the same on every machine.
+
+    Args:
+        split: ``"dev"`` (40 cases) or ``"test"`` (48 cases).
+        num: keep only the first ``num`` cases (a random subset that may miss some factors).
+        size: sensor ``(H, W)``.
+
+    Returns:
+        the cases, in a fixed order.
+
+    Example:
+        >>> [c.name for c in make_cases("dev", num=2)]  # doctest: +SKIP
+    """
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    if num is not None and (not isinstance(num, int) or num < 0):
+        raise ValueError(f"num must be a non-negative integer or None, got {num!r}")
+    if len(size) != 2 or not all(isinstance(s, int) and s >= 16 for s in size):
+        raise ValueError(f"size must be (H, W) integers >= 16, got {size}")
+    n = _NUM_CASES[split]
+    pool = tuple((p, False) for p in _PHOTOGRAPHS[split]) + tuple((k, True) for k in PROCEDURAL_SCENES)
+    scenes = _balanced(pool, [1.0] * len(pool), n, _generator(split, 0))
+    dark_bg = [u < 0.4 for u in _stratified(n, _generator(split, 1))]
+    dark_bg = [d and procedural for d, (_, procedural) in zip(dark_bg, scenes)]
+    if not any(d and s == ("shapes", True) for d, s in zip(dark_bg, scenes)):  # shapes on black, always
+        dark_bg[scenes.index(("shapes", True))] = True
+    brightness = [_log_uniform(u, 0.03, 1.0) for u in _stratified(n, _generator(split, 2))]
+    motions = _balanced(MOTION_KINDS, _MOTION_WEIGHTS, n, _generator(split, 3))
+    speeds = [_log_uniform(u, 0.2, 4.0) for u in _stratified(n, _generator(split, 4))]
+    directions = (torch.rand(n, generator=_generator(split, 5), dtype=torch.float64) * 360).tolist()
+    models = _balanced(LATENCY_MODELS, _LATENCY_WEIGHTS, n, _generator(split, 6))
+    latencies = [200.0 + u * 11_800.0 for u in _stratified(n, _generator(split, 7))]
+    g = _generator(split, 8)
+    ranges = [(200.0 + 800.0 * float(a), 4000.0 + 8000.0 * float(b))
+              for a, b in torch.rand(n, 2, generator=g, dtype=torch.float64).tolist()]
+    noise_on = [_balanced((True, False), (1.0, 1.0), n, _generator(split, 9 + k)) for k in range(4)]
+    noise_u = torch.rand(4, n, generator=_generator(split, 13), dtype=torch.float64).tolist()
+    thresholds = [0.15 + 0.15 * u for u in _stratified(n, _generator(split, 14))]
+    g_obj = _generator(split, 15)
+    cases = []
+    for i in range(n):
+        scene_seed = _SCENE_SEED[split] + 10 * i
+        objects: tuple[tuple[str, int | None], ...] = ()
+        if motions[i] == "objects":
+            picks = torch.randint(0, len(pool), (2,), generator=g_obj).tolist()
+            objects = tuple((pool[k][0], scene_seed + 1 + j if pool[k][1] else None) for j, k in enumerate(picks))
+        model = models[i]
+        fields = dict(
+            split=split, scene=scenes[i][0], scene_seed=scene_seed if scenes[i][1] else None,
+            dark_background=dark_bg[i],
+            brightness=round(brightness[i], 3), motion=motions[i], speed_px_per_ms=round(speeds[i], 2),
+            direction_deg=round(directions[i], 1), latency_model=model,
+            latency_us=float(round(latencies[i], -1)) if model == "constant" else 0.0,
+            latency_range_us=(float(round(ranges[i][0], -1)), float(round(ranges[i][1], -1))),
+            noise_rate_hz=round(_log_uniform(noise_u[0][i], 0.5, 10.0), 2) if noise_on[0][i] else 0.0,
+            leak_rate_hz=round(_log_uniform(noise_u[1][i], 0.1, 2.0), 2) if noise_on[1][i] else 0.0,
+            threshold_sigma=round(0.03 + 0.12 * noise_u[2][i], 3) if noise_on[2][i] else 0.0,
+            refractory_us=float(round(_log_uniform(noise_u[3][i], 50.0, 1000.0), -1)) if noise_on[3][i] else 0.0,
+            threshold=round(thresholds[i], 3), objects=objects, seed=_SIM_SEED[split] + i, size=tuple(size),
+        )
+        cases.append(Case(name=_case_name(i, fields), **fields))
+    return cases if num is None else cases[:num]
+
+
+def _case_name(i: int, f: Mapping[str, Any]) -> str:
+    scene = ("proc-" if f["scene_seed"] is not None else "") + f["scene"] + ("-dark" if f["dark_background"] else "")
+    latency = {"constant": f"const{f['latency_us']:.0f}", "intensity_delay": "delay",
+               "intensity": "photo"}[f["latency_model"]]
+    return (f"{f['split']}-{i:02d}-{scene}-b{f['brightness']:.2f}-{_MOTION_TAGS[f['motion']]}"
+            f"{f['speed_px_per_ms']:.1f}-{latency}")
+
+
+# --- simulation ------------------------------------------------------------------------------------------------------
+def _scene_image(scene: str, seed: int | None, dark: bool, size: tuple[int, int]) -> str | Tensor:
+    if seed is None:
+        return scene
+    return procedural_scene(scene, SCENE_FACTOR * size[0], SCENE_FACTOR * size[1], seed, dark=dark)
+
+
+def _object_specs(case: Case) -> list[ObjectSpec]:
+    """Two objects crossing the view near its centre at mid-exposure (placement drawn from ``case.seed``)."""
+    g = torch.Generator().manual_seed(case.seed)
+    u = torch.rand(len(case.objects), 6, generator=g, dtype=torch.float64).tolist()
+    h, w = case.size
+    t_mid = case.after_us + case.exposure_us / 2  # the simulation's margin is after_us
+    specs = []
+    for j, ((sprite, seed), v) in enumerate(zip(case.objects, u)):
+        oh = max(8, round(h * (0.35 + 0.2 * v[0])))
+        ow = max(8, min(round(0.6 * w), round(oh * (0.8 + 0.6 * v[1]))))
+        angle = math.radians(case.direction_deg) + (0.0 if j == 0 else math.pi * (0.5 + v[2]))
+        speed = case.speed_px_per_ms * (1.0 if j == 0 else 0.5 + 0.5 * v[3])
+        x, y = (w - 1) / 2 + 0.4 * w * (v[4] - 0.5), (h - 1) / 2 + 0.4 * h * (v[5] - 0.5)
+        specs.append(ObjectSpec(sprite if seed is None else (sprite, seed), (oh, ow), (x, y),
+                                (speed * math.cos(angle), speed * math.sin(angle)),
+                                shape="disc" if j % 2 == 0 else "rect", time_us=t_mid))
+    return specs
+
+
+def simulate_case(case: Case) -> tuple[EventFrames, EventFrames, SimulatedSequence]:
+    """Simulate a case.
+
+    Returns:
+        ``(delayed, ideal, seq)``: one-frame :class:`EventFrames` of the delayed and the ideal
+        events of ``[exposure_start, exposure_end + case.after_us)`` (``sharp`` and
+        ``meta["true_latency"]`` :math:`(1, 1, H, W)` filled) and the :class:`SimulatedSequence`.
+    """
+    if not isinstance(case, Case):
+        raise ValueError(f"case must be a Case, got {type(case).__name__}")
+    kwargs: dict[str, Any] = dict(
+        num_frames=1, height=case.size[0], width=case.size[1], exposure_us=case.exposure_us,
+        frame_interval_us=case.exposure_us, latency=case.latency_model, latency_us=case.latency_us,
+        latency_range_us=tuple(case.latency_range_us), threshold=case.threshold,
+        threshold_sigma=case.threshold_sigma, noise_rate_hz=case.noise_rate_hz, leak_rate_hz=case.leak_rate_hz,
+        refractory_us=case.refractory_us, brightness=case.brightness, margin_us=case.after_us, seed=case.seed)
+    if case.motion == "translation":
+        angle = math.radians(case.direction_deg)
+        kwargs["motion"] = (case.speed_px_per_ms * math.cos(angle), case.speed_px_per_ms * math.sin(angle))
+    elif case.motion == "objects":
+        kwargs["objects"] = _object_specs(case)
+    else:
+        kwargs.update(motion=case.motion, max_speed_px_per_ms=case.speed_px_per_ms)
+    seq = simulate(_scene_image(case.scene, case.scene_seed, case.dark_background, case.size), **kwargs)
+    return seq.frames("delayed", after_us=case.after_us), seq.frames("ideal", after_us=case.after_us), seq
+
+
+# --- evaluation ------------------------------------------------------------------------------------------------------
+def _psnr(image: Tensor, target: Tensor) -> float:
+    return float(peak_signal_noise_ratio(image.clamp(0, 1), target, data_range=1.0))
+
+
+def _edi_psnr(frames: EventFrames, threshold: float, latency: Tensor | float | None = None) -> float:
+    latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                        threshold=threshold, latency=latency)
+    return _psnr(latent, frames.sharp)
+
+
+def _gain_ratio(value: float, low: float, high: float) -> float:
+    """``(value − low) / (high − low)``, NaN when ``high <= low + NO_GAP_DB``."""
+    return (value - low) / (high - low) if high > low + NO_GAP_DB else math.nan
+
+
+def case_reference(case: Case, simulated: tuple[EventFrames, EventFrames, SimulatedSequence] | None = None
+                   ) -> dict[str, Any]:
+    """What does not depend on the estimator: EDI PSNR with ideal and uncorrected events, true latency stats,
+    and for the ``"intensity"`` model the best constant shift (oracle scan of :data:`BEST_SHIFTS_US`).
+
+    Returns:
+        a dict with ``psnr_ideal``, ``psnr_uncorrected``, ``true_latency_us`` (mean), ``true_latency_min_us``,
+        ``true_latency_max_us``, ``num_events``, ``best_shift_us`` and ``psnr_best_shift`` (NaN unless
+        ``"intensity"``).
+    """
+    delayed, ideal, _ = simulated if simulated is not None else simulate_case(case)
+    true = delayed.meta["true_latency"]
+    ref: dict[str, Any] = dict(
+        psnr_ideal=_edi_psnr(ideal, case.threshold), psnr_uncorrected=_edi_psnr(delayed, case.threshold),
+        true_latency_us=float(true.mean()), true_latency_min_us=float(true.min()),
+        true_latency_max_us=float(true.max()), num_events=len(delayed.events),
+        best_shift_us=math.nan, psnr_best_shift=math.nan)
+    if case.latency_model == "intensity":
+        grid = event_grid(delayed.events, delayed.exposure_start, delayed.exposure_end, 500,
+                          (0.0, max(BEST_SHIFTS_US)))
+        best = max((_psnr(edi_deblur(delayed.blurry, delayed.events, delayed.exposure_start, delayed.exposure_end,
+                                     threshold=case.threshold, latency=shift, grid=grid), delayed.sharp), shift)
+                   for shift in BEST_SHIFTS_US)
+        ref.update(psnr_best_shift=best[0], best_shift_us=best[1])
+    return ref
+
+
+def _as_map(latency: Any, frames: EventFrames) -> Tensor:
+    b, (h, w) = frames.batch_size, frames.sensor_size
+    if isinstance(latency, EventFrames):
+        latency = latency.latency
+    if not isinstance(latency, Tensor):
+        try:
+            latency = torch.as_tensor(latency, dtype=torch.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"the estimator must return a latency map (B, 1, H, W) in µs, got "
+                             f"{type(latency).__name__}") from None
+    latency = latency.detach().to(frames.device, torch.float64)
+    if latency.dim() in (0, 1) and latency.numel() in (1, b):
+        latency = latency.reshape(-1, 1, 1, 1).expand(b, 1, h, w)
+    if tuple(latency.shape) != (b, 1, h, w):
+        raise ValueError(f"the estimator must return a latency map of shape {(b, 1, h, w)} in µs, got "
+                         f"{tuple(latency.shape)}")
+    if not bool(torch.isfinite(latency).all()):
+        raise ValueError("the estimator returned NaN or infinite latencies")
+    return latency
+
+
+def evaluate_case(case: Case, estimate: Estimator, *,
+                  simulated: tuple[EventFrames, EventFrames, SimulatedSequence] | None = None,
+                  reference: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Score one estimator on one case.
+
+    Args:
+        case: the case.
+        estimate: takes the delayed :class:`EventFrames` (one frame; ``meta["threshold"]`` holds the
+            case's true threshold) and returns its latency map :math:`(B, 1, H, W)` µs (a scalar,
+            a :math:`(B,)` vector or an :class:`EventFrames` with ``latency`` are accepted too), e.g.
+            ``lambda f: EventLatencyCorrector(threshold=case.threshold)(f).latency``.
+        simulated: ``simulate_case(case)``, to reuse it across estimators.
+        reference: ``case_reference(case, simulated)``, to reuse it across estimators.
+
+    Returns:
+        the case's fields, :func:`case_reference`'s values and ``est_latency_us`` (mean of the map),
+        ``latency_error_us`` (constant: estimate − true; maps: mean |map − true| over pixels),
+        ``latency_abs_error_us``, ``latency_bias_us`` (mean estimate − mean truth), ``psnr_corrected``,
+        ``recovery`` (NaN when there is no gap), ``no_gap``, ``best_shift_share`` (``"intensity"``
+        only), ``time_s`` (the estimate's wall time) and ``warnings`` (messages raised by it).
+    """
+    simulated = simulated if simulated is not None else simulate_case(case)
+    delayed = simulated[0]
+    ref = dict(reference) if reference is not None else case_reference(case, simulated)
+    frames = delayed.replace(meta={**delayed.meta, "threshold": case.threshold})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        t0 = time.perf_counter()
+        raw = estimate(frames)
+        elapsed = time.perf_counter() - t0
+    latency = _as_map(raw, delayed)
+    true = delayed.meta["true_latency"].to(torch.float64)
+    if case.latency_model == "constant":
+        error = float(latency.mean() - true.mean())
+        abs_error = abs(error)
+    else:
+        error = abs_error = float((latency - true).abs().mean())
+    psnr_corrected = _edi_psnr(delayed, case.threshold, latency.float())
+    recovery = _gain_ratio(psnr_corrected, ref["psnr_uncorrected"], ref["psnr_ideal"])
+    share = (_gain_ratio(psnr_corrected, ref["psnr_uncorrected"], ref["psnr_best_shift"])
+             if case.latency_model == "intensity" else math.nan)
+    return {
+        **_case_columns(case), **ref,
+        "est_latency_us": float(latency.mean()), "est_latency_min_us": float(latency.min()),
+        "est_latency_max_us": float(latency.max()), "latency_error_us": error, "latency_abs_error_us": abs_error,
+        "latency_bias_us": float(latency.mean() - true.mean()), "psnr_corrected": psnr_corrected,
+        "recovery": recovery, "no_gap": bool(math.isnan(recovery)), "best_shift_share": share, "time_s": elapsed,
+        "warnings": sorted({str(w.message) for w in caught}),
+    }
+
+
+def _case_columns(case: Case) -> dict[str, Any]:
+    d = case.to_dict()
+    d["objects"] = " ".join(s if k is None else f"proc-{s}:{k}" for s, k in case.objects)
+    d["latency_range_us"] = f"{case.latency_range_us[0]:.0f}-{case.latency_range_us[1]:.0f}"
+    d["size"] = f"{case.size[0]}x{case.size[1]}"
+    d.update(dark=case.dark, dark_regions=case.dark_regions, noise_models=" ".join(case.noise_models))
+    return d
+
+
+# --- estimators ------------------------------------------------------------------------------------------------------
+def corrector_estimator(mode: str = "constant", threshold: float | str = 0.2, **kwargs: Any) -> Estimator:
+    """``EventLatencyCorrector(mode, threshold, **kwargs)`` as an estimator (returns its latency map).
+
+    Example:
+        >>> estimate = corrector_estimator("constant", threshold=0.25)
+    """
+    from evlatcorr.correction import EventLatencyCorrector
+
+    corrector = EventLatencyCorrector(mode=mode, threshold=threshold, **kwargs)
+
+    def estimate(frames: EventFrames) -> Tensor:
+        return corrector(frames).latency
+
+    return estimate
+
+
+def load_estimator(spec: str) -> Estimator:
+    """Load ``"module:function"`` or ``"path/to/file.py:function"``: a callable ``f(frames) -> latency map``.
+
+    Example:
+        >>> load_estimator("evlatcorr.accuracy:corrector_estimator")  # doctest: +ELLIPSIS
+        <function corrector_estimator at ...>
+    """
+    if not isinstance(spec, str) or spec.count(":") < 1:
+        raise ValueError(f"estimator must be 'module:function' or 'file.py:function', got {spec!r}")
+    module_name, _, attr = spec.rpartition(":")
+    if module_name.endswith(".py"):
+        path = Path(module_name)
+        if not path.is_file():
+            raise ValueError(f"estimator file {path} does not exist")
+        module_spec = importlib.util.spec_from_file_location(path.stem, path)
+        if module_spec is None or module_spec.loader is None:
+            raise ValueError(f"cannot load {path} as a Python module")
+        module = importlib.util.module_from_spec(module_spec)
+        module_spec.loader.exec_module(module)
+    else:
+        module = importlib.import_module(module_name)
+    fn = getattr(module, attr, None)
+    if not callable(fn):
+        raise ValueError(f"{spec}: {attr!r} is not a callable of {module_name}")
+    return fn
+
+
+def run_suite(cases: Sequence[Case], estimators: Mapping[str, Callable[[Case], Estimator]],
+              progress: Callable[[str], None] | None = print) -> list[dict[str, Any]]:
+    """Simulate each case once and evaluate every estimator on it.
+
+    Args:
+        cases: the cases.
+        estimators: name → factory ``case -> estimator`` (e.g. to pass the case's threshold).
+        progress: called with one line per case and estimator; None for silence.
+
+    Returns:
+        one :func:`evaluate_case` dict per case and estimator, with ``estimator``, ``sim_time_s``
+        and ``reference_time_s`` added.
+    """
+    results = []
+    for k, case in enumerate(cases):
+        t0 = time.perf_counter()
+        simulated = simulate_case(case)
+        t1 = time.perf_counter()
+        reference = case_reference(case, simulated)
+        t2 = time.perf_counter()
+        for name, factory in estimators.items():
+            row = evaluate_case(case, factory(case), simulated=simulated, reference=reference)
+            row.update(estimator=name, sim_time_s=t1 - t0, reference_time_s=t2 - t1)
+            results.append(row)
+            if progress is not None:
+                progress(f"[{k + 1}/{len(cases)}] {name:>8} {case.name}: true {row['true_latency_us']:.0f} est "
+                         f"{row['est_latency_us']:.0f} err {row['latency_error_us']:+.0f} us, PSNR ideal "
+                         f"{row['psnr_ideal']:.2f} uncorr {row['psnr_uncorrected']:.2f} corr "
+                         f"{row['psnr_corrected']:.2f}, recovery {_pct(row['recovery'])}; sim {t1 - t0:.1f} s, "
+                         f"ref {t2 - t1:.1f} s, estimate {row['time_s']:.1f} s")
+    return results
+
+
+# --- summaries -------------------------------------------------------------------------------------------------------
+def _finite(values: Iterable[float]) -> list[float]:
+    return [v for v in values if v is not None and not math.isnan(v)]
+
+
+def _median(values: Iterable[float]) -> float:
+    v = _finite(values)
+    return statistics.median(v) if v else math.nan
+
+
+def _group_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    const = [r for r in rows if r["latency_model"] == "constant"]
+    gap = [r for r in rows if r["latency_model"] in ("constant", "intensity_delay")]
+    photo = [r for r in rows if r["latency_model"] == "intensity"]
+    errors = [r["latency_abs_error_us"] for r in const]
+    recovery = _finite(r["recovery"] for r in gap)
+    return {
+        "cases": len(rows),
+        "median_abs_error_us": _median(errors), "worst_abs_error_us": max(errors, default=math.nan),
+        "median_map_error_us": _median(r["latency_abs_error_us"] for r in rows if r["latency_model"] != "constant"),
+        "median_recovery": _median(recovery), "worst_recovery": min(recovery, default=math.nan),
+        "no_gap": sum(bool(r["no_gap"]) for r in gap),
+        "median_best_shift_share": _median(r["best_shift_share"] for r in photo),
+        "median_time_s": _median(r["time_s"] for r in rows),
+    }
+
+
+def summarize(results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Aggregates per estimator, split and latency model (and over all models).
+
+    Returns:
+        ``{"groups": [{"estimator", "split", "latency_model", "cases", "median_abs_error_us",
+        "worst_abs_error_us" (constant cases), "median_map_error_us" (map cases), "median_recovery",
+        "worst_recovery" (constant and intensity_delay cases with a gap), "no_gap",
+        "median_best_shift_share" (intensity), "median_time_s"}, ...], "spatial_vs_constant": [...]}``;
+        the second lists, for map cases evaluated by both ``"constant"`` and ``"spatial"``, their
+        map errors and whether spatial's is lower.
+    """
+    groups = []
+    keys = sorted({(r["estimator"], r["split"]) for r in results}, key=lambda k: (k[0], SPLITS.index(k[1])))
+    for estimator, split in keys:
+        rows = [r for r in results if r["estimator"] == estimator and r["split"] == split]
+        for model in (*LATENCY_MODELS, "all"):
+            sub = rows if model == "all" else [r for r in rows if r["latency_model"] == model]
+            if sub:
+                groups.append({"estimator": estimator, "split": split, "latency_model": model, **_group_stats(sub)})
+    by_case: dict[str, dict[str, Mapping[str, Any]]] = {}
+    for r in results:
+        by_case.setdefault(r["name"], {})[r["estimator"]] = r
+    comparison = []
+    for name, rows in by_case.items():
+        if "constant" in rows and "spatial" in rows and rows["constant"]["latency_model"] != "constant":
+            c, s = rows["constant"]["latency_abs_error_us"], rows["spatial"]["latency_abs_error_us"]
+            comparison.append({"name": name, "split": rows["constant"]["split"],
+                               "latency_model": rows["constant"]["latency_model"], "map_error_constant_us": c,
+                               "map_error_spatial_us": s, "spatial_better": s < c,
+                               "psnr_constant": rows["constant"]["psnr_corrected"],
+                               "psnr_spatial": rows["spatial"]["psnr_corrected"]})
+    return {"groups": groups, "spatial_vs_constant": comparison}
+
+
+def _pct(v: float) -> str:
+    return "no gap" if v is None or math.isnan(v) else f"{100 * v:.0f}%"
+
+
+def _share(v: float) -> str:
+    """A summary's ratio: "–" when no case has one."""
+    return "–" if v is None or math.isnan(v) else f"{100 * v:.0f}%"
+
+
+def _num(v: float, digits: int = 0) -> str:
+    return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
+
+
+def to_markdown(results: Sequence[Mapping[str, Any]], summary: Mapping[str, Any] | None = None) -> str:
+    """Markdown tables: the summary per estimator / split / latency model, then one row per case and estimator."""
+    summary = summary if summary is not None else summarize(results)
+    lines = ["## Summary", "",
+             "| estimator | split | latency model | cases | median abs error µs | worst abs error µs | "
+             "median map error µs | median recovery | worst recovery | no gap | median share of best shift | "
+             "median time s |",
+             "|" + " --- |" * 12]
+    for g in summary["groups"]:
+        lines.append(f"| {g['estimator']} | {g['split']} | {g['latency_model']} | {g['cases']} | "
+                     f"{_num(g['median_abs_error_us'])} | {_num(g['worst_abs_error_us'])} | "
+                     f"{_num(g['median_map_error_us'])} | {_share(g['median_recovery'])} | "
+                     f"{_share(g['worst_recovery'])} | {g['no_gap']} | {_share(g['median_best_shift_share'])} | "
+                     f"{_num(g['median_time_s'], 2)} |")
+    comparison = summary.get("spatial_vs_constant") or []
+    if comparison:
+        wins = sum(c["spatial_better"] for c in comparison)
+        lines += ["", f"## Spatial vs constant on map cases: spatial has the lower map error on {wins}/"
+                  f"{len(comparison)}", "",
+                  "| case | latency model | map error constant µs | map error spatial µs | spatial better | "
+                  "PSNR constant | PSNR spatial |", "|" + " --- |" * 7]
+        for c in comparison:
+            lines.append(f"| {c['name']} | {c['latency_model']} | {_num(c['map_error_constant_us'])} | "
+                         f"{_num(c['map_error_spatial_us'])} | {'yes' if c['spatial_better'] else 'no'} | "
+                         f"{_num(c['psnr_constant'], 2)} | {_num(c['psnr_spatial'], 2)} |")
+    lines += ["", "## Cases", "",
+              "Error: estimate − true for constant latency, mean |map − true| for the intensity models. "
+              "Recovery: (corr − uncorr) / (ideal − uncorr) of EDI PSNR (dB) against the sharp frame. "
+              "Best shift: the oracle constant latency (0-15 ms, 250 µs steps) for the photoreceptor model.", "",
+              "| estimator | case | noise | true µs | est µs | error µs | PSNR ideal | uncorr | corr | recovery | "
+              "best shift µs / PSNR | share of best | time s |",
+              "|" + " --- |" * 13]
+    for r in results:
+        best = "" if math.isnan(r["psnr_best_shift"]) else f"{r['best_shift_us']:.0f} / {r['psnr_best_shift']:.2f}"
+        lines.append(f"| {r['estimator']} | {r['name']} | {r['noise_models'] or '–'} | {r['true_latency_us']:.0f} | "
+                     f"{r['est_latency_us']:.0f} | {r['latency_error_us']:+.0f} | {r['psnr_ideal']:.2f} | "
+                     f"{r['psnr_uncorrected']:.2f} | {r['psnr_corrected']:.2f} | {_pct(r['recovery'])} | {best} | "
+                     f"{_pct(r['best_shift_share']) if r['latency_model'] == 'intensity' else ''} | "
+                     f"{r['time_s']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, Mapping):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def write_results(results: Sequence[Mapping[str, Any]], out_dir: str | Path, summary: Mapping[str, Any] | None = None,
+                  header: str = "") -> dict[str, Path]:
+    """Write ``results.md`` (``header``, then :func:`to_markdown`), ``results.csv`` and ``results.json`` to ``out_dir``.
+
+    Returns:
+        the paths written, by extension.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = summary if summary is not None else summarize(results)
+    paths = {"md": out / "results.md", "csv": out / "results.csv", "json": out / "results.json"}
+    paths["md"].write_text(header + to_markdown(results, summary))
+    columns: list[str] = []
+    for r in results:
+        columns += [k for k in r if k not in columns]
+    with paths["csv"].open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=columns)
+        writer.writeheader()
+        for r in results:
+            writer.writerow({k: " | ".join(v) if isinstance(v, list) else v for k, v in r.items()})
+    paths["json"].write_text(json.dumps(_json_safe({"results": list(results), "summary": summary}), indent=1))
+    return paths

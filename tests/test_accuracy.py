@@ -1,0 +1,187 @@
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import pytest
+import torch
+
+from evlatcorr.accuracy import (
+    LATENCY_MODELS,
+    MOTION_KINDS,
+    Case,
+    case_reference,
+    evaluate_case,
+    load_estimator,
+    make_cases,
+    simulate_case,
+    summarize,
+    to_markdown,
+    write_results,
+)
+from evlatcorr.scenes import PROCEDURAL_SCENES
+from evlatcorr.simulate import PHOTOGRAPHS_TEST, PHOTOGRAPHS_TRAIN
+
+TINY = (32, 40)
+
+
+def tiny_case(**changes) -> Case:
+    """A small constant-latency case with a clear PSNR gap between ideal and delayed events."""
+    case = Case(name="tiny", split="test", scene="checkerboard", scene_seed=5, dark_background=False, brightness=1.0,
+                motion="translation", speed_px_per_ms=1.5, direction_deg=20.0, latency_model="constant",
+                latency_us=4000.0, latency_range_us=(500.0, 6000.0), noise_rate_hz=0.0, leak_rate_hz=0.0,
+                threshold_sigma=0.0, refractory_us=0.0, threshold=0.2, seed=3, size=TINY, exposure_us=10_000.0,
+                after_us=8_000.0)
+    return dataclasses.replace(case, **changes)
+
+
+def scene_instances(cases: list[Case]) -> set[tuple[str, int | None]]:
+    """(scene, seed) of every scene and sprite (seed None: a photograph)."""
+    return {inst for c in cases for inst in ((c.scene, c.scene_seed), *c.objects)}
+
+
+def test_cases_are_deterministic_and_named_uniquely():
+    a, b = make_cases("test"), make_cases("test")
+    assert a == b
+    assert len({c.name for c in a}) == len(a)
+    assert a[0].name.startswith("test-00-") and make_cases("test", num=5) == a[:5]
+    assert all(c.size == (96, 128) for c in a) and make_cases("dev", size=(48, 64))[0].size == (48, 64)
+    json.dumps([c.to_dict() for c in a])  # serialisable
+
+
+def test_splits_are_disjoint():
+    dev, test = make_cases("dev"), make_cases("test")
+    assert not scene_instances(dev) & scene_instances(test)
+    photos = {s for s, seed in scene_instances(test) if seed is None}
+    assert photos <= set(PHOTOGRAPHS_TEST) and {s for s, seed in scene_instances(dev) if seed is None} <= set(
+        PHOTOGRAPHS_TRAIN)
+    assert not {c.seed for c in dev} & {c.seed for c in test}
+
+
+@pytest.mark.parametrize("split, minimum", [("test", 48), ("dev", 40)])
+def test_split_covers_every_factor(split, minimum):
+    cases = make_cases(split)
+    assert len(cases) >= minimum
+    assert {c.latency_model for c in cases} == set(LATENCY_MODELS)
+    assert {c.motion for c in cases} == set(MOTION_KINDS)
+    assert set(PROCEDURAL_SCENES) <= {c.scene for c in cases if c.procedural}
+    photographs = PHOTOGRAPHS_TEST if split == "test" else PHOTOGRAPHS_TRAIN
+    assert {c.scene for c in cases if not c.procedural} == set(photographs)
+    assert {m for c in cases for m in c.noise_models} == {"shot", "leak", "mismatch", "refractory"}
+    assert any(c.brightness <= 0.1 for c in cases) and any(c.dark_regions for c in cases)
+    assert any(c.scene == "shapes" and c.procedural and c.dark_background for c in cases)
+    assert not any(c.dark_background and not c.procedural for c in cases)
+    share = {m: sum(c.latency_model == m for c in cases) / len(cases) for m in LATENCY_MODELS}
+    assert share["constant"] == pytest.approx(0.5, abs=0.05) and share["intensity"] == pytest.approx(0.25, abs=0.05)
+    for c in cases:
+        assert 0.03 <= c.brightness <= 1.0 and 0.2 <= c.speed_px_per_ms <= 4.0 and 0.15 <= c.threshold <= 0.3
+        assert c.latency_model != "constant" or 200.0 <= c.latency_us <= 12000.0
+        assert len(c.objects) == (2 if c.motion == "objects" else 0)
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="split"):
+        make_cases("train")
+    with pytest.raises(ValueError, match="num"):
+        make_cases("dev", num=-1)
+    with pytest.raises(ValueError, match="size"):
+        make_cases("dev", size=(8, 8))
+    with pytest.raises(ValueError, match="module:function"):
+        load_estimator("no_colon")
+    with pytest.raises(ValueError, match="not a callable"):
+        load_estimator("evlatcorr.accuracy:nothing_here")
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    case = tiny_case()
+    simulated = simulate_case(case)
+    return case, simulated, case_reference(case, simulated)
+
+
+def test_simulate_case(tiny):
+    case, (delayed, ideal, seq), ref = tiny
+    assert delayed.batch_size == ideal.batch_size == 1 and delayed.sensor_size == TINY
+    end = float(delayed.exposure_end[0])
+    assert float(delayed.events.t.max()) < end + case.after_us and float(delayed.events.t.max()) > end + 7000.0
+    assert seq.true_latency.unique().tolist() == [4000.0]
+    assert ref["psnr_ideal"] > ref["psnr_uncorrected"] + 1.0  # a real gap to recover
+    assert math.isnan(ref["psnr_best_shift"])  # only for the photoreceptor model
+
+
+@pytest.mark.parametrize("motion", ["objects", "rotation", "zoom", "random"])
+def test_every_motion_kind_simulates(motion):
+    case = next(c for c in make_cases("test", size=TINY) if c.motion == motion)
+    case = dataclasses.replace(case, exposure_us=4000.0, after_us=3000.0, latency_model="constant", latency_us=1000.0)
+    delayed, ideal, seq = simulate_case(case)
+    assert len(delayed.events) > 0 and len(ideal.events) > 0 and delayed.sensor_size == TINY
+    assert (seq.config["objects"] is not None) == (motion == "objects")
+    if motion == "objects":
+        assert [o["sprite"] for o in seq.config["objects"]] == [s if k is None else [s, k] for s, k in case.objects]
+
+
+def test_oracle_and_zero_estimators(tiny):
+    case, simulated, ref = tiny
+    oracle = evaluate_case(case, lambda f: f.meta["true_latency"], simulated=simulated, reference=ref)
+    assert oracle["latency_error_us"] == 0.0 and oracle["recovery"] == pytest.approx(1.0, abs=0.02)
+    assert oracle["psnr_corrected"] == pytest.approx(oracle["psnr_ideal"], abs=0.05)
+    zero = evaluate_case(case, lambda f: torch.zeros(1, 1, *TINY), simulated=simulated, reference=ref)
+    assert zero["recovery"] == pytest.approx(0.0, abs=1e-6) and zero["latency_error_us"] == -4000.0
+    assert not zero["no_gap"] and zero["time_s"] >= 0.0
+    scalar = evaluate_case(case, lambda f: 4000.0, simulated=simulated, reference=ref)  # scalars are broadcast
+    assert scalar["recovery"] == pytest.approx(oracle["recovery"])
+    assert scalar["name"] == "tiny" and scalar["noise_models"] == ""
+    with pytest.raises(ValueError, match="latency map"):
+        evaluate_case(case, lambda f: torch.zeros(2, 2), simulated=simulated, reference=ref)
+
+
+def test_photoreceptor_case_has_a_best_shift_oracle():
+    case = tiny_case(latency_model="intensity", latency_us=0.0, brightness=0.3, noise_rate_hz=2.0, leak_rate_hz=0.5,
+                     refractory_us=100.0, threshold_sigma=0.05)
+    simulated = simulate_case(case)
+    result = evaluate_case(case, lambda f: torch.full((1, 1, *TINY), 2000.0), simulated=simulated)
+    assert result["best_shift_us"] in [250.0 * i for i in range(61)]
+    # 0 and 2000 µs are among the scanned shifts: the oracle is at least as good as either
+    assert result["psnr_best_shift"] >= result["psnr_uncorrected"] - 1e-3
+    assert result["psnr_best_shift"] >= result["psnr_corrected"] - 1e-3
+    true = simulated[0].meta["true_latency"]
+    assert float(true.max()) > float(true.min())  # a map
+    assert result["latency_error_us"] == pytest.approx(float((2000.0 - true).abs().mean()), rel=1e-4)
+    gain = result["psnr_best_shift"] - result["psnr_uncorrected"]
+    if gain > 0.1:
+        want = (result["psnr_corrected"] - result["psnr_uncorrected"]) / gain
+        assert result["best_shift_share"] == pytest.approx(want) and result["best_shift_share"] <= 1.0 + 1e-3
+    else:
+        assert math.isnan(result["best_shift_share"])
+
+
+def test_summary_and_files(tiny, tmp_path):
+    case, simulated, ref = tiny
+    rows = []
+    for name, fn in (("constant", lambda f: f.meta["true_latency"]), ("spatial", lambda f: torch.zeros(1, 1, *TINY))):
+        for c in (case, dataclasses.replace(case, name="tiny-map", latency_model="intensity_delay")):
+            row = evaluate_case(c, fn, simulated=simulated, reference=ref)
+            row["estimator"] = name
+            rows.append(row)
+    summary = summarize(rows)
+    groups = {(g["estimator"], g["latency_model"]): g for g in summary["groups"]}
+    assert groups[("constant", "constant")]["median_abs_error_us"] == 0.0
+    assert groups[("spatial", "constant")]["worst_recovery"] == pytest.approx(0.0, abs=1e-6)
+    assert groups[("constant", "all")]["cases"] == 2
+    assert [c["spatial_better"] for c in summary["spatial_vs_constant"]] == [False]
+    text = to_markdown(rows, summary)
+    assert "| constant | tiny |" in text and "Spatial vs constant" in text
+    paths = write_results(rows, tmp_path / "out", summary, header="# title\n\n")
+    assert paths["md"].read_text().startswith("# title")
+    data = json.loads(paths["json"].read_text())
+    assert len(data["results"]) == 4 and data["summary"]["groups"]
+    assert paths["csv"].read_text().count("\n") == 5
+
+
+def test_load_estimator_from_a_file(tmp_path):
+    path = tmp_path / "my_estimator.py"
+    path.write_text("import torch\n\ndef estimate(frames):\n    return torch.zeros(frames.batch_size)\n")
+    fn = load_estimator(f"{path}:estimate")
+    assert callable(fn) and fn.__name__ == "estimate"
+    assert load_estimator("evlatcorr.accuracy:make_cases") is make_cases
