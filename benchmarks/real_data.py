@@ -6,7 +6,7 @@
 Writes ``<out>/real_data_latency.csv`` (latency and ETF per frame) and ``<out>/real_data.png``:
 for each chosen frame, the blurry APS frame, EDI from the recorded events, and EDI from the
 latency-corrected events (zoomed on the region with most events), with their ETF (lower = sharper),
-plus the ETF-vs-latency curve of each frame.
+plus the search's score-vs-latency curve of each frame.
 """
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ def main() -> None:
         row[3].plot(cand[0].numpy() / 1000, curve[0].numpy())
         row[3].axvline(latency / 1000, color="r", ls="--", label="estimate")
         row[3].set_xlabel("candidate latency (ms)")
-        row[3].set_ylabel("ETF")
+        row[3].set_ylabel(f"{out.meta.get('score', 'etf')} score (lower = sharper)")
         row[3].legend(fontsize=8)
     fig.suptitle(f"{args.recording.name}: constant latency correction per frame (threshold {args.threshold}; "
                  "crops brightened for display)")

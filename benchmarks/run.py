@@ -264,7 +264,7 @@ class Figures:
             ax.axvline(float(scene.true_latency[0].mean()) / 1000, color="g", ls="-", label="true")
             ax.axvline(float(outputs["latency"][CONST][0].mean()) / 1000, color="r", ls="--", label="estimated")
             ax.set_xlabel("candidate latency (ms)")
-            ax.set_ylabel("ETF")
+            ax.set_ylabel(f"{meta.get('score', 'etf')} score (lower = sharper)")
             ax.set_title(f"{scene.name}, frame 0")
             ax.legend()
             fig.tight_layout()

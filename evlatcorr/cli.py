@@ -128,7 +128,11 @@ def cmd_correct(args: argparse.Namespace) -> int:
             "frame": batch.meta["frame"], "exposure_start_us": f"{float(batch.exposure_start):.1f}",
             "exposure_end_us": f"{float(batch.exposure_end):.1f}", "latency_us": f"{float(lat_map.mean()):.1f}",
             "latency_min_us": f"{float(lat_map.min()):.1f}", "latency_max_us": f"{float(lat_map.max()):.1f}",
-            "etf": f"{float(etf.min()):.5f}" if etf is not None else "",
+            "score": f"{float(etf[torch.isfinite(etf)].min()):.5f}" if etf is not None and bool(
+                torch.isfinite(etf).any()) else "",
+            "confidence": f"{float(out.meta['latency_confidence'][0]):.3f}" if "latency_confidence" in out.meta
+            else "",
+            "fallback": int(bool(out.meta["latency_fallback"][0])) if "latency_fallback" in out.meta else "",
             "events_in_window": len(batch.events),
         })
         latencies.append(lat_map)

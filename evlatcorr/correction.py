@@ -50,7 +50,8 @@ def correct_constant_latency(
     Returns:
         ``frames`` with ``latency`` :math:`(B, 1, H, W)`, ``corrected`` events, ``latent`` (EDI at
         mid-exposure from the corrected events) filled; ``meta["etf_curve"]`` holds the candidates
-        and their scores :math:`(B, K)`, ``meta["threshold"]`` the θ used,
+        and their scores :math:`(B, K)` (``meta["score"]`` names the score; inf: not scored),
+        ``meta["threshold"]`` the θ used,
         ``meta["latency_confidence"]`` :math:`(B,)` how clear each score curve's minimum was and
         ``meta["latency_fallback"]`` :math:`(B,)` which frames had none and got the fallback
         (``previous_latency``, else the range's lower end); a warning names them.
@@ -81,6 +82,7 @@ def correct_constant_latency(
     meta = dict(frames.meta)
     meta["etf_curve"] = (result.candidates, result.etf)
     meta["threshold"] = theta
+    meta["score"] = score
     meta["latency_confidence"] = result.confidence
     meta["latency_fallback"] = result.fallback
     return frames.replace(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
