@@ -11,7 +11,7 @@ from torch import Tensor, nn
 from evlatcorr.edi import edi_deblur, estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
-from evlatcorr.search import DEFAULT_SCORE, search_constant_latency
+from evlatcorr.search import DEFAULT_SCORE, SCORES, search_constant_latency
 
 __all__ = ["EventLatencyCorrector", "correct_constant_latency"]
 
@@ -44,8 +44,8 @@ def correct_constant_latency(
         epsilon: ETF edge amplifier.
         window: ETF contrast window.
         sigma_us: σ of the temporal prior, µs.
-        score: sharpness score of the search, ``"etf"`` or ``"sparsity"``
-            (see :func:`~evlatcorr.search.sharpness_score`).
+        score: sharpness score of the search, one of :data:`~evlatcorr.search.SCORES`
+            (see :func:`~evlatcorr.search.search_constant_latency`).
 
     Returns:
         ``frames`` with ``latency`` :math:`(B, 1, H, W)`, ``corrected`` events, ``latent`` (EDI at
@@ -109,7 +109,8 @@ class EventLatencyCorrector(nn.Module):
         epsilon: ETF edge amplifier ε.
         window: ETF local-contrast window.
         sigma_us: σ of the ETF temporal prior (used when ``frames.meta["previous_latency"]`` is set).
-        score: sharpness score of the search, ``"etf"`` (paper) or ``"sparsity"``.
+        score: sharpness score of the search: ``"consensus"`` (default), a single sparsity score or
+            ``"etf"`` (the paper's); see :func:`~evlatcorr.search.search_constant_latency`.
         curve: ``mode="spatial"`` only: a trained latency curve checkpoint.
         **spatial_kwargs: ``mode="spatial"`` only: options of the spatial corrector.
 
@@ -151,8 +152,8 @@ class EventLatencyCorrector(nn.Module):
         self.search_range = search_range
         self.num_candidates = num_candidates
         self.refine = refine
-        if score not in ("etf", "sparsity"):
-            raise ValueError(f"score must be 'etf' or 'sparsity', got {score!r}")
+        if score not in SCORES:
+            raise ValueError(f"score must be one of {SCORES}, got {score!r}")
         self.epsilon, self.window, self.sigma_us, self.score = epsilon, window, sigma_us, score
         self.spatial: nn.Module | None = None
         if mode == "spatial":

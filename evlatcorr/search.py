@@ -25,11 +25,15 @@ from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf
 from evlatcorr.events import Events
 from evlatcorr.integral import cumulative_event_grid
 
-__all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score"]
+__all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score", "SCORES"]
 
-DEFAULT_SCORE = "sparsity"
-# c of the sparsity score's log(I / mean(I) + c): how much relatively dark pixels count (tuned on the dev split)
-_LOG_FLOOR = 0.25
+# sparsity scores: (c of log(I / mean(I) + c), image scales). c sets how much relatively dark pixels count:
+# 0.25 found the constant latency best on the dev split, 1.0 follows the bright pixels when latency varies
+# with intensity; the coarse scale sees the low-contrast blur remnants of under-correction better.
+_SPARSITY = {"sparsity": (0.25, (1,)), "sparsity_bright": (1.0, (1,)), "sparsity_multiscale": (0.25, (1, 2))}
+# "consensus": the median of the three sparsity scores' estimates (one failing score is outvoted)
+SCORES = ("etf", *_SPARSITY, "consensus")
+DEFAULT_SCORE = "consensus"
 # Memory bound of one strip of the prefix-sum table (float64), in elements.
 _STRIP_ELEMENTS = 4_000_000
 
@@ -100,7 +104,9 @@ def search_constant_latency(
         sigma_us: σ of the temporal prior, µs.
         integral: ``"step"`` (impulse events) or ``"linear"`` (each event spread since the previous one
             at its pixel, Eq. 16-18; see :mod:`evlatcorr.integral`).
-        score: ``"etf"`` (paper Eq. 14) or ``"sparsity"`` (see :func:`sharpness_score`).
+        score: ``"consensus"`` (default: the median of the estimates of the three sparsity scores),
+            ``"sparsity"``, ``"sparsity_bright"``, ``"sparsity_multiscale"`` or ``"etf"`` (paper Eq. 14);
+            see :func:`sharpness_score`.
 
     Candidates whose window ``[exposure_start + l, exposure_end + l]`` runs past a sample's last
     event are never scored. When the curve has no interior minimum (see ``confidence``), the
@@ -122,6 +128,8 @@ def search_constant_latency(
         raise ValueError(f"num_candidates must be >= 2, got {num_candidates}")
     if num_bins < 2:
         raise ValueError(f"num_bins must be >= 2, got {num_bins}")
+    if score not in SCORES:
+        raise ValueError(f"score must be one of {SCORES}, got {score!r}")
     theta = check_batch_vector(threshold, b, "threshold").to(torch.float64)
     if bool((theta <= 0).any()):
         raise ValueError(f"threshold must be positive, got {theta.min().item()}")
@@ -185,7 +193,7 @@ def sharpness_score(latent: Tensor, latency: Tensor, previous: Tensor | None, sc
         latent: candidate latent images :math:`(K, C, H, W)`.
         latency: their latencies :math:`(K,)` µs (for the temporal prior).
         previous: ``l'`` µs, broadcastable to ``latency``, or None for no prior.
-        score: ``"sparsity"`` or ``"etf"``.
+        score: ``"sparsity"``, ``"sparsity_bright"``, ``"sparsity_multiscale"`` or ``"etf"``.
         epsilon: ETF edge amplifier.
         window: ETF contrast window.
         sigma_us: σ of the temporal prior, µs.
@@ -203,13 +211,19 @@ def sharpness_score(latent: Tensor, latency: Tensor, previous: Tensor | None, sc
     """
     if score == "etf":
         return etf_loss(latent, latency, previous, epsilon, window, sigma_us)
-    if score != "sparsity":
-        raise ValueError(f"score must be 'etf' or 'sparsity', got {score!r}")
+    if score not in _SPARSITY:
+        raise ValueError(f"score must be one of {SCORES[:-1]} here ('consensus' is a search over several), "
+                         f"got {score!r}")
+    floor, scales = _SPARSITY[score]
     # relative to each image's mean, so the score is exactly invariant to the brightness scale
     mean = latent.clamp_min(0).mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
-    log_image = torch.log(latent.clamp_min(0) / mean + _LOG_FLOOR)
-    grad = kornia.filters.spatial_gradient(log_image, mode="diff", normalized=True).flatten(1)
-    value = grad.abs().sum(1) / (grad.pow(2).sum(1).sqrt() + 1e-12)
+    log_image = torch.log(latent.clamp_min(0) / mean + floor)
+    value = torch.zeros(latent.shape[0], device=latent.device, dtype=latent.dtype)
+    for factor in scales:
+        image = log_image if factor == 1 else torch.nn.functional.avg_pool2d(log_image, factor)
+        grad = kornia.filters.spatial_gradient(image, mode="diff", normalized=True).flatten(1)
+        # / sqrt(n): in (0, 1] whatever the image size, so scales add with equal weight
+        value = value + grad.abs().sum(1) / (grad.pow(2).sum(1).sqrt() * math.sqrt(grad.shape[1]) + 1e-12)
     if previous is not None:
         value = value * torch.exp((latency - previous.to(latency)) ** 2 / (4 * sigma_us**2))
     return value
@@ -234,42 +248,55 @@ def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: f
         fallback = low if prev is None else min(max(float(prev), low), high)
         return _OneResult(fallback, to_us(coarse), nan, to_us(coarse), nan, 0.0, True)
     table = _ShiftTable(events, grid_start, width_us, n, min(span, max_shift), theta, integral)
+    members = tuple(_SPARSITY) if score == "consensus" else (score,)
 
-    def score_of(shifts: Tensor) -> Tensor:
+    def scores_of(shifts: Tensor) -> Tensor:
+        """(M, K) scores of every member; inf where the window runs past the last event."""
         valid = shifts <= max_shift
-        out = torch.full((len(shifts),), math.inf, dtype=torch.float64)
+        out = torch.full((len(members), len(shifts)), math.inf, dtype=torch.float64)
         if bool(valid.any()):
             kept = shifts[valid]
             lat = (first + kept).to(torch.float64) * width_us
             log_r = table.log_ratio(kept)  # (K, 1, H, W), latent at mid-exposure
-            latent = grey.to(log_r.dtype) * torch.exp(-log_r)
-            out[valid.cpu()] = sharpness_score(
-                latent.float(), lat.float(), None if prev is None else prev.expand(len(kept)).float(), score,
-                epsilon, window, sigma_us).double().cpu()
+            latent = (grey.to(log_r.dtype) * torch.exp(-log_r)).float()
+            previous = None if prev is None else prev.expand(len(kept)).float()
+            for m, member in enumerate(members):
+                out[m, valid.cpu()] = sharpness_score(latent, lat.float(), previous, member, epsilon, window,
+                                                      sigma_us).double().cpu()
         return out
 
-    coarse_scores = score_of(coarse)
+    coarse_scores = scores_of(coarse)
+    estimates = [_refine(coarse, coarse_scores[m], step, span, max_shift, refine, scores_of, m, events.device)
+                 for m in range(len(members))]
+    confidence = sorted(e[1] for e in estimates)[len(estimates) // 2]
+    if confidence == 0.0:  # most scores have no interior minimum
+        fallback = low if prev is None else min(max(float(prev), low), high)
+        return _OneResult(fallback, to_us(coarse), coarse_scores[0], to_us(coarse), coarse_scores[0], 0.0, True)
+    chosen = sorted(range(len(members)), key=lambda m: estimates[m][0])[len(members) // 2]  # the median
+    best, _, fine, fine_scores = estimates[chosen]
+    return _OneResult((first + best) * width_us, to_us(coarse), coarse_scores[0], to_us(fine), fine_scores,
+                      confidence, False)
+
+
+def _refine(coarse: Tensor, coarse_scores: Tensor, step: int, span: int, max_shift: int, refine: bool,
+            scores_of, member: int, device: torch.device) -> tuple[float, float, Tensor, Tensor]:
+    """One score's best shift (fractional, in sub-intervals), its confidence, and the candidates it refined."""
     finite = torch.isfinite(coarse_scores)
     k_best = int(torch.argmin(coarse_scores))
     confidence = _confidence(coarse_scores[finite], k_best)
-    if confidence == 0.0:
-        fallback = low if prev is None else min(max(float(prev), low), high)
-        return _OneResult(fallback, to_us(coarse), coarse_scores, to_us(coarse), coarse_scores, 0.0, True)
     best = int(coarse[k_best])
-    fine, fine_scores = coarse, coarse_scores
-    offset = 0.0
-    if refine:
-        fine = torch.arange(max(0, best - step), min(span, max_shift, best + step) + 1, device=events.device)
-        fine_scores = score_of(fine)
-        k = int(torch.argmin(fine_scores))
-        best = int(fine[k])
-        if 0 < k < len(fine) - 1:
-            f_m, f_0, f_p = (float(v) for v in fine_scores[k - 1:k + 2])
-            curvature = f_m - 2 * f_0 + f_p
-            if curvature > 0 and math.isfinite(curvature):
-                offset = max(-0.5, min(0.5, 0.5 * (f_m - f_p) / curvature))
-    latency = (first + best + offset) * width_us
-    return _OneResult(latency, to_us(coarse), coarse_scores, to_us(fine), fine_scores, confidence, False)
+    if not refine:
+        return float(best), confidence, coarse, coarse_scores
+    fine = torch.arange(max(0, best - step), min(span, max_shift, best + step) + 1, device=device)
+    fine_scores = scores_of(fine)[member]
+    k = int(torch.argmin(fine_scores))
+    best, offset = int(fine[k]), 0.0
+    if 0 < k < len(fine) - 1:
+        f_m, f_0, f_p = (float(v) for v in fine_scores[k - 1:k + 2])
+        curvature = f_m - 2 * f_0 + f_p
+        if curvature > 0 and math.isfinite(curvature):
+            offset = max(-0.5, min(0.5, 0.5 * (f_m - f_p) / curvature))
+    return best + offset, confidence, fine, fine_scores
 
 
 def _confidence(scores: Tensor, k_best: int) -> float:

@@ -30,7 +30,7 @@ def test_one_pass_equals_naive_edi_per_candidate(score):
 def test_refined_latency_is_argmin_neighbourhood():
     ev = random_events(3000, (8, 9), (0.0, 220.0), seed=6)
     blurry = torch.rand(1, 1, 8, 9) * 0.8 + 0.1
-    res = search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11)
+    res = search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11, score="sparsity")
     coarse_best = float(res.candidates[0, torch.argmin(res.etf[0])])
     assert abs(res.latency.item() - coarse_best) <= 10.0 + 1.0  # within one candidate spacing (+1 sub-interval)
     fine_best = float(res.fine_candidates[0][torch.argmin(res.fine_etf[0])])
@@ -100,3 +100,14 @@ def test_sparsity_score_ignores_brightness_scale():
     torch.testing.assert_close(a, b, rtol=1e-5, atol=0.0)  # log(I / mean(I) + c): a scale cancels
     with pytest.raises(ValueError, match="score"):
         sharpness_score(image, lat, None, "psnr", 20.0, 7, 1000.0)
+
+
+def test_consensus_is_the_median_of_the_three_sparsity_estimates():
+    ev = random_events(3000, (8, 9), (0.0, 220.0), seed=13)
+    blurry = torch.rand(1, 1, 8, 9) * 0.8 + 0.1
+    run = lambda score: search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11,  # noqa: E731
+                                                refine=False, score=score)
+    members = sorted(run(s).latency.item() for s in ("sparsity", "sparsity_bright", "sparsity_multiscale"))
+    assert run("consensus").latency.item() == members[1]
+    with pytest.raises(ValueError, match="score"):
+        run("psnr")
