@@ -51,8 +51,13 @@ def test_ddp_on_two_cpu_processes_gives_the_same_table(tmp_path):
     tables = []
     for extra in ([], ["--devices", "2", "--strategy", "ddp"]):
         out = tmp_path / f"out{len(tables)}"
-        r = subprocess.run(args + extra + ["--out", str(out)], capture_output=True, text=True, timeout=600,
-                           cwd=tmp_path, env=env)
+        for _attempt in range(2):
+            r = subprocess.run(args + extra + ["--out", str(out)], capture_output=True, text=True, timeout=600,
+                               cwd=tmp_path, env=env)
+            # gloo occasionally aborts a rank at start-up or teardown ("terminate called without an active
+            # exception", killed by a signal, seen 1 run in 4 on 2 cores): run once more; any error exit fails
+            if r.returncode >= 0:
+                break
         assert r.returncode == 0, r.stderr[-3000:]
         tables.append(json.loads((out / "results.json").read_text())["table"])
     assert [(r["method"], r["input"]) for r in tables[0]] == [(r["method"], r["input"]) for r in tables[1]]
