@@ -250,8 +250,9 @@ def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: f
     table = _ShiftTable(events, grid_start, width_us, n, min(span, max_shift), theta, integral)
     members = tuple(_SPARSITY) if score == "consensus" else (score,)
 
-    def scores_of(shifts: Tensor) -> Tensor:
-        """(M, K) scores of every member; inf where the window runs past the last event."""
+    def scores_of(shifts: Tensor, only: int | None = None) -> Tensor:
+        """(M, K) scores of every member (or of member ``only`` alone, the others inf); inf where the window
+        runs past the last event."""
         valid = shifts <= max_shift
         out = torch.full((len(members), len(shifts)), math.inf, dtype=torch.float64)
         if bool(valid.any()):
@@ -261,6 +262,8 @@ def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: f
             latent = (grey.to(log_r.dtype) * torch.exp(-log_r)).float()
             previous = None if prev is None else prev.expand(len(kept)).float()
             for m, member in enumerate(members):
+                if only is not None and m != only:
+                    continue
                 out[m, valid.cpu()] = sharpness_score(latent, lat.float(), previous, member, epsilon, window,
                                                       sigma_us).double().cpu()
         return out
@@ -288,7 +291,7 @@ def _refine(coarse: Tensor, coarse_scores: Tensor, step: int, span: int, max_shi
     if not refine:
         return float(best), confidence, coarse, coarse_scores
     fine = torch.arange(max(0, best - step), min(span, max_shift, best + step) + 1, device=device)
-    fine_scores = scores_of(fine)[member]
+    fine_scores = scores_of(fine, member)[member]
     k = int(torch.argmin(fine_scores))
     best, offset = int(fine[k]), 0.0
     if 0 < k < len(fine) - 1:
