@@ -425,8 +425,8 @@ class EFNetAdapter(nn.Module):
             (``{"params": ...}``), a Lightning ``.ckpt`` or our ``.safetensors``.
         use_mask: pass the event mask (enables EFNet's mask-gated stage-2 connections).
         clamp: clamp ``output`` to [0, 1] (the network output itself is not bounded).
-        pad: replicate-pad H and W up to multiples of 4 and crop the output back; when False, such
-            sizes raise a ValueError.
+        pad: replicate-pad H and W up to multiples of 4 and crop the output back (default, so any sensor size,
+            e.g. DAVIS346's 260x346, runs); when False, such sizes raise a ValueError.
 
     Returns (forward):
         ``frames`` with ``output`` :math:`(B, C, H, W)` (C of ``frames.blurry``).
@@ -434,7 +434,7 @@ class EFNetAdapter(nn.Module):
     Example:
         >>> EFNetAdapter()
         EFNetAdapter(
-          use_mask=True, clamp=True, pad=False
+          use_mask=True, clamp=True, pad=True
           (net): EFNet(in_chn=3, ev_chn=6, wf=64, depth=3)
         )
     """
@@ -442,7 +442,7 @@ class EFNetAdapter(nn.Module):
     num_bins = 6
 
     def __init__(self, checkpoint: str | None = None, use_mask: bool = True, clamp: bool = True,
-                 pad: bool = False) -> None:
+                 pad: bool = True) -> None:
         super().__init__()
         from evlatcorr.adapters.checkpoint import load_weights, resolve_checkpoint
 

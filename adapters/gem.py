@@ -425,7 +425,7 @@ class GEMAdapter(nn.Module):
         bgr: feed colour frames to the network in BGR order and return RGB (the official data are read and
             written with OpenCV). No effect on grey frames.
         pad: replicate-pad H and W up to multiples of ``16 * scale_factor`` (the EGER with zeros) and crop
-            the output back; when False, such sizes raise a ValueError.
+            the output back (default, so any sensor size runs); when False, such sizes raise a ValueError.
 
     Returns (forward):
         ``frames`` with ``output`` :math:`(B, C, H, W)` (C of ``frames.blurry``).
@@ -433,13 +433,13 @@ class GEMAdapter(nn.Module):
     Example:
         >>> GEMAdapter()
         GEMAdapter(
-          scale_factor=1, num_bins=16, predict_ts=0.5, clamp=True, bgr=True, pad=False
+          scale_factor=1, num_bins=16, predict_ts=0.5, clamp=True, bgr=True, pad=True
           (net): San(im_in_channel=3, out_channel=3, ev_in_channel=96)
         )
     """
 
     def __init__(self, checkpoint: str | None = None, scale_factor: int = 1, num_bins: int = 16,
-                 predict_ts: float = 0.5, clamp: bool = True, bgr: bool = True, pad: bool = False) -> None:
+                 predict_ts: float = 0.5, clamp: bool = True, bgr: bool = True, pad: bool = True) -> None:
         super().__init__()
         from evlatcorr.adapters.checkpoint import load_weights, resolve_checkpoint
 

@@ -55,6 +55,7 @@ here they are mapped in float64 relative to the window, then the grid is cast to
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -536,7 +537,8 @@ def refid_inputs(frames: EventFrames, m: int = 11, n: int = 1, mode: str = "inte
 
     Args:
         frames: the batch; interpolation uses ``blurry`` and ``blurry_next``.
-        m: sharp frames per blurry frame (11 for the released weights).
+        m: sharp frames per blurry frame; by default 4 for ``None`` / ``"default"`` (the shipped 4+1 weights),
+            read from the weights' input channels for a file (11 for the released weights), 11 for ``"deblur"``.
         n: sharp frames between the blurry frames (1 or 3 for the released weights).
         mode: ``"interpolation"`` (two blurry frames) or ``"deblur"`` (one).
         frame_offset: see :func:`refid_window`.
@@ -600,6 +602,29 @@ def nearest_frames(output: Tensor, output_times: Tensor, target_times: Tensor) -
 # --------------------------------------------------------------------------------------------------
 # adapter
 # --------------------------------------------------------------------------------------------------
+SHIPPED_M = 4  # sharp frames per blurry frame of the shipped interpolation weights (checkpoints/refid-4-1)
+OFFICIAL_M = 11  # of the released REFID weights (REFID-*-11-1.pth, REFID-*-11-3.pth)
+
+
+def _default_m(checkpoint: str | Path | None, mode: str) -> int:
+    """``m`` when the caller gives none: the shipped layout for ``None`` / ``"default"``; for a file, read
+    from its first image convolution (``2m + 4`` input channels), else the released weights' 11."""
+    if mode != "interpolation":
+        return OFFICIAL_M  # a deblur network's channels (m + 2) cannot tell its m from an interpolation one's
+    if checkpoint is None or str(checkpoint) == "default":
+        return SHIPPED_M
+    from evlatcorr.adapters.checkpoint import load_state_dict_file
+
+    path = Path(checkpoint).expanduser()
+    if not (path.is_file() or path.name.endswith(".safetensors")):
+        return OFFICIAL_M  # resolve_checkpoint raises the missing-file error
+    state = load_state_dict_file(path)
+    weight = next((v for k, v in state.items() if k.endswith("head_img.conv2d.weight") and v.dim() == 4), None)
+    if weight is None or weight.shape[1] < 8 or weight.shape[1] % 2:
+        return OFFICIAL_M  # not REFID weights: load_weights names the mismatch
+    return (int(weight.shape[1]) - 4) // 2
+
+
 class REFIDAdapter(nn.Module):
     """REFID on an :class:`~evlatcorr.frames.EventFrames` batch.
 
@@ -608,18 +633,20 @@ class REFIDAdapter(nn.Module):
 
     Args:
         checkpoint: ``None`` (random weights), a path (official BasicSR ``.pth``, Lightning ``.ckpt``,
-            state_dict, our ``.safetensors``) or ``"default"`` (shipped weights: ``checkpoints/refid`` for
-            11+1, ``refid-<m>-<n>`` for other interpolation settings, ``refid-deblur`` for deblurring).
+            state_dict, our ``.safetensors``) or ``"default"`` (shipped weights: ``checkpoints/refid-4-1``;
+            ``refid`` for 11+1, ``refid-<m>-<n>`` for other interpolation settings, ``refid-deblur`` for
+            deblurring, where present).
         mode: ``"interpolation"`` (``2m+n`` frames from ``blurry`` and ``blurry_next``; the released 11+1 and
             11+3 weights) or ``"deblur"`` (``m`` frames across one exposure; needs weights trained for it).
-        m: sharp frames per blurry frame (11 for the released weights).
+        m: sharp frames per blurry frame; by default 4 for ``None`` / ``"default"`` (the shipped 4+1 weights),
+            read from the weights' input channels for a file (11 for the released weights), 11 for ``"deblur"``.
         n: sharp frames between two blurry frames: 1 (REFID-*-11-1.pth) or 3 (REFID-*-11-3.pth). The network's
             shape does not depend on ``n``: pass the one the weights were trained with (ideally the
             data's gap is about ``n · exposure / m``).
         frame_offset: see :func:`refid_window`.
         normalize: ``"events"`` (official timestamp mapping) or ``"window"``, see :func:`refid_voxel_grid`.
-        pad: pad H and W to multiples of 8 (replicated image border, no events) and crop the output,
-            instead of raising.
+        pad: pad H and W to multiples of 8 (replicated image border, no events) and crop the output
+            (default, so any sensor size runs); when False, such sizes raise a ValueError.
         select: ``"all"`` (every output frame) or ``"nearest"`` (the frame nearest each
             ``frames.target_times``).
         clamp: clamp ``output`` to [0, 1] (training leaves it off so every pixel gets a gradient).
@@ -630,15 +657,21 @@ class REFIDAdapter(nn.Module):
         :math:`(B, T)` µs, the time of each output frame.
 
     Example:
-        >>> adapter = REFIDAdapter()  # random weights; pass checkpoint="REFID-GoPro-11-1.pth"
+        >>> adapter = REFIDAdapter()  # random weights in the shipped 4+1 layout; or checkpoint="default"
         >>> adapter.net.img_chn, adapter.extra_repr()
-        (26, 'mode=interpolation, m=11, n=1, frame_offset=0.5, normalize=events, pad=False, select=all')
+        (12, 'mode=interpolation, m=4, n=1, frame_offset=0.5, normalize=events, pad=True, select=all')
+        >>> REFIDAdapter(m=11).net.img_chn  # the layout of the released REFID-GoPro-11-1.pth
+        26
     """
 
-    def __init__(self, checkpoint: str | None = None, mode: str = "interpolation", m: int = 11, n: int = 1,
-                 frame_offset: float = 0.5, normalize: str = "events", pad: bool = False,
+    def __init__(self, checkpoint: str | None = None, mode: str = "interpolation", m: int | None = None, n: int = 1,
+                 frame_offset: float = 0.5, normalize: str = "events", pad: bool = True,
                  select: str = "all", clamp: bool = True) -> None:
         super().__init__()
+        from evlatcorr.adapters.checkpoint import load_weights, resolve_checkpoint
+
+        if m is None:
+            m = _default_m(checkpoint, mode)
         _check_layout(m, n, mode, frame_offset)
         if normalize not in _NORMALIZE:
             raise ValueError(f"normalize must be one of {_NORMALIZE}, got {normalize!r}")
@@ -647,7 +680,6 @@ class REFIDAdapter(nn.Module):
         self.mode, self.m, self.n, self.frame_offset = mode, m, n, float(frame_offset)
         self.normalize, self.pad, self.select, self.clamp = normalize, bool(pad), select, bool(clamp)
         self.net = REFIDNet(img_chn=(2 * m + 4) if mode == "interpolation" else (m + 2))
-        from evlatcorr.adapters.checkpoint import load_weights, resolve_checkpoint
 
         if mode == "deblur":
             name = "refid-deblur"

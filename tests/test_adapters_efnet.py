@@ -362,8 +362,8 @@ def test_adapter_grey_non_contiguous_and_padding(adapter):
     odd = random_events(300, (14, 18), (0.0, 1e4), seed=5)
     odd_frames = frames_from(odd, 0.0, 1e4)
     with pytest.raises(ValueError, match=r"multiples of 4, got \(H, W\)=\(14, 18\).*pad=True"):
-        adapter(odd_frames)
-    padded = EFNetAdapter(pad=True)
+        EFNetAdapter(pad=False)(odd_frames)
+    padded = EFNetAdapter()  # pads by default
     padded.net.load_state_dict(adapter.net.state_dict())
     with torch.no_grad():
         assert padded.eval()(odd_frames).output.shape == (1, 3, 14, 18)
@@ -372,7 +372,7 @@ def test_adapter_grey_non_contiguous_and_padding(adapter):
 
 
 def test_adapter_repr():
-    assert "use_mask=True, clamp=True, pad=False" in repr(EFNetAdapter())
+    assert "use_mask=True, clamp=True, pad=True" in repr(EFNetAdapter())
     assert "wf=64" in repr(EFNetAdapter())
 
 

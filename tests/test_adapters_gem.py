@@ -537,14 +537,16 @@ def test_adapter_uses_corrected_events_and_target_times(adapter):
 def test_adapter_divisibility_padding_and_scale_factor(adapter):
     odd = frames_from(random_events(300, (24, 40), (0.0, 1e4), seed=5), 0.0, 1e4)
     with pytest.raises(ValueError, match=r"multiples of 16, got \(H, W\)=\(24, 40\).*pad=True"):
-        adapter(odd)
-    padded = GEMAdapter(pad=True)
+        GEMAdapter(pad=False)(odd)
+    padded = GEMAdapter()  # pads by default
     padded.net.load_state_dict(adapter.net.state_dict())
     with torch.no_grad():
         assert padded.eval()(odd).output.shape == (1, 3, 24, 40)
     small = frames_from(random_events(300, (32, 32), (0.0, 1e4), seed=6), 0.0, 1e4)
     with pytest.raises(ValueError, match=r"event map to be at least 16x16.*scale_factor 4 = \(8, 8\)"):
-        GEMAdapter(scale_factor=4)(small)
+        GEMAdapter(scale_factor=4, pad=False)(small)
+    with torch.no_grad():  # padded to 64x64, a 16x16 event map
+        assert GEMAdapter(scale_factor=4)(small).output.shape == (1, 3, 32, 32)
     coarse = GEMAdapter(scale_factor=2)
     coarse.net.load_state_dict(adapter.net.state_dict())
     with torch.no_grad():
@@ -562,7 +564,7 @@ def test_adapter_divisibility_padding_and_scale_factor(adapter):
 
 def test_adapter_repr():
     text = repr(GEMAdapter())
-    assert "scale_factor=1, num_bins=16, predict_ts=0.5, clamp=True, bgr=True, pad=False" in text
+    assert "scale_factor=1, num_bins=16, predict_ts=0.5, clamp=True, bgr=True, pad=True" in text
     assert "San(im_in_channel=3, out_channel=3, ev_in_channel=96)" in text
 
 

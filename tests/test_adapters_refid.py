@@ -330,7 +330,7 @@ def test_adapter_forward_shapes_and_range():
 
 
 def test_adapter_official_size_on_8x8():
-    adapter = REFIDAdapter()
+    adapter = REFIDAdapter(m=11)
     out = adapter(make_pair(size=(8, 8), num=500))
     assert out.output.shape == (1, 23, 3, 8, 8) and out.meta["output_times"].shape == (1, 23)
     deblur = REFIDAdapter(mode="deblur")
@@ -355,8 +355,8 @@ def test_adapter_equals_function():
 def test_adapter_sequential_and_pad():
     frames = make_pair(size=(12, 20))
     with pytest.raises(ValueError, match="multiples of 8"):
-        small_adapter()(frames)
-    out = nn.Sequential(nn.Identity(), small_adapter(pad=True))(frames)
+        small_adapter(pad=False)(frames)
+    out = nn.Sequential(nn.Identity(), small_adapter())(frames)  # pads by default
     assert out.output.shape == (1, 5, 3, 12, 20)
 
 
@@ -393,8 +393,18 @@ def test_load_official_checkpoint_formats(tmp_path, official_state, layout):
     else:
         torch.save({"state_dict": {"model." + k: v for k, v in official_state.items()}, "epoch": 3}, path)
     adapter = REFIDAdapter(checkpoint=str(path))
+    assert adapter.m == 11  # read from the 26 input channels of the released layout
     loaded = adapter.net.state_dict()
     assert all(torch.equal(loaded[k], v) for k, v in official_state.items())
+
+
+def test_default_layout_matches_the_weights(tmp_path):
+    assert REFIDAdapter().m == 4 and REFIDAdapter().net.img_chn == 12  # the shipped 4+1 layout
+    assert REFIDAdapter(m=11).net.img_chn == 26
+    path = tmp_path / "refid-6.pth"
+    torch.save({"params": synthetic_state(REFIDNet(img_chn=16).state_dict(), seed=2)}, path)
+    assert REFIDAdapter(checkpoint=str(path)).m == 6
+    assert REFIDAdapter(mode="deblur").m == 11
 
 
 def test_checkpoint_mismatch_raises(tmp_path, official_state):
