@@ -19,28 +19,170 @@ Sharding scheme (written by :func:`save_weights`, read by :func:`load_weights`):
 {key: shard file name}}``); ``<stem>.safetensors`` itself is then not written. ``load_weights`` accepts
 ``<stem>.safetensors`` (falling back to its index or shards when the file is absent), the index, or any
 one shard (the whole set is read).
+
+Verification (every read): a file that cannot be read (truncated, corrupt, another format, a broken pickle,
+an index that does not match its shards) raises a ``ValueError`` naming it, a missing file or shard a
+``FileNotFoundError``. Floating point tensors holding NaN or inf are refused (``check_finite=False`` to load
+them anyway). When a card ``<stem>.json`` beside the weights lists a file under ``"sha256"`` (``{file name:
+hex digest}``, written with :func:`card_sha256`; the shipped cards in ``checkpoints/`` do), the file's SHA-256
+must match before it is read.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import pickle
 import re
 import warnings
-from collections.abc import Mapping
+import zipfile
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
-__all__ = ["checkpoint_dirs", "load_state_dict_file", "load_weights", "resolve_checkpoint", "save_weights"]
+__all__ = ["card_sha256", "checkpoint_dirs", "file_sha256", "load_state_dict_file", "load_weights",
+           "resolve_checkpoint", "save_weights"]
 
 _SHARD_RE = re.compile(r"^(?P<stem>.+)-(?P<index>\d{5})-of-(?P<total>\d{5})\.safetensors$")
+_SHA256_RE = re.compile(r"[0-9a-fA-F]{64}")
 _INDEX_SUFFIX = ".safetensors.index.json"
 _NESTED_KEYS = ("params", "params_ema", "state_dict", "model_state_dict", "model", "net", "network")
 _MAX_LISTED = 10
 MB = 1_000_000  # max_shard_mb counts decimal megabytes
+_Index = tuple[Path, dict[str, str]]  # a safetensors index file and its weight_map
+
+
+# verifying -------------------------------------------------------------------------------------
+def file_sha256(path: str | Path) -> str:
+    """The SHA-256 of a file's bytes as 64 lowercase hex digits, the hash a checkpoint card lists per file.
+
+    A card is the ``<stem>.json`` beside the weights (``checkpoints/efnet.json`` for ``efnet-*.safetensors``);
+    its ``"sha256"`` entry maps file names to this digest, and :func:`load_state_dict_file` compares it before
+    reading each file it lists.
+
+    Args:
+        path: the file.
+
+    Returns:
+        the hex digest.
+
+    Raises:
+        FileNotFoundError: when the file does not exist.
+        ValueError: when it cannot be read (a folder, no permission, an I/O error).
+
+    Example:
+        >>> import tempfile, os
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     with open(os.path.join(d, "abc.bin"), "wb") as f:
+        ...         _ = f.write(b"abc")
+        ...     file_sha256(os.path.join(d, "abc.bin"))
+        'ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad'
+    """
+    path = Path(path).expanduser()
+    digest = hashlib.sha256()
+    try:
+        with path.open("rb") as f:
+            while block := f.read(1 << 20):
+                digest.update(block)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"checkpoint not found: {path}") from None
+    except OSError as exc:
+        raise ValueError(f"cannot read {path}: {exc}") from exc
+    return digest.hexdigest()
+
+
+def card_sha256(files: Iterable[str | Path]) -> dict[str, str]:
+    """The ``"sha256"`` entry of a checkpoint card: ``{file name: SHA-256}`` of each weight file in ``files``.
+
+    Call it on what :func:`save_weights` returned and store it in the card ``<stem>.json`` written beside the
+    weights; :func:`load_state_dict_file` then verifies every listed file before reading it. An index
+    (``*.safetensors.index.json``) is left out: it is text, whose line endings git may rewrite on checkout,
+    and its ``weight_map`` is checked against the shards on load instead.
+
+    Args:
+        files: the files written (shards, the single file, the index).
+
+    Returns:
+        the digests of the ``.safetensors`` (and ``torch.save``) files, by file name.
+
+    Raises:
+        FileNotFoundError: when a file does not exist.
+
+    Example:
+        >>> import tempfile, os
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     files = save_weights(nn.Linear(2, 3), os.path.join(d, "lin.safetensors"))
+        ...     entry = card_sha256(files)
+        >>> list(entry), len(entry["lin.safetensors"])
+        (['lin.safetensors'], 64)
+    """
+    return {Path(f).name: file_sha256(f) for f in files if not str(f).endswith(".json")}
+
+
+def _card_path(path: Path) -> Path:
+    """The card of a checkpoint file: ``<dir>/<stem>.json`` (the stem of its shard set, or of a ``.pth``)."""
+    stem = _stem_of(path)
+    return path.with_name((stem.name if stem != path else path.stem) + ".json")
+
+
+def _listed_sha256(path: Path) -> tuple[Path, str] | None:
+    """The card beside ``path`` and the SHA-256 it lists for ``path``, or None when no card lists one."""
+    card = _card_path(path)
+    if card == path or not card.is_file():
+        return None
+    try:
+        meta = json.loads(card.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:  # ValueError: JSONDecodeError, UnicodeDecodeError
+        raise ValueError(f"cannot read {card}, the checkpoint card of {path}: {exc}") from exc
+    hashes = meta.get("sha256") if isinstance(meta, dict) else None
+    if not isinstance(hashes, dict) or path.name not in hashes:
+        return None
+    expected = hashes[path.name]
+    if not isinstance(expected, str) or not _SHA256_RE.fullmatch(expected):
+        raise ValueError(f"checkpoint card {card} lists an invalid SHA-256 for {path.name}: {expected!r} "
+                         "(expected 64 hex digits)")
+    return card, expected.lower()
+
+
+def _verify_sha256(path: Path) -> None:
+    """Compare ``path`` with the SHA-256 its card lists (nothing to do when no card lists one)."""
+    listed = _listed_sha256(path)
+    if listed is None:
+        return
+    card, expected = listed
+    actual = file_sha256(path)
+    if actual != expected:
+        raise ValueError(f"{path} is corrupt or modified: its SHA-256 is {actual} but its card {card.name} lists "
+                         f"{expected}. Restore the file (reinstall evlatcorr, or copy / export it again); if you "
+                         f"replaced it on purpose, update its entry under 'sha256' in {card}")
+
+
+def _check_finite(state: Mapping[str, Tensor], path: Path) -> None:
+    """Raise when a floating point tensor of ``state`` (read from ``path``) holds NaN or inf.
+
+    One reduction per tensor: a sum is finite only if every element is (NaN propagates, inf + -inf is NaN),
+    and summing in float32 (float64 for float64) is several times faster on the CPU than ``isfinite`` on
+    fp16. Only a non-finite sum, which a large but finite tensor may also give by overflow, is counted
+    element by element.
+    """
+    for k, v in state.items():
+        if not (v.is_floating_point() or v.is_complex()) or v.numel() == 0:
+            continue
+        if v.is_complex():
+            exact = v
+        else:
+            acc = torch.float64 if v.dtype == torch.float64 else torch.float32
+            exact = v if v.dtype in (torch.float16, torch.bfloat16, torch.float32, torch.float64) else v.to(acc)
+            if bool(torch.isfinite(exact.sum(dtype=acc))):
+                continue
+        bad = v.numel() - int(torch.isfinite(exact).sum())
+        if bad:
+            raise ValueError(f"{path} holds non-finite values (NaN or inf) in tensor {k!r}: {bad} of {v.numel()} "
+                             "elements. The file is corrupt, or the weights diverged in training; pass "
+                             "check_finite=False to load it anyway")
 
 
 # reading ----------------------------------------------------------------------------------------
@@ -81,54 +223,122 @@ def _stem_of(path: Path) -> Path:
     return path
 
 
-def _load_safetensors(files: list[Path]) -> dict[str, Tensor]:
+def _load_safetensors(files: list[Path], index: _Index | None = None,
+                      check_finite: bool = True) -> dict[str, Tensor]:
+    """Read (and verify) the shards ``files``; ``index`` (its path and weight map) must agree with them."""
     from safetensors.torch import load_file
 
     state: dict[str, Tensor] = {}
+    origin: dict[str, str] = {}
     for f in files:
-        part = load_file(str(f), device="cpu")
+        _verify_sha256(f)
+        try:
+            part = load_file(str(f), device="cpu")
+        except FileNotFoundError:
+            raise FileNotFoundError(f"checkpoint not found: {f}") from None
+        except Exception as exc:  # SafetensorError (truncated, bad header), OSError (unreadable), ...
+            raise ValueError(f"cannot read {f}: {str(exc).rstrip('.')}. The file is truncated, corrupt or not a "
+                             "safetensors file") from exc
         dup = state.keys() & part.keys()
         if dup:
-            raise ValueError(f"key {sorted(dup)[0]!r} appears in more than one shard ({f.name})")
+            raise ValueError(f"key {sorted(dup)[0]!r} appears in more than one shard ({f})")
+        if check_finite:
+            _check_finite(part, f)
         state.update(part)
+        origin.update(dict.fromkeys(part, f.name))
+    if index is not None:
+        index_path, weight_map = index
+        wrong = [f"{k} (listed in {name}, found in {origin.get(k, 'no shard')})"
+                 for k, name in weight_map.items() if origin.get(k) != name]
+        wrong += [f"{k} (in {origin[k]}, not listed)" for k in origin if k not in weight_map]
+        if wrong:
+            raise ValueError(f"{index_path} does not match its shards ({len(wrong)} keys): {_short(wrong)}")
     return state
 
 
-def _safetensors_files(path: Path) -> list[Path] | None:
-    """Resolve ``path`` to the safetensors file(s) it names, or None when it is not a safetensors path."""
+def _read_index(path: Path) -> _Index:
+    """Verify and parse a ``.safetensors.index.json``: its path and its ``weight_map``."""
+    _verify_sha256(path)
+    try:
+        index = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:  # ValueError: JSONDecodeError, UnicodeDecodeError
+        raise ValueError(f"cannot read the safetensors index {path}: {exc}") from exc
+    weight_map = index.get("weight_map") if isinstance(index, dict) else None
+    if not isinstance(weight_map, dict) or not weight_map:
+        raise ValueError(f"{path} is not a safetensors index (no 'weight_map')")
+    bad = sorted({repr(v) for v in weight_map.values()
+                  if not isinstance(v, str) or Path(v).name != v or not v.endswith(".safetensors")})
+    if bad:
+        raise ValueError(f"{path} lists invalid shard file names (expected *.safetensors beside it): "
+                         f"{_short(bad)}")
+    return path, weight_map
+
+
+def _resolve_safetensors(path: Path) -> tuple[list[Path], _Index | None] | None:
+    """The safetensors file(s) ``path`` names and the index that lists them (if read), or None when ``path``
+    is not a safetensors path."""
     if path.name.endswith(_INDEX_SUFFIX) and path.is_file():
-        index = json.loads(path.read_text())
-        if not isinstance(index, dict) or not isinstance(index.get("weight_map"), dict):
-            raise ValueError(f"{path} is not a safetensors index (no 'weight_map')")
-        files = [path.parent / name for name in sorted(set(index["weight_map"].values()))]
+        index = _read_index(path)
+        files = [path.parent / name for name in sorted(set(index[1].values()))]
         absent = [f.name for f in files if not f.is_file()]
         if absent:
-            raise FileNotFoundError(f"{path} lists shard files that do not exist: {absent[:_MAX_LISTED]}")
-        return files
+            raise FileNotFoundError(f"{path} lists shard files that do not exist: {_short(absent)}")
+        return files, index
     if _SHARD_RE.match(path.name) and path.is_file():
-        return _shard_files(_stem_of(path))
+        return _shard_files(_stem_of(path)), None
     if path.name.endswith(".safetensors"):
         if path.is_file():
-            return [path]
-        index = path.with_name(path.name + ".index.json")
-        if index.is_file():
-            return _safetensors_files(index)
+            return [path], None
+        index_path = path.with_name(path.name + ".index.json")
+        if index_path.is_file():
+            return _resolve_safetensors(index_path)
         shards = _shard_files(_stem_of(path))
         if shards:
-            return shards
-        raise FileNotFoundError(f"checkpoint not found: {path} (nor its index {index.name} nor shards "
+            return shards, None
+        raise FileNotFoundError(f"checkpoint not found: {path} (nor its index {index_path.name} nor shards "
                                 f"{_stem_of(path).name}-XXXXX-of-NNNNN.safetensors)")
     return None
 
 
+def _safetensors_files(path: Path) -> list[Path] | None:
+    """Resolve ``path`` to the safetensors file(s) it names, or None when it is not a safetensors path."""
+    resolved = _resolve_safetensors(path)
+    return None if resolved is None else resolved[0]
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {lines[0].rstrip('.') if lines else ''}"
+
+
 def _torch_load(path: Path) -> object:
+    try:
+        with path.open("rb") as f:
+            head = f.read(9)
+        is_zip = zipfile.is_zipfile(path)
+    except OSError as exc:
+        raise ValueError(f"cannot read {path}: {exc}") from exc
+    # torch.save writes a zip archive (legacy format: a pickle, protocol >= 2, which starts with 0x80)
+    if not is_zip and not (len(head) >= 2 and head[0] == 0x80):
+        hint = ""
+        if len(head) == 9 and head[8:9] == b"{" and int.from_bytes(head[:8], "little") < path.stat().st_size:
+            hint = " (it looks like a safetensors file: name it *.safetensors)"
+        raise ValueError(f"{path} is not a torch.save checkpoint (neither a zip archive nor a pickle): it is "
+                         f"truncated, corrupt or in another format{hint}")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         warnings.warn(f"{path} holds more than tensors ({str(exc).splitlines()[0]}); loading it with "
                       "weights_only=False, which runs its pickled code: only load checkpoints you trust",
                       stacklevel=3)
-        return torch.load(path, map_location="cpu", weights_only=False)
+        try:
+            return torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as exc2:  # a corrupt pickle raises anything (KeyError, EOFError, ...)
+            raise ValueError(f"cannot read {path}: {_first_line(exc2)}. The file is truncated, corrupt or not a "
+                             "torch.save checkpoint") from exc2
+    except Exception as exc:  # RuntimeError (a corrupt zip), KeyError / EOFError (a corrupt pickle), ...
+        raise ValueError(f"cannot read {path}: {_first_line(exc)}. The file is truncated, corrupt or not a "
+                         "torch.save checkpoint") from exc
 
 
 def _is_state_dict(obj: object) -> bool:
@@ -164,8 +374,12 @@ def _extract_state_dict(obj: object, path: Path, key: str | None) -> dict[str, T
     raise ValueError(f"{path} holds a {type(obj).__name__}, not a state_dict")
 
 
-def load_state_dict_file(path: str | Path, key: str | None = None) -> dict[str, Tensor]:
-    """Read a checkpoint file into a flat ``{name: tensor}`` dict on the CPU (no prefix handling).
+def load_state_dict_file(path: str | Path, key: str | None = None, *,
+                         check_finite: bool = True) -> dict[str, Tensor]:
+    """Read a checkpoint file into a flat ``{name: tensor}`` dict on the CPU (no prefix handling), verified.
+
+    Each file read is first compared with the SHA-256 its card lists, when a card ``<stem>.json`` beside it
+    lists one (see :func:`card_sha256`), and its floating point tensors are checked for NaN and inf.
 
     Args:
         path: a ``.safetensors`` file, shard or index, or a ``torch.save`` file (``.pth``, ``.pt``,
@@ -173,18 +387,36 @@ def load_state_dict_file(path: str | Path, key: str | None = None) -> dict[str, 
         key: the entry of a ``torch.save`` dict that holds the weights; by default the first of
             ``params, params_ema, state_dict, model_state_dict, model, net, network`` found, or the
             dict itself when it is a state_dict.
+        check_finite: refuse floating point tensors holding NaN or inf.
+
+    Returns:
+        the tensors by name, as stored (dtype kept).
 
     Raises:
         FileNotFoundError: when the file (or a shard of it) does not exist.
-        ValueError: when the file holds no state_dict.
+        ValueError: naming the file, when it cannot be read (truncated, corrupt, not a checkpoint, a broken
+            pickle, an index that does not match its shards), does not match the SHA-256 its card lists,
+            holds a non-finite tensor (also naming its key) or holds no state_dict.
+
+    Example:
+        >>> import tempfile, os
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     files = save_weights(nn.Linear(2, 3), os.path.join(d, "lin.safetensors"))
+        ...     state = load_state_dict_file(files[0])
+        >>> {k: tuple(v.shape) for k, v in state.items()}
+        {'bias': (3,), 'weight': (3, 2)}
     """
     path = Path(path).expanduser()
-    files = _safetensors_files(path)
-    if files is not None:
-        return _load_safetensors(files)
+    resolved = _resolve_safetensors(path)
+    if resolved is not None:
+        return _load_safetensors(*resolved, check_finite=check_finite)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
-    return _extract_state_dict(_torch_load(path), path, key)
+    _verify_sha256(path)
+    state = _extract_state_dict(_torch_load(path), path, key)
+    if check_finite:
+        _check_finite(state, path)
+    return state
 
 
 # matching keys ---------------------------------------------------------------------------------
@@ -223,8 +455,9 @@ def _short(items: list[str]) -> str:
     return ", ".join(items[:_MAX_LISTED]) + f", ... ({len(items) - _MAX_LISTED} more)"
 
 
-def load_weights(module: nn.Module, path: str | Path, strict: bool = True, *, key: str | None = None) -> None:
-    """Load a checkpoint into ``module`` in place.
+def load_weights(module: nn.Module, path: str | Path, strict: bool = True, *, key: str | None = None,
+                 check_finite: bool = True) -> None:
+    """Load a checkpoint into ``module`` in place, after verifying it (see :func:`load_state_dict_file`).
 
     Args:
         module: the network (or a wrapper around it: a missing prefix such as ``net.`` is added).
@@ -232,10 +465,13 @@ def load_weights(module: nn.Module, path: str | Path, strict: bool = True, *, ke
             ``model.`` / ``net.`` prefix), a plain state_dict, or our (sharded) ``.safetensors``.
         strict: raise when keys are missing or unexpected. Shape mismatches always raise.
         key: the entry of a ``torch.save`` dict holding the weights (see :func:`load_state_dict_file`).
+        check_finite: refuse checkpoints whose floating point tensors hold NaN or inf.
 
     Raises:
-        FileNotFoundError: when the checkpoint does not exist.
-        ValueError: listing the missing, unexpected and mis-shaped keys when they do not match.
+        FileNotFoundError: when the checkpoint (or a shard of it) does not exist.
+        ValueError: naming the file when it cannot be read, is corrupt (SHA-256 mismatch with its card,
+            non-finite tensors) or holds no state_dict; listing the missing, unexpected and mis-shaped keys
+            when they do not match.
 
     Example:
         >>> net = nn.Linear(2, 3)
@@ -244,7 +480,7 @@ def load_weights(module: nn.Module, path: str | Path, strict: bool = True, *, ke
         ...     files = save_weights(net, os.path.join(d, "lin.safetensors"))
         ...     load_weights(nn.Linear(2, 3), files[0])
     """
-    state = load_state_dict_file(path, key=key)
+    state = load_state_dict_file(path, key=key, check_finite=check_finite)
     own = module.state_dict()
     state = _match_prefix(state, set(own))
     missing = [k for k in own if k not in state]
@@ -282,7 +518,8 @@ def save_weights(module: nn.Module, path: str | Path, dtype: torch.dtype | None 
         max_shard_mb: largest file size in decimal megabytes (10^6 bytes).
 
     Returns:
-        the files written (the shards, then the index when sharded).
+        the files written (the shards, then the index when sharded). Record ``card_sha256(files)`` under
+        ``"sha256"`` in the card ``<stem>.json`` beside them to have every load verify them.
 
     Raises:
         ValueError: when ``path`` does not end in ``.safetensors`` or one tensor alone exceeds the limit.
@@ -371,7 +608,9 @@ def resolve_checkpoint(name_or_path: str | Path | None, model_name: str) -> Path
 
     Raises:
         FileNotFoundError: when the path, or the default checkpoint, does not exist.
-        ValueError: when several different default checkpoints match.
+        ValueError: when several different default checkpoints match, or a safetensors index is unreadable or
+            does not match the SHA-256 its card lists (the weights themselves are verified by
+            :func:`load_weights`).
 
     Example:
         >>> resolve_checkpoint(None, "efnet") is None

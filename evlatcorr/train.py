@@ -602,6 +602,10 @@ def write_checkpoint_readme(folder: str | Path) -> Path:
         "sharded at 15 MB; the adapters load them with `checkpoint=\"default\"` "
         "(REFID: `REFIDAdapter(checkpoint=\"default\", m=4, n=1)`). Each `<name>.json` holds every detail.",
         "",
+        "Each card lists the SHA-256 of its weight files under `sha256`; every load checks them (a corrupt or "
+        "modified file raises a ValueError naming it). `pip install .` installs this folder as "
+        "`evlatcorr/checkpoints/`, where `checkpoint=\"default\"` finds it.",
+        "",
         "| name | model | steps | train time | device | val PSNR (blurry input) | val SSIM | files |",
         "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
@@ -702,7 +706,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         card["refid_layout"] = list(layout)
     if trainer.is_global_zero:
         if args.export is not None:
-            from evlatcorr.adapters.checkpoint import save_weights
+            from evlatcorr.adapters.checkpoint import card_sha256, save_weights
 
             previous = args.export / f"{card['name']}.json"
             # a resumed run, or one continuing the shipped weights of this name, extends their history
@@ -719,6 +723,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             adapter = module.adapter
             files = save_weights(adapter.net, args.export / f"{card['name']}.safetensors")
             card["files"] = [f.name for f in files]
+            card["sha256"] = card_sha256(files)  # checked at every load
             (args.export / f"{card['name']}.json").write_text(json.dumps(card, indent=2) + "\n")
             write_checkpoint_readme(args.export)
         print(json.dumps(card, indent=2))

@@ -1,14 +1,25 @@
 from __future__ import annotations
 
+import hashlib
 import json
 import re
+import shutil
+import warnings
+from pathlib import Path
 
 import pytest
 import torch
 from torch import nn
 
 from evlatcorr.adapters import checkpoint as ckpt
-from evlatcorr.adapters.checkpoint import load_state_dict_file, load_weights, resolve_checkpoint, save_weights
+from evlatcorr.adapters.checkpoint import (
+    card_sha256,
+    file_sha256,
+    load_state_dict_file,
+    load_weights,
+    resolve_checkpoint,
+    save_weights,
+)
 
 
 class Hyper:
@@ -223,6 +234,215 @@ def test_save_errors(tmp_path):
         save_weights(Net(), tmp_path / "net.pth")
     with pytest.raises(ValueError, match="larger than max_shard_mb"):
         save_weights(Wide(), tmp_path / "wide.safetensors", max_shard_mb=0.1)
+
+
+# verification: unreadable, corrupt and modified files ----------------------------------------------------
+def _data_range(path: Path, key: str) -> tuple[int, int]:
+    """The byte range of tensor ``key`` in a safetensors file (read from its header)."""
+    raw = path.read_bytes()
+    header_len = int.from_bytes(raw[:8], "little")
+    begin, end = json.loads(raw[8:8 + header_len])[key]["data_offsets"]
+    return 8 + header_len + begin, 8 + header_len + end
+
+
+def _overwrite(path: Path, key: str, data: bytes) -> None:
+    """Overwrite ``len(data)`` bytes in the middle of tensor ``key`` of a safetensors file."""
+    begin, end = _data_range(path, key)
+    start = (begin + end - len(data)) // 2 // 2 * 2  # fp16 aligned
+    assert begin <= start and start + len(data) <= end
+    raw = bytearray(path.read_bytes())
+    raw[start:start + len(data)] = data
+    path.write_bytes(bytes(raw))
+
+
+def _saved_copy(tmp_path: Path, **kwargs: float) -> tuple[Wide, Path]:
+    """Save a seeded ``Wide`` to ``tmp_path/orig`` and return it and a copy of its folder's file(s)."""
+    src = _seeded(Wide())
+    save_weights(src, tmp_path / "orig" / "wide.safetensors", **kwargs)
+    shutil.copytree(tmp_path / "orig", tmp_path / "copy")
+    return src, tmp_path / "copy" / "wide.safetensors"
+
+
+def test_file_sha256_matches_known_digests(tmp_path):
+    (tmp_path / "abc.bin").write_bytes(b"abc")
+    (tmp_path / "empty.bin").write_bytes(b"")
+    assert file_sha256(tmp_path / "abc.bin") == "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
+    assert file_sha256(str(tmp_path / "empty.bin")) == (
+        "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855")
+    data = torch.randint(0, 256, (3_000_001,), dtype=torch.uint8, generator=torch.Generator().manual_seed(0))
+    (tmp_path / "big.bin").write_bytes(data.numpy().tobytes())  # several 1 MiB blocks
+    assert file_sha256(tmp_path / "big.bin") == hashlib.sha256(data.numpy().tobytes()).hexdigest()
+    with pytest.raises(FileNotFoundError, match="nope.bin"):
+        file_sha256(tmp_path / "nope.bin")
+    with pytest.raises(ValueError, match="cannot read"):
+        file_sha256(tmp_path)  # a folder
+
+
+def test_card_sha256_lists_the_weight_files(tmp_path):
+    files = save_weights(_seeded(Wide()), tmp_path / "wide.safetensors", max_shard_mb=0.3)
+    entry = card_sha256(files)
+    assert list(entry) == ["wide-00001-of-00002.safetensors", "wide-00002-of-00002.safetensors"]  # no index
+    assert entry["wide-00002-of-00002.safetensors"] == hashlib.sha256(files[1].read_bytes()).hexdigest()
+
+
+def test_overwritten_bytes_are_refused_by_the_non_finite_check(tmp_path):
+    src, copy = _saved_copy(tmp_path)
+    _overwrite(copy, "layers.2.weight", b"\xff" * 1000)  # 500 fp16 0xFFFF = NaN, no card beside it
+    message = f"{re.escape(str(copy))} holds non-finite values .* 'layers.2.weight': 500 of 65536 elements"
+    with pytest.raises(ValueError, match=message):
+        load_weights(Wide(), copy)
+    with pytest.raises(ValueError, match=message):
+        load_state_dict_file(copy)
+    load_weights(Wide(), tmp_path / "orig" / "wide.safetensors")  # the original is fine
+    raw = load_state_dict_file(copy, check_finite=False)  # loads when asked to
+    assert int(raw["layers.2.weight"].isnan().sum()) == 500
+    assert int(raw["layers.1.weight"].isnan().sum()) == 0
+
+
+def test_overwritten_bytes_are_refused_by_the_card_hash(tmp_path):
+    _, copy = _saved_copy(tmp_path)
+    card = {"name": "wide", "sha256": card_sha256([tmp_path / "orig" / "wide.safetensors"])}
+    (copy.parent / "wide.json").write_text(json.dumps(card))
+    load_weights(Wide(), copy)  # unchanged: the hash matches
+    _overwrite(copy, "layers.2.weight", bytes(1000))  # zeros: finite, only the hash can tell
+    listed = card["sha256"]["wide.safetensors"]
+    with pytest.raises(ValueError, match=f"{re.escape(str(copy))} is corrupt or modified: its SHA-256 is "
+                                         f"{file_sha256(copy)} but its card wide.json lists {listed}"):
+        load_weights(Wide(), copy)
+    (copy.parent / "wide.json").unlink()
+    load_weights(dst := Wide(), copy)  # without the card nothing else notices
+    assert int((dst.layers[2].weight == 0).sum()) == 500
+
+
+def test_modified_shard_is_named(tmp_path):
+    _, copy = _saved_copy(tmp_path, max_shard_mb=0.3)
+    files = sorted(copy.parent.glob("wide-*.safetensors"))
+    (copy.parent / "wide.json").write_text(json.dumps({"sha256": card_sha256(files)}))
+    load_weights(Wide(), copy)
+    raw = bytearray(files[1].read_bytes())
+    raw[len(raw) // 2] ^= 1  # one bit
+    files[1].write_bytes(bytes(raw))
+    for path in (copy, copy.with_name("wide.safetensors.index.json"), files[0], files[1]):
+        with pytest.raises(ValueError, match=f"{re.escape(str(files[1]))} is corrupt or modified"):
+            load_weights(Wide(), path)
+
+
+def test_card_hash_of_a_torch_file(tmp_path):
+    torch.save({"params": _seeded(Net()).state_dict()}, tmp_path / "net.pth")
+    (tmp_path / "net.json").write_text(json.dumps({"sha256": {"net.pth": file_sha256(tmp_path / "net.pth")}}))
+    load_weights(Net(), tmp_path / "net.pth")
+    (tmp_path / "net.json").write_text(json.dumps({"sha256": {"net.pth": "0" * 64}}))
+    with pytest.raises(ValueError, match=f"{re.escape(str(tmp_path / 'net.pth'))} is corrupt or modified"):
+        load_weights(Net(), tmp_path / "net.pth")
+
+
+def test_bad_cards(tmp_path):
+    save_weights(Net(), tmp_path / "net.safetensors")
+    card = tmp_path / "net.json"
+    card.write_text(json.dumps({"name": "net"}))  # a card without hashes: nothing to verify
+    load_weights(Net(), tmp_path / "net.safetensors")
+    card.write_text(json.dumps({"sha256": {"other.safetensors": "0" * 64}}))  # hashes of other files only
+    load_weights(Net(), tmp_path / "net.safetensors")
+    card.write_text(json.dumps({"sha256": {"net.safetensors": "xyz"}}))
+    with pytest.raises(ValueError, match=f"card {re.escape(str(card))} lists an invalid SHA-256 for net.safetensors"):
+        load_weights(Net(), tmp_path / "net.safetensors")
+    card.write_text('{"sha256": ')
+    with pytest.raises(ValueError, match=f"cannot read {re.escape(str(card))}, the checkpoint card of"):
+        load_weights(Net(), tmp_path / "net.safetensors")
+
+
+@pytest.mark.parametrize("fmt", ["safetensors", "pth"])
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_parameter_is_refused(tmp_path, fmt, value):
+    src = _seeded(Net())
+    with torch.no_grad():
+        src.head.weight[1, 2] = value
+    if fmt == "safetensors":
+        path = save_weights(src, tmp_path / "net.safetensors")[0]
+    else:
+        path = tmp_path / "net.pth"
+        torch.save({"params": src.state_dict()}, path)
+    with pytest.raises(ValueError, match=f"{re.escape(str(path))} holds non-finite values \\(NaN or inf\\) in "
+                                         "tensor 'head.weight': 1 of 8 elements"):
+        load_weights(Net(), path)
+    load_weights(dst := Net(), path, check_finite=False)
+    assert int((~torch.isfinite(dst.head.weight)).sum()) == 1
+    assert dst.head.weight[1, 2].item() == value or (value != value and dst.head.weight[1, 2].isnan())
+
+
+def test_truncated_safetensors_is_named(tmp_path):
+    _, copy = _saved_copy(tmp_path)
+    raw = copy.read_bytes()
+    for size in (len(raw) // 2, 20, 0):
+        copy.write_bytes(raw[:size])
+        with pytest.raises(ValueError, match=f"cannot read {re.escape(str(copy))}: .*truncated, corrupt or not a "
+                                             "safetensors file"):
+            load_weights(Wide(), copy)
+    _, sharded = _saved_copy(tmp_path / "sharded", max_shard_mb=0.3)
+    shard = sharded.with_name("wide-00002-of-00002.safetensors")
+    shard.write_bytes(shard.read_bytes()[:-100])
+    with pytest.raises(ValueError, match=f"cannot read {re.escape(str(shard))}"):
+        load_weights(Wide(), sharded)
+
+
+def test_garbage_torch_files_are_named(tmp_path):
+    torch.save({"params": Net().state_dict()}, tmp_path / "good.pth")
+    zipped = (tmp_path / "good.pth").read_bytes()
+    payloads = {
+        "text.pth": b"this is not a checkpoint\n" * 20,
+        "pickle.pth": b"\x80\x02" + b"garbage after a pickle header" * 20,  # reaches torch.load and fails there
+        "truncated.pth": zipped[: len(zipped) // 2],
+        "empty.pth": b"",
+    }
+    for name, payload in payloads.items():
+        (tmp_path / name).write_bytes(payload)
+        with warnings.catch_warnings():  # the pickle may first be retried with weights_only=False
+            warnings.simplefilter("ignore")
+            with pytest.raises(ValueError, match=re.escape(str(tmp_path / name))):
+                load_weights(Net(), tmp_path / name)
+
+
+def test_wrong_format_is_named(tmp_path):
+    save_weights(Net(), tmp_path / "net.safetensors")
+    shutil.copy(tmp_path / "net.safetensors", tmp_path / "net.pth")
+    with pytest.raises(ValueError, match=f"{re.escape(str(tmp_path / 'net.pth'))} is not a torch.save checkpoint"
+                                         ".*looks like a safetensors file"):
+        load_weights(Net(), tmp_path / "net.pth")
+    torch.save(Net().state_dict(), tmp_path / "torch.safetensors")
+    with pytest.raises(ValueError, match=f"cannot read {re.escape(str(tmp_path / 'torch.safetensors'))}: .*not a "
+                                         "safetensors file"):
+        load_weights(Net(), tmp_path / "torch.safetensors")
+
+
+def test_broken_index_is_named(tmp_path):
+    save_weights(_seeded(Wide()), tmp_path / "wide.safetensors", max_shard_mb=0.15)
+    index_path = tmp_path / "wide.safetensors.index.json"
+    good = json.loads(index_path.read_text())
+
+    index_path.write_text(index_path.read_text()[:100])
+    with pytest.raises(ValueError, match=f"cannot read the safetensors index {re.escape(str(index_path))}"):
+        load_weights(Wide(), tmp_path / "wide.safetensors")
+
+    moved = json.loads(json.dumps(good))
+    moved["weight_map"]["layers.0.weight"] = "wide-00004-of-00004.safetensors"
+    index_path.write_text(json.dumps(moved))
+    with pytest.raises(ValueError, match=f"{re.escape(str(index_path))} does not match its shards \\(1 keys\\): "
+                                         "layers.0.weight \\(listed in wide-00004-of-00004.safetensors, found in "
+                                         "wide-00001-of-00004.safetensors\\)"):
+        load_weights(Wide(), index_path)
+
+    escaping = json.loads(json.dumps(good))
+    escaping["weight_map"]["layers.0.weight"] = "../other.safetensors"
+    index_path.write_text(json.dumps(escaping))
+    with pytest.raises(ValueError, match=f"{re.escape(str(index_path))} lists invalid shard file names"):
+        load_weights(Wide(), index_path)
+
+    index_path.write_text(json.dumps(good))
+    load_weights(Wide(), index_path)
+    (tmp_path / "wide-00003-of-00004.safetensors").unlink()
+    with pytest.raises(FileNotFoundError, match=f"{re.escape(str(index_path))} lists shard files that do not "
+                                                "exist: wide-00003-of-00004.safetensors"):
+        load_weights(Wide(), tmp_path / "wide.safetensors")
 
 
 # resolve_checkpoint ------------------------------------------------------------------------------------

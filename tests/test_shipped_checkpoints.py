@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import re
+import shutil
 from pathlib import Path
 
 import pytest
@@ -10,6 +12,7 @@ import torch
 from torchmetrics.functional.image import peak_signal_noise_ratio
 
 from evlatcorr.adapters import EFNetAdapter, GEMAdapter, REFIDAdapter
+from evlatcorr.adapters.checkpoint import file_sha256
 from evlatcorr.simulate import PHOTOGRAPHS_TEST, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -37,6 +40,27 @@ def test_checkpoint_cards_list_their_files_and_stay_under_the_size_limits():
             assert size <= 15_000_000
             total += size
     assert total < 100_000_000
+
+
+def test_checkpoint_cards_list_the_sha256_of_every_weight_file():
+    for stem in SHIPPED:
+        meta = json.loads((ROOT / "checkpoints" / f"{stem}.json").read_text())
+        weights = [name for name in meta["files"] if name.endswith(".safetensors")]
+        assert weights and sorted(meta["sha256"]) == sorted(weights)
+        for name in weights:
+            assert meta["sha256"][name] == file_sha256(ROOT / "checkpoints" / name), name
+
+
+def test_modified_copy_of_shipped_weights_is_refused(tmp_path):
+    # GEM segfaulted on the NaN weights a corrupted file gave: one flipped bit is enough to be refused
+    for name in ("gem.safetensors", "gem.json"):
+        shutil.copy(ROOT / "checkpoints" / name, tmp_path / name)
+    GEMAdapter(checkpoint=tmp_path / "gem.safetensors")  # the intact copy loads
+    raw = bytearray((tmp_path / "gem.safetensors").read_bytes())
+    raw[len(raw) // 2] ^= 0x10
+    (tmp_path / "gem.safetensors").write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match=f"{re.escape(str(tmp_path / 'gem.safetensors'))} is corrupt or modified"):
+        GEMAdapter(checkpoint=tmp_path / "gem.safetensors")
 
 
 @pytest.mark.parametrize("name", sorted(SHIPPED))
