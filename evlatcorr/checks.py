@@ -6,18 +6,31 @@ received, so bad input never reaches deep inside torch.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
 
 __all__ = [
+    "MEMORY_BUDGET_BYTES",
     "check_image",
     "check_shape",
     "check_batch_vector",
     "check_finite",
     "check_exposure",
+    "check_search_range",
+    "check_memory",
+    "check_has_events",
+    "resolve_memory_budget",
 ]
+
+#: Most memory (bytes) that one event grid or latency-search table may take (default 2 GiB).
+#: Larger ones are computed in strips of rows (the EDI, the latency search) or refused with a
+#: :class:`ValueError` that says what to change (a grid asked for whole). Set it (e.g.
+#: ``evlatcorr.checks.MEMORY_BUDGET_BYTES = 8 * 2**30``) or pass ``memory_budget=`` where offered.
+MEMORY_BUDGET_BYTES = 2 * 1024**3
 
 
 def check_shape(x: object, shape: Sequence[str | int], name: str) -> None:
@@ -83,3 +96,84 @@ def check_exposure(start: Tensor, end: Tensor) -> None:
             f"exposure_end must be after exposure_start; sample {i} has start {float(start[i]):.1f} us "
             f"and end {float(end[i]):.1f} us"
         )
+
+
+def check_search_range(search_range: object, name: str = "search_range") -> tuple[float, float] | None:
+    """Validate a latency search range ``(low, high)`` in µs: two finite numbers with ``high > low``.
+
+    Returns:
+        ``(low, high)`` as floats, or None for None (the default range).
+
+    Example:
+        >>> check_search_range((0, 20000))
+        (0.0, 20000.0)
+        >>> check_search_range((0, float("inf")))
+        Traceback (most recent call last):
+        ...
+        ValueError: search_range must be two finite numbers (low, high) in us, got (0, inf)
+    """
+    if search_range is None:
+        return None
+    try:
+        low, high = (float(v) for v in search_range)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair (low, high) of numbers in us, got {search_range!r}") from None
+    if not (math.isfinite(low) and math.isfinite(high)):
+        raise ValueError(f"{name} must be two finite numbers (low, high) in us, got {search_range!r}")
+    if not high > low:
+        raise ValueError(f"{name} must be (low, high) with high > low, got {search_range!r}")
+    return low, high
+
+
+def resolve_memory_budget(budget: int | None = None) -> int:
+    """The memory budget in bytes: ``budget`` when given, else :data:`MEMORY_BUDGET_BYTES` (read at call time)."""
+    value = MEMORY_BUDGET_BYTES if budget is None else budget
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+        raise ValueError(f"memory_budget must be a positive number of bytes, got {value!r}")
+    return int(value)
+
+
+def check_memory(num_bytes: int, what: str, advice: str, budget: int | None = None) -> None:
+    """Refuse an allocation of ``num_bytes`` (an estimate, from sizes only) over the memory budget.
+
+    Args:
+        num_bytes: estimated bytes.
+        what: what would be allocated, e.g. ``"the event grid (1, 25000003, 8, 9)"``.
+        advice: what to change, e.g. ``"narrow search_range"``.
+        budget: bytes; default :data:`MEMORY_BUDGET_BYTES`.
+
+    Example:
+        >>> check_memory(3 * 2**30, "a grid", "use fewer bins", budget=2**30)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: a grid needs about 3.0 GiB, over the memory budget of 1.0 GiB: use fewer bins (or raise ...)
+    """
+    limit = resolve_memory_budget(budget)
+    if num_bytes > limit:
+        raise ValueError(f"{what} needs about {_format_bytes(num_bytes)}, over the memory budget of "
+                         f"{_format_bytes(limit)}: {advice} (or raise the budget: memory_budget= or "
+                         "evlatcorr.checks.MEMORY_BUDGET_BYTES)")
+
+
+def _format_bytes(num_bytes: float) -> str:
+    """``3.0 GiB``, ``12.5 MiB``, ... (the largest binary unit that keeps the value >= 1)."""
+    for unit, size in (("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if num_bytes >= size:
+            return f"{num_bytes / size:.1f} {unit}"
+    return f"{int(num_bytes)} bytes"
+
+
+def check_has_events(frames: Any) -> None:
+    """Every sample of an ``EventFrames`` batch needs events in ``[exposure_start, exposure_end + exposure time)``.
+
+    That is the window the latency is estimated from (exposure plus the default search range);
+    without events there is nothing to estimate a latency from, in constant or spatial mode.
+    """
+    inside = frames.events.window(frames.exposure_start, frames.exposure_end + frames.exposure_time)
+    counts = inside.counts()
+    if bool((counts == 0).any()):
+        i = int(torch.nonzero(counts == 0)[0, 0])
+        raise ValueError(f"sample {i} has no events in its exposure and search window "
+                         f"[{float(frames.exposure_start[i]):.0f}, "
+                         f"{float(frames.exposure_end[i] + frames.exposure_time[i]):.0f}) us: "
+                         "latency cannot be estimated without events")

@@ -8,6 +8,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from evlatcorr.checks import check_has_events, check_search_range
 from evlatcorr.edi import edi_deblur, estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
@@ -37,7 +38,8 @@ def correct_constant_latency(
         frames: the batch; each sample's events must reach ``exposure_end + search_range[1]``.
         threshold: contrast threshold θ, or ``"auto"`` (estimated by golden-section search).
         num_bins: sub-intervals of the exposure for EDI (paper: 500).
-        search_range: ``(low, high)`` µs; default 0 to the exposure time of each frame.
+        search_range: ``(low, high)`` µs, finite, ``high > low``; default 0 to the exposure time of each
+            frame. The latency found lies in it.
         num_candidates: coarse candidates over the range.
         refine: refine below the candidate spacing.
         previous_latency: ``l'`` :math:`(B,)` µs for the temporal prior (e.g. the previous frame's).
@@ -55,8 +57,13 @@ def correct_constant_latency(
         ``meta["latency_confidence"]`` :math:`(B,)` how clear each score curve's minimum was and
         ``meta["latency_fallback"]`` :math:`(B,)` which frames had none and got the fallback
         (``previous_latency``, else the range's lower end); a warning names them.
+
+    Raises:
+        ValueError: when a sample has no events in ``[exposure_start, exposure_end + exposure time)``
+            (nothing to estimate a latency from), or for a bad argument.
     """
-    _check_has_events(frames)
+    search_range = check_search_range(search_range)
+    check_has_events(frames)
     _warn_if_short(frames, search_range)
     theta: float | Tensor = threshold
     if isinstance(threshold, str):
@@ -103,7 +110,7 @@ class EventLatencyCorrector(nn.Module):
         mode: ``"constant"`` (one latency per frame) or ``"spatial"`` (a per-pixel map).
         threshold: contrast threshold θ of the events, or ``"auto"``.
         num_bins: sub-intervals of the exposure used by EDI (paper: 500).
-        search_range: ``(low, high)`` µs; default 0 to each frame's exposure time.
+        search_range: ``(low, high)`` µs, finite, ``high > low``; default 0 to each frame's exposure time.
         num_candidates: coarse candidates over the search range (default 100).
         refine: refine the best candidate below the candidate spacing.
         epsilon: ETF edge amplifier ε.
@@ -113,6 +120,10 @@ class EventLatencyCorrector(nn.Module):
             ``"etf"`` (the paper's); see :func:`~evlatcorr.search.search_constant_latency`.
         curve: ``mode="spatial"`` only: a trained latency curve checkpoint.
         **spatial_kwargs: ``mode="spatial"`` only: options of the spatial corrector.
+
+    Both modes refuse a batch with a frame that has no events in ``[exposure_start, exposure_end +
+    exposure time)`` with a :class:`ValueError` naming the sample: there is nothing to estimate its
+    latency from.
 
     Example:
         >>> corrector = EventLatencyCorrector()
@@ -149,7 +160,7 @@ class EventLatencyCorrector(nn.Module):
         self.mode = mode
         self.threshold = threshold
         self.num_bins = num_bins
-        self.search_range = search_range
+        self.search_range = check_search_range(search_range)
         self.num_candidates = num_candidates
         self.refine = refine
         if score not in SCORES:
@@ -160,7 +171,7 @@ class EventLatencyCorrector(nn.Module):
             from evlatcorr.spatial import SpatialLatencyCorrector
 
             self.spatial = SpatialLatencyCorrector(
-                curve=curve, threshold=threshold, num_bins=num_bins, search_range=search_range,
+                curve=curve, threshold=threshold, num_bins=num_bins, search_range=self.search_range,
                 num_candidates=num_candidates, epsilon=epsilon, window=window, sigma_us=sigma_us, **spatial_kwargs)
 
     def extra_repr(self) -> str:
@@ -176,17 +187,6 @@ class EventLatencyCorrector(nn.Module):
         return correct_constant_latency(frames, self.threshold, self.num_bins, self.search_range,
                                         self.num_candidates, self.refine, previous, self.epsilon, self.window,
                                         self.sigma_us, self.score)
-
-
-def _check_has_events(frames: EventFrames) -> None:
-    inside = frames.events.window(frames.exposure_start, frames.exposure_end + frames.exposure_time)
-    counts = inside.counts()
-    if bool((counts == 0).any()):
-        i = int(torch.nonzero(counts == 0)[0, 0])
-        raise ValueError(f"sample {i} has no events in its exposure and search window "
-                         f"[{float(frames.exposure_start[i]):.0f}, "
-                         f"{float(frames.exposure_end[i] + frames.exposure_time[i]):.0f}) us: "
-                         "latency cannot be estimated without events")
 
 
 def _warn_if_short(frames: EventFrames, search_range: tuple[float, float] | None) -> None:

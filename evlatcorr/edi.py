@@ -8,6 +8,11 @@ cannot overflow, and ``I = B · exp(−log R)`` needs no division (a black pixel
 
 The exposure is sampled at ``num_bins + 1`` equally spaced times (trapezoidal rule), on a
 grid of the same spacing that also covers the latency range and the reference time.
+
+Memory: the grid and the reads take about ``(grid points · 12 + (num_bins + 1) · 28)`` bytes per
+pixel and sample (float32, step integral). Over :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES` the
+EDI is computed in strips of rows (the same values up to float rounding); when even one row is over it (e.g. a
+reference ``time`` far from the exposure), it is refused with a message saying what to change.
 """
 
 from __future__ import annotations
@@ -19,14 +24,22 @@ import kornia
 import torch
 from torch import Tensor
 
-from evlatcorr.checks import check_batch_vector, check_exposure, check_image, check_shape
+from evlatcorr.checks import (
+    check_batch_vector,
+    check_exposure,
+    check_image,
+    check_memory,
+    check_shape,
+    resolve_memory_budget,
+)
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
-from evlatcorr.integral import cumulative_event_grid, sample_grid
+from evlatcorr.integral import _row_strips, cumulative_event_grid, grid_bytes_per_point, sample_grid
 
 __all__ = [
     "EventGrid",
     "event_grid",
+    "event_grid_bytes",
     "latency_map",
     "edi_log_ratio",
     "edi_deblur",
@@ -34,6 +47,10 @@ __all__ = [
     "estimate_threshold",
     "trapezoid_log_weights",
 ]
+
+# Bytes per exposure sample and pixel that reading the grid takes (positions, indices, the two
+# values read, their blend and the log-sum-exp's work), in units of the computation dtype's size.
+_READ_ITEMS = 7
 
 
 def latency_map(latency: Tensor | float | None, batch_size: int, sensor_size: tuple[int, int],
@@ -97,6 +114,7 @@ def event_grid(
     time: Tensor | None = None,
     integral: str = "step",
     dtype: torch.dtype = torch.float32,
+    memory_budget: int | None = None,
 ) -> EventGrid:
     """The cumulative event grid an EDI reads, for any latency in ``latency_range``.
 
@@ -109,9 +127,15 @@ def event_grid(
         time: reference time per sample :math:`(B,)` (default: mid-exposure).
         integral: ``"step"`` or ``"linear"`` (see :mod:`evlatcorr.integral`).
         dtype: dtype of ``cum``.
+        memory_budget: bytes the grid may take while built; default
+            :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`.
 
     Returns:
         the grid, with spare bins on each side of the span read.
+
+    Raises:
+        ValueError: when the grid would exceed the memory budget (checked from sizes before allocating);
+            the message gives the span and what to narrow.
 
     Example:
         >>> ev = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([50.0]), torch.tensor([1]),
@@ -128,14 +152,65 @@ def event_grid(
     lat_hi = check_batch_vector(latency_range[1], b, "latency_range[1]").to(device, torch.float64)
     if bool((lat_hi < lat_lo).any()):
         raise ValueError(f"latency_range must be (low, high) with low <= high, got {latency_range}")
+    g0, width_us, m, t_lo, t_hi = _grid_span(start, end, ref, lat_lo, lat_hi, num_bins)
+    height, width = events.sensor_size
+    limit = resolve_memory_budget(memory_budget)
+    need = _grid_bytes(b, m, events.sensor_size, integral, dtype)
+    if need > limit:
+        check_memory(need, f"the event grid ({b}, {m + 1}, {height}, {width})",
+                     _span_advice(t_lo, t_hi, width_us, "latency_range"), limit)
+    cum = cumulative_event_grid(events, g0, width_us, m, integral=integral, dtype=dtype, memory_budget=limit)
+    return EventGrid(cum, g0, width_us, num_bins, integral)
+
+
+def event_grid_bytes(
+    events: Events,
+    exposure_start: Tensor,
+    exposure_end: Tensor,
+    num_bins: int = 500,
+    latency_range: tuple[Tensor | float, Tensor | float] = (0.0, 0.0),
+    time: Tensor | None = None,
+    integral: str = "step",
+    dtype: torch.dtype = torch.float32,
+) -> int:
+    """Estimated peak bytes of building :func:`event_grid` with these arguments (nothing is allocated).
+
+    Example:
+        >>> ev = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([50.0]), torch.tensor([1]),
+        ...             sensor_size=(1, 1))
+        >>> event_grid_bytes(ev, torch.tensor([0.0]), torch.tensor([100.0]), num_bins=10, latency_range=(0.0, 30.0))
+        204
+    """
+    b, device = events.batch_size, events.device
+    start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
+    lat_lo = check_batch_vector(latency_range[0], b, "latency_range[0]").to(device, torch.float64)
+    lat_hi = check_batch_vector(latency_range[1], b, "latency_range[1]").to(device, torch.float64)
+    m = _grid_span(start, end, ref, lat_lo, lat_hi, num_bins)[2]
+    return _grid_bytes(b, m, events.sensor_size, integral, dtype)
+
+
+def _grid_bytes(batch_size: int, num_bins: int, sensor_size: tuple[int, int], integral: str,
+                dtype: torch.dtype) -> int:
+    return batch_size * (num_bins + 1) * sensor_size[0] * sensor_size[1] * grid_bytes_per_point(integral, dtype)
+
+
+def _grid_span(start: Tensor, end: Tensor, ref: Tensor, lat_lo: Tensor, lat_hi: Tensor,
+               num_bins: int) -> tuple[Tensor, Tensor, int, Tensor, Tensor]:
+    """``(g0, width_us, M, t_lo, t_hi)``: the grid aligned to the exposure that spans every time read."""
     width_us = (end - start) / num_bins
     t_lo = torch.minimum(start, ref) + lat_lo
     t_hi = torch.maximum(end, ref) + lat_hi
     # Aligned to the exposure start (not to the latencies), so moving a latency does not move the grid.
     g0 = start + (torch.floor((t_lo - start) / width_us) - 1) * width_us
     m = int(torch.ceil((t_hi - g0) / width_us).max().item()) + 2
-    cum = cumulative_event_grid(events, g0, width_us, m, integral=integral, dtype=dtype)
-    return EventGrid(cum, g0, width_us, num_bins, integral)
+    return g0, width_us, m, t_lo, t_hi
+
+
+def _span_advice(t_lo: Tensor, t_hi: Tensor, width_us: Tensor, latency_name: str) -> str:
+    """What to change when a grid over ``[t_lo, t_hi]`` is too large (read only on that error path)."""
+    return (f"it spans [{float(t_lo.min()):.0f}, {float(t_hi.max()):.0f}] us (the exposure, the reference time "
+            f"and the latencies read) in steps of {float(width_us.min()):.4g} us (exposure time / num_bins): bring "
+            f"`time` closer to the exposure, narrow {latency_name}, or use fewer num_bins")
 
 
 def edi_log_ratio(
@@ -149,6 +224,7 @@ def edi_log_ratio(
     integral: str = "step",
     dtype: torch.dtype = torch.float32,
     grid: EventGrid | None = None,
+    memory_budget: int | None = None,
 ) -> Tensor:
     """``log R`` of Eq. (5)/(7): the log of the mean event-driven brightness ratio over the exposure.
 
@@ -164,9 +240,23 @@ def edi_log_ratio(
         dtype: computation dtype (float64 for gradcheck).
         grid: a prebuilt :func:`event_grid` of these events, exposures and ``num_bins`` covering the
             latencies read (``integral`` is then the grid's); built here when None.
+        memory_budget: bytes the grid and its reads may take when the grid is built here; default
+            :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`. Over it the EDI runs in strips of rows.
 
     Returns:
         :math:`(B, 1, H, W)`; the latent image at ``time`` is ``B · exp(−log R)``.
+
+    Raises:
+        ValueError: when even one row of the grid is over the memory budget (e.g. a ``time`` far
+            from the exposure); the message gives the span and what to narrow.
+
+    Example:
+        >>> ev = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([50.0]), torch.tensor([1]),
+        ...             sensor_size=(1, 1))
+        >>> log_r = edi_log_ratio(ev, torch.tensor([0.0]), torch.tensor([100.0]), 0.2, num_bins=100,
+        ...                       time=torch.tensor([0.0]))
+        >>> round(log_r.item(), 3)  # about log(0.5 + 0.5 e^0.2) = 0.105 (the trapezoid rule halves the event's sample)
+        0.104
     """
     b = events.batch_size
     device = events.device
@@ -177,13 +267,32 @@ def edi_log_ratio(
         raise ValueError(f"threshold must be positive, got {theta.min().item()}")
     lat_lo = lat.detach().amin(dim=(1, 2, 3)).to(torch.float64)
     lat_hi = lat.detach().amax(dim=(1, 2, 3)).to(torch.float64)
-    if grid is None:
-        grid = event_grid(events, start, end, num_bins, (lat_lo, lat_hi), ref, integral, dtype)
-    else:
+    if grid is not None:
         _check_grid_covers(grid, start, end, ref, lat_lo, lat_hi, num_bins)
-    cum, g0, width_us = grid.cum.to(dtype), grid.start, grid.width_us
+        return _log_ratio_on_grid(grid.cum.to(dtype), grid.start, grid.width_us, start, ref, lat, theta, num_bins)
+    g0, width_us, m, t_lo, t_hi = _grid_span(start, end, ref, lat_lo, lat_hi, num_bins)
+    height, width = events.sensor_size
+    limit = resolve_memory_budget(memory_budget)
+    itemsize = torch.empty((), dtype=dtype).element_size()
+    # bytes per pixel (all samples): the grid while built, and its reads at the exposure samples
+    per_pixel = b * ((m + 1) * grid_bytes_per_point(integral, dtype) + (num_bins + 1) * _READ_ITEMS * itemsize)
+    rows = height if per_pixel * height * width <= limit else limit // (per_pixel * width)
+    if rows < 1:
+        check_memory(per_pixel * width, f"one row of the EDI (its event grid has {m + 1} points x {width} pixels)",
+                     _span_advice(t_lo, t_hi, width_us, "the latency range (or the latency map's spread)"), limit)
+    strips = [(0, height, events)] if rows >= height else _row_strips(events, rows)
+    out = []
+    for r0, r1, sub in strips:  # one strip, the whole sensor, unless over the memory budget
+        cum = cumulative_event_grid(sub, g0, width_us, m, integral=integral, dtype=dtype, memory_budget=limit)
+        out.append(_log_ratio_on_grid(cum, g0, width_us, start, ref, lat[:, :, r0:r1], theta, num_bins))
+    return out[0] if len(out) == 1 else torch.cat(out, dim=2)
 
-    # fractional grid positions: exposure samples (B, n+1, H, W) and the reference (B, 1, H, W)
+
+def _log_ratio_on_grid(cum: Tensor, g0: Tensor, width_us: Tensor, start: Tensor, ref: Tensor, lat: Tensor,
+                       theta: Tensor, num_bins: int) -> Tensor:
+    """log R :math:`(B, 1, h, W)` read from a cumulative grid :math:`(B, M + 1, h, W)` (any strip of rows)."""
+    b, dtype, device = cum.shape[0], cum.dtype, cum.device
+    # fractional grid positions: exposure samples (B, n+1, h, W) and the reference (B, 1, h, W)
     offset = ((start - g0) / width_us).to(dtype).view(b, 1, 1, 1) + lat / width_us.to(dtype).view(b, 1, 1, 1)
     j = torch.arange(num_bins + 1, device=device, dtype=dtype).view(1, -1, 1, 1)
     c_exposure = sample_grid(cum, offset + j)
@@ -231,6 +340,7 @@ def edi_deblur(
     time: Tensor | None = None,
     integral: str = "step",
     grid: EventGrid | None = None,
+    memory_budget: int | None = None,
 ) -> Tensor:
     """Latent sharp image from a blurry frame and its events (EDI deblurring, Eq. 6/9).
 
@@ -246,17 +356,23 @@ def edi_deblur(
         integral: ``"step"`` (classic EDI) or ``"linear"`` (Eq. 16-18, smooth in the latency).
         grid: a prebuilt :func:`event_grid` to read instead of building one (e.g. once per
             test-time fit); it must cover the latencies read.
+        memory_budget: bytes the EDI may take (see :func:`edi_log_ratio`); default
+            :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`.
 
     Returns:
         latent image :math:`(B, C, H, W)` (not clipped: over-compensation can exceed 1).
+
+    Raises:
+        ValueError: for bad input, or when even one row of the EDI is over the memory budget (e.g.
+            a ``time`` far from the exposure).
 
     Example:
         >>> ev = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([50.0]), torch.tensor([1]),
         ...             sensor_size=(1, 1))
         >>> blurry = torch.full((1, 1, 1, 1), 0.5)
-        >>> edi_deblur(blurry, ev, torch.tensor([0.0]), torch.tensor([100.0]), threshold=0.2,
-        ...            time=torch.tensor([0.0]), num_bins=100).item()  # I0 · (0.5 + 0.5 e^0.2) = 0.5
-        0.4502...
+        >>> round(edi_deblur(blurry, ev, torch.tensor([0.0]), torch.tensor([100.0]), threshold=0.2,
+        ...                  time=torch.tensor([0.0]), num_bins=100).item(), 4)  # I0 · (0.5 + 0.5 e^0.2) ≈ 0.5
+        0.4506
     """
     check_image(blurry, "blurry")
     _check_events_match(blurry, events)
@@ -267,7 +383,7 @@ def edi_deblur(
                                        num_bins=num_bins)
     dtype = blurry.dtype if blurry.dtype in (torch.float32, torch.float64) else torch.float32
     log_r = edi_log_ratio(events, exposure_start, exposure_end, threshold, latency, num_bins, time, integral, dtype,
-                          grid)
+                          grid, memory_budget)
     return blurry * torch.exp(-log_r).to(blurry.dtype)
 
 

@@ -23,18 +23,33 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from evlatcorr.checks import check_batch_vector
+from evlatcorr.checks import check_batch_vector, check_memory
 from evlatcorr.events import Events
 
-__all__ = ["event_histogram", "cumulative_event_grid", "sample_grid"]
+__all__ = ["event_histogram", "cumulative_event_grid", "sample_grid", "grid_bytes_per_point"]
 
 # Smallest interval (µs) over which the linear integral spreads an event: two events at the same
 # pixel and timestamp become (almost) a step instead of a division by zero.
 _MIN_SPREAD_US = 1e-3
 
 
+def grid_bytes_per_point(integral: str = "step", dtype: torch.dtype = torch.float32) -> int:
+    """Approximate peak bytes per grid point and pixel of :func:`cumulative_event_grid`.
+
+    ``"step"``: the histogram, its cumulative sum and the output (3 values of ``dtype``);
+    ``"linear"``: four float64 work arrays and the output.
+
+    Example:
+        >>> grid_bytes_per_point("step"), grid_bytes_per_point("linear", torch.float64)
+        (12, 40)
+    """
+    itemsize = torch.empty((), dtype=dtype).element_size()
+    return 3 * itemsize if integral == "step" else 32 + itemsize
+
+
 def event_histogram(
-    events: Events, start: Tensor | float, end: Tensor | float, num_bins: int = 500, dtype: torch.dtype = torch.float32
+    events: Events, start: Tensor | float, end: Tensor | float, num_bins: int = 500, dtype: torch.dtype = torch.float32,
+    memory_budget: int | None = None,
 ) -> Tensor:
     """Sum of polarities per pixel in ``num_bins`` equal temporal bins over ``[start, end)``.
 
@@ -44,9 +59,13 @@ def event_histogram(
         end: window end per sample :math:`(B,)` or scalar, µs.
         num_bins: number of temporal bins (the paper uses 500).
         dtype: output dtype.
+        memory_budget: bytes the output may take; default :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`.
 
     Returns:
         signed event counts :math:`(B, N, H, W)`; events outside the window are dropped.
+
+    Raises:
+        ValueError: when the output would exceed the memory budget (checked before allocating).
 
     Example:
         >>> ev = Events(torch.tensor([0, 1]), torch.tensor([0, 0]), torch.tensor([1.0, 9.0]),
@@ -62,6 +81,9 @@ def event_histogram(
     if bool((end <= start).any()):
         raise ValueError("histogram window end must be after its start")
     height, width = events.sensor_size
+    itemsize = torch.empty((), dtype=dtype).element_size()
+    check_memory(b * num_bins * height * width * itemsize,
+                 f"the event histogram ({b}, {num_bins}, {height}, {width})", "use fewer num_bins", memory_budget)
     out = torch.zeros(b * num_bins * height * width, dtype=dtype, device=events.device)
     if len(events) == 0:
         return out.view(b, num_bins, height, width)
@@ -81,6 +103,7 @@ def cumulative_event_grid(
     num_bins: int,
     integral: str = "step",
     dtype: torch.dtype = torch.float32,
+    memory_budget: int | None = None,
 ) -> Tensor:
     """Cumulative polarity sum of every pixel at the boundaries of a regular time grid.
 
@@ -91,9 +114,14 @@ def cumulative_event_grid(
         num_bins: number of bins ``M``; the grid has ``M + 1`` boundaries.
         integral: ``"step"`` (impulse events, Eq. 3) or ``"linear"`` (Eq. 16-18).
         dtype: output dtype (accumulation is done in float64 for ``"linear"``).
+        memory_budget: bytes the computation may take (estimated with :func:`grid_bytes_per_point`);
+            default :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`.
 
     Returns:
         :math:`(B, M + 1, H, W)` with ``C[:, 0] = 0``: the polarity integrated from ``g_0`` to ``g_i``.
+
+    Raises:
+        ValueError: when the grid would exceed the memory budget (checked before allocating).
 
     Example:
         >>> ev = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([4.0]), torch.tensor([1]),
@@ -112,8 +140,12 @@ def cumulative_event_grid(
     width_us = check_batch_vector(bin_width, b, "bin_width").to(events.device, torch.float64)
     if bool((width_us <= 0).any()):
         raise ValueError(f"bin_width must be positive, got {width_us.min().item()}")
+    height, width = events.sensor_size
+    check_memory(b * (num_bins + 1) * height * width * grid_bytes_per_point(integral, dtype),
+                 f"the cumulative event grid ({b}, {num_bins + 1}, {height}, {width})",
+                 "use fewer num_bins or a shorter time span (num_bins x bin_width)", memory_budget)
     if integral == "step":
-        hist = event_histogram(events, g0, g0 + num_bins * width_us, num_bins, dtype=dtype)
+        hist = event_histogram(events, g0, g0 + num_bins * width_us, num_bins, dtype=dtype, memory_budget=memory_budget)
         return torch.cat([torch.zeros_like(hist[:, :1]), hist.cumsum(1)], dim=1)
     return _linear_grid(events, g0, width_us, num_bins).to(dtype)
 
@@ -165,6 +197,25 @@ def _linear_grid(events: Events, g0: Tensor, width_us: Tensor, num_bins: int) ->
     grid = torch.arange(m1, dtype=torch.float64, device=device).view(1, m1, 1, 1)
     cum = grid * s1 - s2
     return cum - cum[:, :1]
+
+
+def _row_strips(events: Events, rows: int) -> list[tuple[int, int, Events]]:
+    """The events split into strips of ``rows`` sensor rows: ``(first row, end row, events)`` per strip.
+
+    Each strip's events keep their sample index and are in the strip's own coordinates (``y - first
+    row``); within a pixel they keep their order. One sort by row, then contiguous slices.
+    """
+    height, width = events.sensor_size
+    order = torch.argsort(events.y, stable=True)
+    ys = events.y[order]
+    bounds = torch.searchsorted(ys, torch.arange(0, height + rows, rows, device=ys.device).clamp_(max=height)).tolist()
+    strips = []
+    for k, r0 in enumerate(range(0, height, rows)):
+        r1 = min(height, r0 + rows)
+        idx = order[bounds[k]:bounds[k + 1]]
+        strips.append((r0, r1, Events._trusted(events.x[idx], events.y[idx] - r0, events.t[idx], events.p[idx],
+                                               events.batch[idx], (r1 - r0, width), events.batch_size)))
+    return strips
 
 
 def sample_grid(cum: Tensor, position: Tensor) -> Tensor:

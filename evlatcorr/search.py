@@ -20,10 +20,17 @@ import kornia
 import torch
 from torch import Tensor
 
-from evlatcorr.checks import check_batch_vector, check_exposure, check_image
+from evlatcorr.checks import (
+    check_batch_vector,
+    check_exposure,
+    check_image,
+    check_memory,
+    check_search_range,
+    resolve_memory_budget,
+)
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
 from evlatcorr.events import Events
-from evlatcorr.integral import cumulative_event_grid
+from evlatcorr.integral import _row_strips, cumulative_event_grid
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score", "SCORES"]
 
@@ -36,6 +43,12 @@ SCORES = ("etf", *_SPARSITY, "consensus")
 DEFAULT_SCORE = "consensus"
 # Memory bound of one strip of the prefix-sum table (float64), in elements.
 _STRIP_ELEMENTS = 4_000_000
+# Bytes per grid point and pixel that the search table keeps: the cumulative event sum (float32),
+# exp(θC − peak) and its prefix sum (float64).
+_TABLE_BYTES = 4 + 8 + 8
+# Peak bytes per grid point and pixel while one strip of the table is built (the integral's work
+# arrays, θC in float64, its exponential and prefix sum).
+_BUILD_BYTES = 64
 
 
 @dataclass
@@ -85,6 +98,7 @@ def search_constant_latency(
     sigma_us: float = DEFAULT_SIGMA_US,
     integral: str = "step",
     score: str = DEFAULT_SCORE,
+    memory_budget: int | None = None,
 ) -> ConstantSearchResult:
     """Find the constant latency per sample that minimises the ETF of the EDI latent image.
 
@@ -95,7 +109,7 @@ def search_constant_latency(
         exposure_end: :math:`(B,)` µs.
         threshold: contrast threshold θ, float or :math:`(B,)`.
         num_bins: sub-intervals of the exposure ``n`` (paper: 500); candidates are whole sub-intervals.
-        search_range: ``(low, high)`` µs; default ``(0, exposure time)`` per sample.
+        search_range: ``(low, high)`` µs, finite, ``high > low``; default ``(0, exposure time)`` per sample.
         num_candidates: number of coarse candidates over the range (default 100).
         refine: search every sub-interval around the best candidate, then fit a parabola.
         previous_latency: ``l'`` :math:`(B,)` µs for the temporal term ``g``; None drops it.
@@ -107,13 +121,33 @@ def search_constant_latency(
         score: ``"consensus"`` (default: the median of the estimates of the three sparsity scores),
             ``"sparsity"``, ``"sparsity_bright"``, ``"sparsity_multiscale"`` or ``"etf"`` (paper Eq. 14);
             see :func:`sharpness_score`.
+        memory_budget: bytes the search table may take; default
+            :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`. A larger table is built strip by strip for
+            each batch of candidates (the same values, more time).
 
     Candidates whose window ``[exposure_start + l, exposure_end + l]`` runs past a sample's last
     event are never scored. When the curve has no interior minimum (see ``confidence``), the
     latency falls back to ``previous_latency`` or, without it, the lower end of the range.
 
+    Candidates are whole sub-intervals ``exposure time / num_bins``, so the first one may lie up to
+    a sub-interval below ``low`` and the last above ``high`` (a range narrower than a sub-interval
+    still gets two); the returned ``latency`` is clamped into ``[low, high]``.
+
     Returns:
         a :class:`ConstantSearchResult`.
+
+    Raises:
+        ValueError: for a bad argument (e.g. a non-finite ``search_range``), or when even one row of
+            the search table would exceed the memory budget: the message says what to narrow.
+
+    Example:
+        >>> from evlatcorr.simulate import simulate
+        >>> frames = simulate("camera", num_frames=1, latency="constant", latency_us=2000.0, seed=0,
+        ...                   height=24, width=32, exposure_us=10_000.0).frames("delayed")
+        >>> res = search_constant_latency(frames.blurry, frames.events, frames.exposure_start,
+        ...                               frames.exposure_end, num_bins=50, search_range=(1000.0, 1100.0))
+        >>> 1000.0 <= res.latency.item() <= 1100.0  # clamped: the candidates are 200 us apart
+        True
     """
     check_image(blurry, "blurry")
     b = blurry.shape[0]
@@ -133,13 +167,12 @@ def search_constant_latency(
     theta = check_batch_vector(threshold, b, "threshold").to(torch.float64)
     if bool((theta <= 0).any()):
         raise ValueError(f"threshold must be positive, got {theta.min().item()}")
-    if search_range is None:
+    rng = check_search_range(search_range)
+    if rng is None:
         lows, highs = default_search_range(end - start)
     else:
-        lo, hi = float(search_range[0]), float(search_range[1])
-        if not hi > lo:
-            raise ValueError(f"search_range must be (low, high) with high > low, got {search_range}")
-        lows, highs = torch.full_like(start, lo), torch.full_like(start, hi)
+        lows, highs = torch.full_like(start, rng[0]), torch.full_like(start, rng[1])
+    budget = resolve_memory_budget(memory_budget)
     prev = None if previous_latency is None else check_batch_vector(previous_latency, b, "previous_latency")
 
     grey = kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
@@ -155,7 +188,7 @@ def search_constant_latency(
         results.append(_search_one(
             grey[i:i + 1], ev, float(start[i]), float(end[i]), float(theta[i]), num_bins,
             float(lows[i]), float(highs[i]), float(reach[i]), num_candidates, refine,
-            None if prev is None else prev[i:i + 1], epsilon, window, sigma_us, integral, score,
+            None if prev is None else prev[i:i + 1], epsilon, window, sigma_us, integral, score, budget,
         ))
     return ConstantSearchResult(
         latency=torch.tensor([r.latency for r in results], dtype=torch.float64, device=blurry.device),
@@ -231,9 +264,18 @@ def sharpness_score(latent: Tensor, latency: Tensor, previous: Tensor | None, sc
 
 def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: float, n: int,
                 low: float, high: float, reach: float, num_candidates: int, refine: bool, prev: Tensor | None,
-                epsilon: float, window: int, sigma_us: float, integral: str, score: str) -> _OneResult:
-    """Search for one sample; ``grey`` is :math:`(1, 1, H, W)`; ``reach`` = last event - exposure end."""
+                epsilon: float, window: int, sigma_us: float, integral: str, score: str,
+                budget: int | None = None) -> _OneResult:
+    """Search for one sample; ``grey`` is :math:`(1, 1, H, W)`; ``reach`` = last event - exposure end.
+
+    The latency returned is clamped into ``[low, high]`` (the candidate grid is aligned to whole
+    sub-intervals and may overhang the range by up to one).
+    """
     width_us = (end - start) / n
+    if max(abs(low), abs(high)) / width_us >= 2**53:  # shifts are counted in sub-intervals, as int64
+        raise ValueError(f"search_range [{low:.4g}, {high:.4g}] us reaches {max(abs(low), abs(high)) / width_us:.3g} "
+                         f"sub-intervals of {width_us:.4g} us (exposure time / num_bins), more than the search can "
+                         "count (2**53): narrow search_range")
     step = max(1, round((high - low) / (num_candidates - 1) / width_us))  # candidate spacing in sub-intervals
     first = math.floor(low / width_us)
     num = max(2, math.ceil((high - low) / (step * width_us) - 1e-9) + 1)
@@ -247,7 +289,11 @@ def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: f
         nan = torch.full((num,), math.nan, dtype=torch.float64)
         fallback = low if prev is None else min(max(float(prev), low), high)
         return _OneResult(fallback, to_us(coarse), nan, to_us(coarse), nan, 0.0, True)
-    table = _ShiftTable(events, grid_start, width_us, n, min(span, max_shift), theta, integral)
+    advice = (f"the table spans num_bins={n} sub-intervals of {width_us:.4g} us for the exposure plus "
+              f"{min(span, max_shift)} for the latencies searched (search_range [{low:.0f}, {high:.0f}] us, events up "
+              f"to {reach:.0f} us past exposure_end): narrow search_range, use fewer num_bins, or pass only the events "
+              "up to exposure_end + search_range[1]")
+    table = _ShiftTable(events, grid_start, width_us, n, min(span, max_shift), theta, integral, budget, advice)
     members = tuple(_SPARSITY) if score == "consensus" else (score,)
 
     def scores_of(shifts: Tensor, only: int | None = None) -> Tensor:
@@ -277,8 +323,8 @@ def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: f
         return _OneResult(fallback, to_us(coarse), coarse_scores[0], to_us(coarse), coarse_scores[0], 0.0, True)
     chosen = sorted(range(len(members)), key=lambda m: estimates[m][0])[len(members) // 2]  # the median
     best, _, fine, fine_scores = estimates[chosen]
-    return _OneResult((first + best) * width_us, to_us(coarse), coarse_scores[0], to_us(fine), fine_scores,
-                      confidence, False)
+    latency = min(max((first + best) * width_us, low), high)
+    return _OneResult(latency, to_us(coarse), coarse_scores[0], to_us(fine), fine_scores, confidence, False)
 
 
 def _refine(coarse: Tensor, coarse_scores: Tensor, step: int, span: int, max_shift: int, refine: bool,
@@ -317,31 +363,44 @@ def _confidence(scores: Tensor, k_best: int) -> float:
 
 
 class _ShiftTable:
-    """log R for whole-sub-interval shifts, from one prefix-sum table per strip of rows."""
+    """log R for whole-sub-interval shifts, from one prefix-sum table per strip of rows.
+
+    The table keeps about ``_TABLE_BYTES`` per grid point and pixel. When the whole table is over the
+    memory budget, its strips are not kept but rebuilt at each :meth:`log_ratio` call (the same values,
+    more time); when even one row of it is over the budget the search is refused with ``advice``.
+    """
 
     def __init__(self, events: Events, grid_start: float, width_us: float, n: int, span: int, theta: float,
-                 integral: str = "step"):
+                 integral: str = "step", budget: int | None = None, advice: str = "narrow the search range"):
         self.n, self.theta = n, theta
+        self.grid_start, self.width_us, self.integral = grid_start, width_us, integral
         height, width = events.sensor_size
-        num_bins = n + span
-        budget = _STRIP_ELEMENTS * (16 if events.device.type == "cuda" else 1)
-        rows = max(1, min(height, budget // ((num_bins + 2) * width)))
-        self.strips = []
+        self.num_bins = num_bins = n + span
+        limit = resolve_memory_budget(budget)
+        elements = _STRIP_ELEMENTS * (16 if events.device.type == "cuda" else 1)
+        rows = max(1, min(height, elements // ((num_bins + 2) * width)))
+        # sizes from Python ints only: nothing is read from the device to decide
+        self.keep = (num_bins + 2) * height * width * _TABLE_BYTES <= limit
+        if not self.keep:
+            row_bytes = (num_bins + 2) * width * _BUILD_BYTES
+            check_memory(row_bytes, f"one row of the latency search table ({num_bins + 1} grid points x {width} "
+                         "pixels)", advice, limit)
+            rows = max(1, min(rows, limit // row_bytes))
+        # a strip is bounded by _STRIP_ELEMENTS (kept table) or by the budget (streamed): let it through
+        self.strip_budget = max(limit, rows * (num_bins + 2) * width * _BUILD_BYTES)
         # events ordered by row once, so each strip is a contiguous slice (not a mask over all events)
-        order = torch.argsort(events.y, stable=True)
-        ys = events.y[order]
-        bounds = torch.searchsorted(ys, torch.arange(0, height + rows, rows, device=ys.device).clamp_(max=height))
-        for k, r0 in enumerate(range(0, height, rows)):
-            r1 = min(height, r0 + rows)
-            idx = order[int(bounds[k]):int(bounds[k + 1])]
-            sub = Events._trusted(events.x[idx], events.y[idx] - r0, events.t[idx], events.p[idx],
-                                  events.batch[idx], (r1 - r0, width), 1)
-            cum = cumulative_event_grid(sub, grid_start, width_us, num_bins, integral)[0]  # (M+1, h, W)
-            x = theta * cum.double()
-            peak = x.amax(0, keepdim=True)
-            y = torch.exp(x - peak)
-            prefix = torch.cat([torch.zeros_like(y[:1]), y.cumsum(0)])
-            self.strips.append((x, peak, y, prefix))
+        self.strips: list[Events | tuple[Tensor, Tensor, Tensor, Tensor]] = [
+            self._build(sub) if self.keep else sub for _, _, sub in _row_strips(events, rows)]
+
+    def _build(self, sub: Events) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(C float32, peak of θC, exp(θC − peak), its prefix sum) of one strip."""
+        cum = cumulative_event_grid(sub, self.grid_start, self.width_us, self.num_bins, self.integral,
+                                    memory_budget=self.strip_budget)[0]  # (M+1, h, W)
+        x = self.theta * cum.double()
+        peak = x.amax(0, keepdim=True)
+        y = torch.exp(x - peak)
+        prefix = torch.cat([torch.zeros_like(y[:1]), y.cumsum(0)])
+        return cum, peak, y, prefix
 
     def log_ratio(self, shifts: Tensor, reference: float = 0.5) -> Tensor:
         """log R for each shift, latent at ``start + reference * exposure`` (0.5 = mid-exposure)."""
@@ -349,9 +408,12 @@ class _ShiftTable:
         r_lo, r_hi = math.floor(reference * n), math.ceil(reference * n)
         w_hi = reference * n - r_lo
         out = []
-        for x, peak, y, prefix in self.strips:
+        for strip in self.strips:
+            cum, peak, y, prefix = strip if isinstance(strip, tuple) else self._build(strip)
             total = prefix[shifts + n + 1] - prefix[shifts] - 0.5 * (y[shifts] + y[shifts + n])
             total = total.clamp_min(1e-300) / n
-            ref = (1 - w_hi) * x[shifts + r_lo] + w_hi * x[shifts + r_hi]
+            # θC from the float32 sum, as when the table was built (the same float64 values)
+            x_lo, x_hi = self.theta * cum[shifts + r_lo].double(), self.theta * cum[shifts + r_hi].double()
+            ref = (1 - w_hi) * x_lo + w_hi * x_hi
             out.append(torch.log(total) + peak - ref)
         return torch.cat(out, dim=1)[:, None]  # (K, 1, H, W)

@@ -38,7 +38,8 @@ import kornia
 import torch
 from torch import Tensor, nn
 
-from evlatcorr.edi import EventGrid, edi_deblur, event_grid
+from evlatcorr.checks import check_has_events, check_search_range, resolve_memory_budget
+from evlatcorr.edi import EventGrid, edi_deblur, event_grid, event_grid_bytes
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
 from evlatcorr.frames import EventFrames
 from evlatcorr.search import search_constant_latency
@@ -197,18 +198,31 @@ def fit_spatial_latency(
     zero (the paper's zero start is for training over a dataset; a few test-time steps from zero
     cannot travel milliseconds).
 
+    The event grid over latencies ``[0, l_max]`` is built once and read at every step; when it would
+    exceed :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`, each step builds (in strips of rows) the grid
+    its EDI reads, which is slower and moves the loss slightly (the linear ramp of a pixel's first
+    event starts at the start of the grid read).
+
     Returns:
         the fitted model and the total loss per step.
+
+    Raises:
+        ValueError: when a frame has no events in ``[exposure_start, exposure_end + exposure time)``
+            (as :func:`~evlatcorr.correction.correct_constant_latency`), or for a bad argument.
     """
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
+    search_range = check_search_range(search_range)
+    check_has_events(frames)
     model = model if model is not None else PolynomialLatency()
     model = model.to(frames.device)
     l_max = frames.exposure_time if search_range is None else torch.full_like(frames.exposure_time, search_range[1])
     # every step reads the same events at other latencies in [0, l_max] (and l_const): integrate them once
     l_min = 0.0 if search_range is None else min(0.0, search_range[0])
-    grid = event_grid(frames.events, frames.exposure_start, frames.exposure_end, num_bins, (l_min, l_max),
-                      integral="linear", dtype=frames.blurry.dtype)
+    args = (frames.events, frames.exposure_start, frames.exposure_end, num_bins, (l_min, l_max))
+    grid = None  # over the memory budget: every step's EDI builds (in strips) the grid it reads
+    if event_grid_bytes(*args, integral="linear", dtype=frames.blurry.dtype) <= resolve_memory_budget():
+        grid = event_grid(*args, integral="linear", dtype=frames.blurry.dtype)
     l_const, etf_const = constant_reference(frames, threshold, num_bins, search_range, num_candidates, epsilon,
                                             window, sigma_us, grid)
     if start_from_constant:
@@ -264,7 +278,9 @@ class SpatialLatencyCorrector(nn.Module):
     """Per-pixel latency correction (what ``EventLatencyCorrector(mode="spatial")`` runs).
 
     With ``curve``, the trained polynomial gives the map directly; without, a polynomial is fitted
-    on the batch it is given (``steps`` Adam steps of the self-supervised objective).
+    on the batch it is given (``steps`` Adam steps of the self-supervised objective). Like the
+    constant mode, a batch with a frame that has no events in ``[exposure_start, exposure_end +
+    exposure time)`` is refused with a :class:`ValueError` naming the sample.
 
     Args:
         curve: path of a saved curve or Lightning checkpoint, or None.
@@ -293,6 +309,7 @@ class SpatialLatencyCorrector(nn.Module):
             raise ValueError(f"steps must be >= 1 and train_bins >= 2, got {steps} and {train_bins}")
         if order < 0:
             raise ValueError(f"order K must be >= 0, got {order}")
+        search_range = check_search_range(search_range)
         self.model = load_curve(curve) if curve is not None else None
         self.threshold, self.num_bins, self.search_range = float(threshold), num_bins, search_range
         self.num_candidates, self.epsilon, self.window, self.sigma_us = num_candidates, epsilon, window, sigma_us
@@ -303,6 +320,7 @@ class SpatialLatencyCorrector(nn.Module):
         return f"curve={'trained' if self.model is not None else 'fit per batch'}, steps={self.steps}"
 
     def forward(self, frames: EventFrames) -> EventFrames:
+        check_has_events(frames)  # as the constant mode: no latency without events
         if self.model is not None:
             model = self.model.to(frames.device)
         else:

@@ -1,5 +1,8 @@
 from __future__ import annotations
 
+import math
+import warnings
+
 import pytest
 import torch
 from torch import nn
@@ -28,6 +31,10 @@ class TestCorrectorModule:
             (dict(num_bins=1), "num_bins"),
             (dict(num_candidates=1), "num_candidates"),
             (dict(curve="x.ckpt"), "mode='spatial'"),
+            (dict(search_range=(0.0, math.inf)), "search_range must be two finite numbers"),
+            (dict(search_range=(math.nan, 10.0)), "search_range must be two finite numbers"),
+            (dict(mode="spatial", search_range=(0.0, math.inf)), "search_range must be two finite numbers"),
+            (dict(search_range=(5.0, 5.0)), "high > low"),
         ],
     )
     def test_bad_configuration(self, kwargs, match):
@@ -56,6 +63,14 @@ class TestCorrectorModule:
         ev = random_events(100, (6, 8), (500.0, 600.0))  # all after the search window
         with pytest.raises(ValueError, match="no events"):
             EventLatencyCorrector(num_bins=20)(frames_with(ev))
+
+    def test_latency_lies_in_a_range_off_the_candidate_grid(self):
+        # 5 us candidates (100 us / 20 bins): the range (31, 47) starts between two of them
+        ev = random_events(3000, (6, 8), (0.0, 200.0), batch_size=2, seed=3)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a fallback warning, for a frame whose curve has no clear minimum
+            out = EventLatencyCorrector(num_bins=20, num_candidates=5, search_range=(31, 47))(frames_with(ev, 2))
+        assert bool(((out.latency >= 31.0) & (out.latency <= 47.0)).all())
 
     def test_warns_when_events_stop_early(self):
         ev = random_events(2000, (6, 8), (0.0, 120.0))  # search needs events up to 200 us
@@ -150,3 +165,36 @@ def test_dark_low_texture_correction_is_not_worse_than_none():
     _, row, _ = _evaluate_dev_case("dev-10-grass-b0.08-rnd0.3-const390")
     assert row["psnr_corrected"] >= row["psnr_uncorrected"]
     assert abs(row["latency_error_us"]) <= 1000.0
+
+
+# --- frames without events: the same clear error in every mode -------------------------------------------------
+def _one_empty_frame() -> EventFrames:
+    """Two frames; only the first has events (its window [0, 200) us), the second none at all."""
+    ev = random_events(3000, (6, 8), (0.0, 200.0), seed=4)
+    two = Events(ev.x, ev.y, ev.t, ev.p, ev.batch, sensor_size=(6, 8), batch_size=2)
+    return frames_with(two, 2)
+
+
+@pytest.fixture()
+def curve_path(tmp_path):
+    from evlatcorr.spatial import PolynomialLatency, save_curve
+
+    psi = PolynomialLatency(order=1)
+    with torch.no_grad():
+        psi.coefficients.copy_(torch.tensor([0.5, 3.0]))  # 0.5 ms bright .. 3.5 ms dark: never 0
+    save_curve(psi, tmp_path / "curve.pt")
+    return str(tmp_path / "curve.pt")
+
+
+@pytest.mark.parametrize("mode", ["constant", "spatial-fit", "spatial-curve"])
+def test_frame_without_events_is_refused_in_every_mode(mode, curve_path):
+    # spatial mode used to return a latency for it silently (0 when fitted, the curve's when trained)
+    kwargs = {"constant": dict(num_bins=20, num_candidates=5),
+              "spatial-fit": dict(mode="spatial", num_bins=20, steps=2, train_bins=10, num_candidates=5),
+              "spatial-curve": dict(mode="spatial", num_bins=20, curve=curve_path)}[mode]
+    corrector = EventLatencyCorrector(**kwargs)
+    with pytest.raises(ValueError, match=r"sample 1 has no events in its exposure and search window \[0, 200\) us"):
+        corrector(_one_empty_frame())
+    empty = Events(torch.zeros(0), torch.zeros(0), torch.zeros(0), torch.zeros(0), sensor_size=(6, 8))
+    with pytest.raises(ValueError, match="sample 0 has no events"):
+        corrector(frames_with(empty))

@@ -6,7 +6,14 @@ import pytest
 import torch
 
 from evlatcorr import EventFrames, Events
-from evlatcorr.edi import edi_deblur, edi_interpolate, edi_log_ratio, estimate_threshold, event_grid
+from evlatcorr.edi import (
+    edi_deblur,
+    edi_interpolate,
+    edi_log_ratio,
+    estimate_threshold,
+    event_grid,
+    event_grid_bytes,
+)
 from tests.conftest import random_events
 
 
@@ -172,6 +179,55 @@ class TestEventGrid:
             edi_deblur(torch.rand(1, 1, 2, 2), ev, START, END, 0.2, 10.0, 20, grid=grid)
         with pytest.raises(ValueError, match="low <= high"):
             event_grid(ev, START, END, 10, (30.0, 20.0))
+
+    @pytest.mark.parametrize("integral, dtype", [("step", torch.float32), ("linear", torch.float64)])
+    def test_bytes_estimate_matches_the_grid(self, integral, dtype):
+        ev = random_events(300, (3, 5), (0.0, 300.0), seed=4, batch_size=2)
+        start, end = torch.zeros(2), torch.full((2,), 100.0)
+        grid = event_grid(ev, start, end, 10, (0.0, 30.0), integral=integral, dtype=dtype)
+        per_point = 12 if integral == "step" else 40  # the step grid's 3 float32 arrays; linear's 4 float64 + out
+        assert event_grid_bytes(ev, start, end, 10, (0.0, 30.0), integral=integral, dtype=dtype) == \
+            grid.cum.numel() * per_point
+
+    def test_grid_over_the_memory_budget_is_refused(self):
+        # latencies up to 1e9 us in 10 us steps: 10**8 grid points x 4 pixels x 12 bytes
+        ev = random_events(100, (2, 2), (0.0, 200.0))
+        with pytest.raises(ValueError, match=r"event grid \(1, 100000014, 2, 2\) needs about 4.5 GiB.*spans "
+                                             r"\[0, 1000000100\] us.*narrow latency_range"):
+            event_grid(ev, START, END, 10, (0.0, 1e9))
+
+
+class TestMemory:
+    def test_time_far_from_the_exposure_is_refused_before_allocating(self):
+        # time 1e9 us with 40 us sub-intervals: 25 million grid points per pixel, 2.5 GiB for one row of 9 pixels
+        ev = random_events(2000, (8, 9), (0.0, 60000.0), seed=5)
+        blurry = torch.rand(1, 1, 8, 9, generator=torch.Generator().manual_seed(5))
+        with pytest.raises(ValueError, match=r"one row of the EDI .* needs about 2.5 GiB, over the memory budget "
+                                             r"of 2.0 GiB: it spans \[0, 1000000000\] us .*bring `time` closer"):
+            edi_deblur(blurry, ev, START, torch.tensor([20000.0]), time=torch.tensor([1e9]))
+        with pytest.raises(ValueError, match="time has 1 NaN or infinite"):
+            edi_deblur(blurry, ev, START, torch.tensor([20000.0]), time=torch.tensor([math.inf]))
+
+    @pytest.mark.parametrize("integral", ["step", "linear"])
+    def test_over_the_budget_runs_in_strips_of_rows(self, integral):
+        # the whole EDI (2 frames x 42 pixels x (grid 105 x 24 or 40 + reads 41 x 56) bytes) is 0.4 to 0.55 MB, a
+        # row 58 to 78 kB: a 100 kB budget makes strips of one row, with the same latent (up to float rounding)
+        # and the same gradient
+        ev = random_events(3000, (7, 6), (0.0, 300.0), seed=8, batch_size=2)
+        g = torch.Generator().manual_seed(8)
+        blurry = torch.rand(2, 3, 7, 6, dtype=torch.float64, generator=g) * 0.8 + 0.1
+        start, end = torch.zeros(2), torch.full((2,), 100.0)
+        lat = (torch.rand(2, 1, 7, 6, dtype=torch.float64, generator=g) * 150).requires_grad_()
+        whole = edi_deblur(blurry, ev, start, end, 0.2, lat, 40, torch.tensor([30.0, 70.0]), integral)
+        strips = edi_deblur(blurry, ev, start, end, 0.2, lat, 40, torch.tensor([30.0, 70.0]), integral,
+                            memory_budget=100_000)
+        torch.testing.assert_close(strips, whole, rtol=1e-12, atol=1e-12)
+        (grad_whole,) = torch.autograd.grad(whole.sum(), lat)
+        (grad_strips,) = torch.autograd.grad(strips.sum(), lat)
+        torch.testing.assert_close(grad_strips, grad_whole, rtol=1e-10, atol=1e-12)
+        assert grad_whole.abs().sum() > 0
+        with pytest.raises(ValueError, match="one row of the EDI"):
+            edi_deblur(blurry, ev, start, end, 0.2, lat, 40, integral=integral, memory_budget=1000)
 
 
 class TestInterpolate:

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evlatcorr import Events
-from evlatcorr.integral import cumulative_event_grid, event_histogram, sample_grid
+from evlatcorr.integral import _row_strips, cumulative_event_grid, event_histogram, grid_bytes_per_point, sample_grid
 from tests.conftest import random_events
 
 
@@ -83,6 +83,39 @@ class TestCumulativeGrid:
             cumulative_event_grid(ev, 0.0, 1.0, 4, "cubic")
         with pytest.raises(ValueError, match="bin_width"):
             cumulative_event_grid(ev, 0.0, 0.0, 4)
+
+    def test_over_the_memory_budget_is_refused_before_allocating(self):
+        ev = random_events(10, (2, 2), (0.0, 1.0))
+        # 10**9 bins x 4 pixels x 12 bytes = 48 GB: refused from the sizes alone (allocating it would fail)
+        with pytest.raises(ValueError, match=r"cumulative event grid \(1, 1000000001, 2, 2\) needs about 44.7 GiB, "
+                                             "over the memory budget of 2.0 GiB: use fewer num_bins"):
+            cumulative_event_grid(ev, 0.0, 1.0, 10**9)
+        with pytest.raises(ValueError, match=r"event histogram \(1, 1000, 2, 2\) needs about 15.6 KiB"):
+            event_histogram(ev, 0.0, 1.0, 1000, memory_budget=1000)
+        assert cumulative_event_grid(ev, 0.0, 1.0, 10, memory_budget=11 * 4 * 12).shape == (1, 11, 2, 2)  # just fits
+        with pytest.raises(ValueError, match="memory budget"):
+            cumulative_event_grid(ev, 0.0, 1.0, 10, memory_budget=11 * 4 * 12 - 1)
+
+    def test_bytes_per_point(self):
+        assert grid_bytes_per_point("step", torch.float32) == 12
+        assert grid_bytes_per_point("step", torch.float64) == 24
+        assert grid_bytes_per_point("linear", torch.float32) == 36
+
+
+def test_row_strips_partition_the_events():
+    ev = random_events(500, (7, 3), (0.0, 100.0), batch_size=2, seed=4)
+    strips = _row_strips(ev, 3)
+    assert [(r0, r1) for r0, r1, _ in strips] == [(0, 3), (3, 6), (6, 7)]
+    assert sum(len(sub) for _, _, sub in strips) == len(ev)
+    for r0, r1, sub in strips:
+        assert sub.sensor_size == (r1 - r0, 3) and sub.batch_size == 2
+        inside = (ev.y >= r0) & (ev.y < r1)
+        assert torch.equal(sub.t.sort().values, ev.t[inside].sort().values)
+        assert bool((sub.y >= 0).all() and (sub.y < r1 - r0).all())
+    # the strips' grids, stacked, are the whole grid
+    whole = cumulative_event_grid(ev, 0.0, 10.0, 10)
+    torch.testing.assert_close(torch.cat([cumulative_event_grid(sub, 0.0, 10.0, 10) for _, _, sub in strips], 2),
+                               whole, rtol=0, atol=0)
 
 
 def test_sample_grid_interpolates_and_differentiates():

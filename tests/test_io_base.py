@@ -324,3 +324,41 @@ def test_iter_events_as_chunks():
         list(iter_events_as_chunks(batch))
     with pytest.raises(ValueError, match="expected Events"):
         list(iter_events_as_chunks([np.zeros(3)]))
+
+
+
+@pytest.mark.parametrize("p, match", [
+    (np.array([0, 1, 2]), "got values \\[2\\]"),
+    (np.array([-1, 1, 5, -3]), "got values \\[-3, 5\\]"),
+    (np.array([-1, 0, 1]), "mixes the 0/1 and -1/\\+1 conventions"),
+    (np.array([0.0, 0.5, 1.0]), "got values \\[0.5\\]"),
+    (np.array([1.0, np.nan]), "got values \\[nan\\]"),
+    (np.array([300, 1], dtype=np.uint16), "got values \\[300\\]"),
+    (np.array(["1", "0"]), "got dtype <U1"),
+])
+def test_structured_events_refuses_bad_polarity(p, match):
+    n = len(p)
+    with pytest.raises(RecordingError, match="f.h5: /events: polarity .*" + match):
+        structured_events(np.arange(n), np.arange(n), np.arange(n, dtype=float), p, where="f.h5: /events")
+    with pytest.raises(ValueError, match="polarity") as info:  # without a file: a plain ValueError
+        structured_events(np.arange(n), np.arange(n), np.arange(n, dtype=float), p)
+    assert not isinstance(info.value, RecordingError)
+
+
+def test_structured_events_refuses_fractional_coordinates():
+    with pytest.raises(RecordingError, match="f.npz: x must hold integer pixel coordinates"):
+        structured_events(np.array([0.5, 1.0]), np.array([0, 1]), np.array([0.0, 1.0]), np.array([0, 1]),
+                          where="f.npz")
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.sampled_from([-1, 1]), max_size=50), st.lists(st.sampled_from([0, 1]), max_size=50))
+def test_structured_events_polarity_conventions_agree(signed, binary):
+    # the same ON/OFF sequence in either convention (or as bool) gives the same ±1
+    for values in (signed, binary):
+        n = len(values)
+        ev = structured_events(np.zeros(n, int), np.zeros(n, int), np.arange(n, dtype=float), np.array(values, int))
+        assert ev["p"].tolist() == [1 if v > 0 else -1 for v in values]
+        as_bool = structured_events(np.zeros(n, int), np.zeros(n, int), np.arange(n, dtype=float),
+                                    np.array(values, int) > 0)
+        assert as_bool["p"].tolist() == ev["p"].tolist()

@@ -179,3 +179,28 @@ def test_bad_files(tmp_path, events):
         del f["images"]
     with pytest.raises(RecordingError, match="noimg.h5: no /images"):
         len(EventUtilsRecording(path))
+
+
+def test_polarity_outside_the_conventions_is_refused(tmp_path, events):
+    path = make(tmp_path / "p5.h5", events)
+    with h5py.File(path, "r+") as f:
+        ps = f["events/ps"][:].astype(np.uint8)
+        ps[10] = 5  # used to be read as ON
+        del f["events/ps"]
+        f["events/ps"] = ps
+    match = r"p5.h5: /events \(events 0..499\): polarity must be 0/1, -1/\+1 or bool, got values \[5\]"
+    with pytest.raises(RecordingError, match=match):
+        list(EventUtilsRecording(path))
+    with pytest.raises(RecordingError, match=r"p5.h5: /events .*polarity must be"):
+        EventUtilsRecording(path).events_between(-1e12, 1e12)
+
+
+def test_event_columns_of_different_lengths_are_refused_at_open(tmp_path, events):
+    path = make(tmp_path / "short.h5", events)
+    with h5py.File(path, "r+") as f:
+        ts = f["events/ts"][:-3]
+        del f["events/ts"]
+        f["events/ts"] = ts
+    with pytest.raises(RecordingError, match="short.h5: /events/xs, ys, ts, ps differ in length: xs 500, ys 500, "
+                                             "ts 497, ps 500"):
+        EventUtilsRecording(path)

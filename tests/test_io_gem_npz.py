@@ -125,3 +125,26 @@ def test_bad_files(tmp_path):
         open_recording(tmp_path / "cut.npz")
     with pytest.raises(RecordingError, match="cut.npz: cannot read npz \\(truncated or corrupt\\?\\)"):
         GemNpzRecording(tmp_path / "cut.npz")
+
+
+def test_polarity_and_column_lengths_are_validated(tmp_path):
+    data = write_pair(tmp_path / "p2.npz")
+    data["events"].item()["p"][5] = 2  # ±1 file with one 2: used to be read as ON
+    np.savez(tmp_path / "p2.npz", **data)
+    with pytest.raises(RecordingError, match=r"p2.npz: events: polarity must be 0/1, -1/\+1 or bool, got "
+                                             r"values \[2\]"):
+        list(GemNpzRecording(tmp_path / "p2.npz"))
+    data = write_pair(tmp_path / "short.npz")
+    data["events"].item()["y"] = data["events"].item()["y"][:-1]
+    np.savez(tmp_path / "short.npz", **data)
+    with pytest.raises(RecordingError, match="short.npz: events x, y, t, p differ in length: x 300, y 299, t 300, "
+                                             "p 300"):
+        GemNpzRecording(tmp_path / "short.npz")
+
+
+def test_sharp_images_and_their_timestamps_must_pair_up(tmp_path):
+    data = write_pair(tmp_path / "sharp.npz")
+    data["sharp_timestamps"] = data["sharp_timestamps"][:3]
+    np.savez(tmp_path / "sharp.npz", **data)
+    with pytest.raises(RecordingError, match="sharp.npz: sharp_imgs holds 4 images but sharp_timestamps 3 times"):
+        GemNpzRecording(tmp_path / "sharp.npz")

@@ -328,3 +328,78 @@ def test_reads_cache_files_of_the_first_writer(h5_file):
     back = read_sequence(h5_file)
     assert back.config["exposure_us"] == EXPOSURE and "latency" in back.config["source"]
     assert back.frames("delayed").events.batch_size == F
+
+
+# polarity, column lengths and per-frame arrays are validated like the Events API ------------------------------
+def _set_dataset(f: h5py.File, name: str, data: np.ndarray) -> None:
+    del f[name]
+    f[name] = data
+
+
+def test_polarity_outside_the_conventions_is_refused(h5_file):
+    # one event with p = 5 used to be read as +1
+    with h5py.File(h5_file, "r+") as f:
+        f["events/p"][7] = 5
+    match = r"seq.h5: /events: polarity must be 0/1, -1/\+1 or bool, got values \[5\]"
+    with pytest.raises(RecordingError, match=match):
+        list(H5Recording(h5_file))  # streamed, chunk by chunk
+    with pytest.raises(RecordingError, match=match):
+        H5Recording(h5_file).events_between(-1e9, 1e9)  # random access
+    with pytest.raises(RecordingError, match=match):
+        read_sequence(h5_file)
+    with h5py.File(h5_file, "r+") as f:
+        f["events/p"][7] = 0  # -1, 0 and 1: two conventions mixed
+    with pytest.raises(RecordingError, match="seq.h5: /events: polarity mixes the 0/1 and -1/\\+1 conventions"):
+        list(H5Recording(h5_file))
+
+
+def test_event_columns_of_different_lengths_are_refused_at_open(h5_file):
+    with h5py.File(h5_file, "r+") as f:
+        _set_dataset(f, "events/x", f["events/x"][:-2])
+    with pytest.raises(RecordingError, match="seq.h5: /events/x, y, t, p differ in length: x 598, y 600, t 600, "
+                                             "p 600"):
+        H5Recording(h5_file)
+    with pytest.raises(RecordingError, match="seq.h5: /events/x, y, t, p differ in length"):
+        read_sequence(h5_file)
+
+
+def test_per_frame_array_shorter_than_the_frames_is_refused_at_open(h5_file):
+    # a short exposure_end used to give an IndexError traceback when the last frame was read
+    with h5py.File(h5_file, "r+") as f:
+        _set_dataset(f, "frames/exposure_end", f["frames/exposure_end"][:-1])
+    with pytest.raises(RecordingError, match="seq.h5: /frames/exposure_end has 2 entries but /frames/blurry has 3 "
+                                             "frames"):
+        H5Recording(h5_file)
+    with pytest.raises(RecordingError, match="seq.h5: /frames/exposure_end has 2 entries"):
+        read_sequence(h5_file)
+
+
+def test_per_frame_array_of_a_dataset_sequence_names_its_group(tmp_path, seq):
+    path = tmp_path / "set.h5"
+    write_dataset(path, [seq, fake_sequence(seed=1)])
+    with h5py.File(path, "r+") as f:
+        _set_dataset(f, "sequences/0001/frames/latency", f["sequences/0001/frames/latency"][:1])
+    with pytest.raises(RecordingError, match="set.h5: /sequences/0001/frames/latency has 1 entries but "
+                                             "/sequences/0001/frames/blurry has 3 frames"):
+        H5Recording(path)
+
+
+def test_random_access_checks_the_events_it_reads(h5_file):
+    # frame() reads a slice without streaming: its events are checked as streamed chunks are
+    with h5py.File(h5_file, "r+") as f:
+        x = f["events/x"][:]
+        x[:] = W + 3
+        f["events/x"][:] = x
+    with pytest.raises(RecordingError, match="seq.h5: event coordinates x in \\[10, 10\\].*outside the sensor"):
+        H5Recording(h5_file).frame(1)
+
+
+def test_writer_validates_lengths_and_polarity(tmp_path):
+    with h5py.File(tmp_path / "w.h5", "w") as f:
+        writer = h5mod.EventWriter(f)
+        with pytest.raises(ValueError, match="polarity must be 0/1, -1/\\+1 or bool, got values \\[2\\]"):
+            writer.append(np.array([0, 1]), np.array([0, 1]), np.array([1.0, 2.0]), np.array([1, 2]))
+        with pytest.raises(ValueError, match="event columns differ in length: x 2, y 1, t 2, p 2"):
+            writer.append(np.array([0, 1]), np.array([0]), np.array([1.0, 2.0]), np.array([1, 0]))
+        writer.append(np.array([0, 1]), np.array([0, 1]), np.array([1.0, 2.0]), np.array([True, False]))
+        assert f["events/p"][:].tolist() == [1, -1] and writer.count == 2

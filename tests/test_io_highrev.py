@@ -171,3 +171,19 @@ def test_corrupt_and_wrong_files(tmp_path):
         HighREVRecording(tmp_path / "empty")
     with pytest.raises(RecordingError, match="unknown format: a folder .*subfolders \\['val'\\] are HighREV"):
         open_recording(tmp_path)
+
+
+def test_polarity_and_column_lengths_are_validated(tmp_path):
+    make_split(tmp_path / "val", sequences=("a",), frames=1)
+    piece = tmp_path / "val" / "event" / "a_00000_01.npz"
+    rng = np.random.default_rng(1)
+    x, y, t, p = random_events(rng, 10, 200.0, 399.0)
+    p[3] = 3  # used to be read as ON
+    save_npz(piece, x, y, t, p)
+    with pytest.raises(RecordingError, match=r"a_00000_01.npz: polarity must be 0/1, -1/\+1 or bool, got "
+                                             r"values \[3\]"):
+        list(HighREVRecording(tmp_path / "val"))
+    save_npz(piece, x, y[:-2], t, np.ones(10))
+    with pytest.raises(RecordingError, match="a_00000_01.npz: event columns differ in length: x 10, y 8, t 10, "
+                                             "p 10"):
+        list(HighREVRecording(tmp_path / "val"))

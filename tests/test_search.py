@@ -1,8 +1,13 @@
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+import evlatcorr.checks
 from evlatcorr.edi import edi_deblur
 from evlatcorr.search import search_constant_latency, sharpness_score
 from tests.conftest import random_events
@@ -10,11 +15,16 @@ from tests.conftest import random_events
 START, END = torch.tensor([0.0]), torch.tensor([100.0])
 
 
+def grey_frame(seed: int, size: tuple[int, int] = (8, 9)) -> torch.Tensor:
+    """A seeded random grey frame in [0.1, 0.9] (unseeded ones made these tests depend on the process)."""
+    return torch.rand(1, 1, *size, generator=torch.Generator().manual_seed(seed)) * 0.8 + 0.1
+
+
 @pytest.mark.parametrize("score", ["etf", "sparsity"])
 def test_one_pass_equals_naive_edi_per_candidate(score):
     # the prefix-sum table must give exactly the score of re-running EDI at each candidate
     ev = random_events(3000, (8, 9), (0.0, 220.0), seed=5)
-    blurry = torch.rand(1, 1, 8, 9) * 0.8 + 0.1
+    blurry = grey_frame(5)
     res = search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11, refine=False,
                                   score=score)
     assert res.candidates.shape == (1, 11) and res.etf.shape == (1, 11)
@@ -29,7 +39,7 @@ def test_one_pass_equals_naive_edi_per_candidate(score):
 
 def test_refined_latency_is_argmin_neighbourhood():
     ev = random_events(3000, (8, 9), (0.0, 220.0), seed=6)
-    blurry = torch.rand(1, 1, 8, 9) * 0.8 + 0.1
+    blurry = grey_frame(6)
     res = search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11, score="sparsity")
     coarse_best = float(res.candidates[0, torch.argmin(res.etf[0])])
     assert abs(res.latency.item() - coarse_best) <= 10.0 + 1.0  # within one candidate spacing (+1 sub-interval)
@@ -52,7 +62,13 @@ def test_search_range_and_batch():
         (dict(num_candidates=1), "num_candidates"),
         (dict(num_bins=1), "num_bins"),
         (dict(search_range=(10.0, 5.0)), "search_range"),
+        (dict(search_range=(0.0, math.inf)), "search_range must be two finite numbers"),
+        (dict(search_range=(-math.inf, 0.0)), "search_range must be two finite numbers"),
+        (dict(search_range=(math.nan, 10.0)), "search_range must be two finite numbers"),
+        (dict(search_range=(5.0,)), "search_range must be a pair"),
+        (dict(search_range=(0.0, 1e300)), "narrow search_range"),
         (dict(threshold=0.0), "threshold"),
+        (dict(memory_budget=0), "memory_budget"),
     ],
 )
 def test_exceptions(kwargs, match):
@@ -72,7 +88,7 @@ def test_device(device):
 def test_never_scores_a_window_past_the_last_event(score):
     # events stop 30 us after the exposure end: no candidate above 30 us may be scored or returned
     ev = random_events(3000, (8, 9), (0.0, END.item() + 30.0), seed=11)
-    blurry = torch.rand(1, 1, 8, 9) * 0.8 + 0.1
+    blurry = grey_frame(11)
     res = search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11, score=score)
     last = ev.t.max().item() - END.item()
     scored = res.candidates[0][torch.isfinite(res.etf[0])]
@@ -104,10 +120,73 @@ def test_sparsity_score_ignores_brightness_scale():
 
 def test_consensus_is_the_median_of_the_three_sparsity_estimates():
     ev = random_events(3000, (8, 9), (0.0, 220.0), seed=13)
-    blurry = torch.rand(1, 1, 8, 9) * 0.8 + 0.1
+    blurry = grey_frame(13)
     run = lambda score: search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11,  # noqa: E731
                                                 refine=False, score=score)
     members = sorted(run(s).latency.item() for s in ("sparsity", "sparsity_bright", "sparsity_multiscale"))
     assert run("consensus").latency.item() == members[1]
     with pytest.raises(ValueError, match="score"):
         run("psnr")
+
+
+# --- the search range is respected, whatever its width -----------------------------------------------------
+# exposure 20 ms in 50 sub-intervals of 400 us: candidates are multiples of 400 us
+LONG_END = torch.tensor([20000.0])
+
+
+@pytest.fixture(scope="module")
+def long_exposure():
+    return random_events(4000, (8, 9), (0.0, 60000.0), seed=21), grey_frame(21)
+
+
+def test_latency_is_clamped_into_a_range_that_does_not_start_on_a_candidate(long_exposure):
+    # candidates 4000, 4400, ...: the best one, 4000 us, lies below the range (returned before clamping)
+    ev, blurry = long_exposure
+    res = search_constant_latency(blurry, ev, START, LONG_END, num_bins=50, search_range=(4300.0, 5800.0),
+                                  num_candidates=11)
+    assert res.candidates[0, 0].item() == 4000.0
+    assert res.fallback.tolist() == [False]
+    assert res.latency.item() == 4300.0
+
+
+@pytest.mark.parametrize("search_range", [(100.0, 101.0), (0.0, 1.0), (399.5, 400.5)])
+def test_range_narrower_than_a_candidate_step(long_exposure, search_range):
+    ev, blurry = long_exposure
+    res = search_constant_latency(blurry, ev, START, LONG_END, num_bins=50, search_range=search_range)
+    assert search_range[0] <= res.latency.item() <= search_range[1]
+
+
+@settings(max_examples=25, deadline=None)
+@given(low=st.floats(0.0, 20000.0), width=st.floats(0.5, 20000.0), score=st.sampled_from(["sparsity", "etf"]))
+def test_property_latency_lies_in_the_search_range(long_exposure, low, width, score):
+    ev, blurry = long_exposure
+    high = low + width
+    res = search_constant_latency(blurry, ev, START, LONG_END, num_bins=50, search_range=(low, high),
+                                  num_candidates=11, score=score)
+    assert low <= res.latency.item() <= high
+
+
+# --- memory: estimated before allocating; streamed in strips or refused --------------------------------------
+@pytest.mark.parametrize("integral, score", [("step", "consensus"), ("linear", "etf")])
+def test_table_over_the_budget_is_streamed_with_the_same_result(long_exposure, integral, score):
+    # the table (50 + 50 sub-intervals: 102 grid points x 72 pixels x 20 bytes = 147 kB) is over a 100 kB
+    # budget: it is rebuilt a row (59 kB while built) at a time for every batch of candidates, with the same numbers
+    ev, blurry = long_exposure
+    kw = dict(num_bins=50, search_range=(0.0, 20000.0), num_candidates=11, integral=integral, score=score)
+    whole = search_constant_latency(blurry, ev, START, LONG_END, **kw)
+    strips = search_constant_latency(blurry, ev, START, LONG_END, memory_budget=100_000, **kw)
+    assert torch.equal(whole.latency, strips.latency)
+    assert torch.equal(whole.etf, strips.etf)
+    assert all(torch.equal(a, b) for a, b in zip(whole.fine_etf, strips.fine_etf))
+
+
+def test_table_whose_row_is_over_the_budget_is_refused_before_allocating(monkeypatch):
+    # events over 1e9 us and a range to 1e9 us: 25 million sub-intervals of 40 us, 2 GB per row of 4 pixels
+    ev = random_events(2000, (4, 4), (0.0, 1e9), seed=3)
+    with pytest.raises(ValueError, match="latency search table .* over the memory budget of 2.0 GiB: .*narrow "
+                                         "search_range"):
+        search_constant_latency(grey_frame(3, (4, 4)), ev, START, torch.tensor([20000.0]), search_range=(0.0, 1e9))
+    # the budget is the module constant, read at call time
+    monkeypatch.setattr(evlatcorr.checks, "MEMORY_BUDGET_BYTES", 1000)
+    with pytest.raises(ValueError, match="over the memory budget of 1000 bytes"):
+        search_constant_latency(grey_frame(3, (4, 4)), ev, START, END, num_bins=20, num_candidates=5)

@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from evlatcorr import EventLatencyCorrector
+import evlatcorr.checks
+from evlatcorr import EventLatencyCorrector, Events
 from evlatcorr.simulate import simulate
 from evlatcorr.spatial import (
     LossWeights,
@@ -144,3 +145,24 @@ def test_corrector_spatial_mode(frames, tmp_path):
     assert out.latency.std() > 0 and out.latent.shape == frames.blurry.shape
     fitted = EventLatencyCorrector(mode="spatial", num_bins=50, steps=3, train_bins=30)(frames)
     assert fitted.latency.shape == (1, 1, 24, 32)
+
+
+def test_fit_without_events_is_refused(frames):
+    # as the constant search: the fit used to run on a frame without events and return l_const = 0
+    none = frames.replace(events=Events(torch.zeros(0), torch.zeros(0), torch.zeros(0), torch.zeros(0),
+                                        sensor_size=frames.sensor_size))
+    with pytest.raises(ValueError, match="sample 0 has no events"):
+        fit_spatial_latency(none, steps=1, num_bins=20)
+    with pytest.raises(ValueError, match="search_range must be two finite numbers"):
+        fit_spatial_latency(frames, steps=1, num_bins=20, search_range=(0.0, math.inf))
+
+
+def test_fit_over_the_memory_budget_reads_strips(frames, monkeypatch):
+    # a 1 MB budget: no grid kept across steps (2.4 MB), and the search table (1.3 MB) and each step's EDI
+    # (2 to 3 MB) run in strips. Only the linear integral's first ramps differ (they start at each grid's start).
+    kw = dict(steps=4, lr=0.05, num_bins=40, start_from_constant=True)
+    model, history = fit_spatial_latency(frames, PolynomialLatency(order=3), **kw)
+    monkeypatch.setattr(evlatcorr.checks, "MEMORY_BUDGET_BYTES", 1_000_000)
+    small, small_history = fit_spatial_latency(frames, PolynomialLatency(order=3), **kw)
+    torch.testing.assert_close(small.coefficients, model.coefficients, rtol=0.02, atol=2e-3)
+    torch.testing.assert_close(torch.tensor(small_history), torch.tensor(history), rtol=1e-3, atol=0.0)

@@ -130,9 +130,8 @@ class AedatRecording(Recording):
         start, end = self._exposure(frame, index)
         return FrameInfo(index, start, end, self._image(frame, index), meta={"format": frame.get("format")})
 
-    @staticmethod
-    def _chunk(ev: np.ndarray) -> np.ndarray:
-        return structured_events(ev["x"], ev["y"], ev["t"].astype(np.float64), ev["on"])
+    def _chunk(self, ev: np.ndarray) -> np.ndarray:
+        return structured_events(ev["x"], ev["y"], ev["t"].astype(np.float64), ev["on"], where=f"{self.path}: events")
 
     # the Recording interface -------------------------------------------------------------------
     def frames(self) -> Iterator[FrameInfo]:

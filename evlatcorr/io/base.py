@@ -85,28 +85,71 @@ class SegmentEnd:
 SEGMENT_END = SegmentEnd()
 
 
-def structured_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> np.ndarray:
+def structured_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray,
+                      where: str | None = None) -> np.ndarray:
     """Pack columns into our structured layout: t as float64 µs, polarity {0,1}, ±1 or bool as ±1.
 
-    Columns may be 1-D or ``(N, 1)`` (some datasets store column vectors).
+    Columns may be 1-D or ``(N, 1)`` (some datasets store column vectors). They are validated the way
+    :class:`~evlatcorr.Events` validates its input, vectorised over the chunk: one length, integer
+    pixel coordinates, and polarities all in {0, 1}, all in {-1, +1}, or bool.
+
+    Args:
+        x, y, t, p: the columns (t already in µs).
+        where: the file and dataset they come from, to start error messages with; with it the
+            error is a :class:`RecordingError`, without a plain :class:`ValueError`.
+
+    Raises:
+        RecordingError: (a :class:`ValueError`) for columns of different lengths, non-integer
+            coordinates, or a polarity outside {0, 1} / {-1, +1} / bool.
 
     Example:
         >>> ev = structured_events(np.array([1]), np.array([2]), np.array([3.0]), np.array([0]))
         >>> int(ev["p"][0]), float(ev["t"][0])
         (-1, 3.0)
+        >>> try:
+        ...     structured_events(np.array([1]), np.array([2]), np.array([3.0]), np.array([5]), where="a.h5: /events")
+        ... except RecordingError as exc:
+        ...     print(exc)
+        a.h5: /events: polarity must be 0/1, -1/+1 or bool, got values [5]
     """
+    error = RecordingError if where else ValueError
+    prefix = f"{where}: " if where else ""
     x, y, t, p = (np.asarray(v).reshape(-1) for v in (x, y, t, p))
     n = len(t)
     if not len(x) == len(y) == len(p) == n:
-        raise ValueError(f"event columns differ in length: x {len(x)}, y {len(y)}, t {n}, p {len(p)}")
+        raise error(f"{prefix}event columns differ in length: x {len(x)}, y {len(y)}, t {n}, p {len(p)}")
+    for name, v in (("x", x), ("y", y)):
+        if v.dtype.kind == "f" and n and not bool(np.all(v == np.round(v))):
+            raise error(f"{prefix}{name} must hold integer pixel coordinates, got fractional or NaN values")
     out = np.empty(n, dtype=EVENT_DTYPE)
     out["x"], out["y"], out["t"] = x, y, t
-    if p.dtype == np.bool_:
-        out["p"] = np.where(p, 1, -1)
-    elif n:
-        # 0/1 and ±1 agree on "positive means ON"; only a 0 needs care: it is OFF in the 0/1 convention
-        out["p"] = np.where(p > 0, 1, -1)
+    out["p"] = _signed_polarity(p, error, prefix)
     return out
+
+
+def _signed_polarity(p: np.ndarray, error: type[ValueError], prefix: str) -> np.ndarray:
+    """±1 from polarities all in {0, 1}, all in {-1, +1}, or bool (vectorised, a few passes)."""
+    if p.dtype == np.bool_:
+        return np.where(p, 1, -1)
+    if not len(p):
+        return np.zeros(0, dtype=np.int8)
+    if p.dtype.kind in "iu":
+        lo, hi = int(p.min()), int(p.max())
+        bad = None if lo >= -1 and hi <= 1 else (p < -1) | (p > 1)
+        negative = lo == -1
+    elif p.dtype.kind == "f":
+        ok = (p == 1) | (p == 0) | (p == -1)  # False for NaN and fractions
+        bad = None if bool(ok.all()) else ~ok
+        negative = bool(np.any(p == -1))
+    else:
+        raise error(f"{prefix}polarity must be 0/1, -1/+1 or bool, got dtype {p.dtype}")
+    if bad is not None:
+        values = np.unique(p[bad])[:6].tolist()
+        raise error(f"{prefix}polarity must be 0/1, -1/+1 or bool, got values {values}")
+    if negative and bool(np.any(p == 0)):
+        raise error(f"{prefix}polarity mixes the 0/1 and -1/+1 conventions (it holds -1, 0 and 1)")
+    # 0/1 and ±1 agree on "positive means ON"; only a 0 needs care: it is OFF in the 0/1 convention
+    return np.where(p > 0, 1, -1)
 
 
 #: factors from a file's time unit to µs

@@ -127,9 +127,22 @@ class EventUtilsRecording(Recording):
             raise RecordingError(f"{self.path}: no /events/xs, ys, ts, ps: not an event_utils HDF5 file")
         with _open(self.path) as f:
             ts = f["events/ts"]
+            self._check_columns(f["events"])
             self.time_unit = self._detect_unit(f, ts) if time_unit == "auto" else time_unit
             self.scale = _UNITS[self.time_unit]
             self.sensor_size = self._sensor_size(f)
+
+    def _check_columns(self, g: h5py.Group) -> None:
+        """``/events/xs, ys, ts, ps`` must be columns of one length (checked from their shapes)."""
+        lengths = {}
+        for c in ("xs", "ys", "ts", "ps"):
+            shape = g[c].shape
+            if len(shape) not in (1, 2) or (len(shape) == 2 and shape[1] != 1):
+                raise RecordingError(f"{self.path}: /events/{c} must be a column (N,), got shape {shape}")
+            lengths[c] = shape[0]
+        if len(set(lengths.values())) > 1:
+            raise RecordingError(f"{self.path}: /events/xs, ys, ts, ps differ in length: "
+                                 + ", ".join(f"{c} {n}" for c, n in lengths.items()))
 
     def _detect_unit(self, f: h5py.File, ts: h5py.Dataset) -> str:
         unit = f.attrs.get("time_unit")
@@ -203,7 +216,8 @@ class EventUtilsRecording(Recording):
         return to_microseconds(t, self.scale)
 
     def _columns(self, g: h5py.Group, i: int, j: int) -> np.ndarray:
-        return structured_events(g["xs"][i:j], g["ys"][i:j], self._us(g["ts"][i:j].astype(np.float64)), g["ps"][i:j])
+        return structured_events(g["xs"][i:j], g["ys"][i:j], self._us(g["ts"][i:j].astype(np.float64)), g["ps"][i:j],
+                                 where=f"{self.path}: /events (events {i}..{j - 1})")
 
     def _segmented_chunks(self) -> Iterator[np.ndarray | SegmentEnd]:
         with _open(self.path) as f:
@@ -238,6 +252,8 @@ class EventUtilsRecording(Recording):
             events = self._slice(f, lo, hi)
             ts = f["events/ts"]
             first, last = (float(self._us(ts[0])), float(self._us(ts[-1]))) if ts.shape[0] else (None, -np.inf)
+        if len(events):  # what streaming checks chunk by chunk: sorted, finite, on the sensor
+            self._check_chunk(events, -np.inf, 0)
         self._warn_coverage(info, lo, hi, events, first, last, exhausted=last < hi)
         return self._batch(info, events, lo, hi)
 

@@ -129,6 +129,14 @@ class GemNpzRecording(Recording):
             events = events.item()
         if not isinstance(events, dict) or not {"x", "y", "t", "p"} <= set(events):
             raise RecordingError(f"{file}: 'events' must be a dict with x, y, t, p")
+        lengths = {k: np.asarray(events[k]).size for k in ("x", "y", "t", "p")}
+        if len(set(lengths.values())) > 1:
+            raise RecordingError(f"{file}: events x, y, t, p differ in length: "
+                                 + ", ".join(f"{k} {n}" for k, n in lengths.items()))
+        if "sharp_imgs" in data and "sharp_timestamps" in data:
+            images, stamps = len(np.asarray(data["sharp_imgs"])), np.asarray(data["sharp_timestamps"]).size
+            if images != stamps:
+                raise RecordingError(f"{file}: sharp_imgs holds {images} images but sharp_timestamps {stamps} times")
         data["events"] = events
         self._cache = (file, data)
         return data
@@ -190,8 +198,8 @@ class GemNpzRecording(Recording):
             if seg:
                 yield SegmentEnd()
             ev = self._load(file)["events"]
-            chunk = structured_events(np.asarray(ev["x"]), np.asarray(ev["y"]),
-                                      to_microseconds(ev["t"], self.scale), np.asarray(ev["p"]))
+            chunk = structured_events(np.asarray(ev["x"]), np.asarray(ev["y"]), to_microseconds(ev["t"], self.scale),
+                                      np.asarray(ev["p"]), where=f"{file}: events")
             if len(chunk) > 1 and np.any(chunk["t"][1:] < chunk["t"][:-1]):
                 chunk = chunk[np.argsort(chunk["t"], kind="stable")]
             if len(chunk):

@@ -63,6 +63,7 @@ from evlatcorr.io.base import (
     iter_events_as_chunks,
     structured_events,
 )
+from evlatcorr.io.outputs import default_file_mode
 
 __all__ = [
     "EventWriter",
@@ -113,6 +114,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     os.close(fd)
     try:
         yield Path(tmp)
+        os.chmod(tmp, default_file_mode())  # mkstemp makes it 0o600; a plain open() would honour the umask
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -180,17 +182,15 @@ class EventWriter:
         self.count = 0
 
     def append(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
-        """Append columns (t in µs, sorted and not before the previous chunk; p ±1 or 0/1)."""
-        t = np.asarray(t, dtype=np.float64)
+        """Append columns of one length (t in µs, sorted and not before the previous chunk; p 0/1, ±1 or bool)."""
+        x, y, t = np.asarray(x).reshape(-1), np.asarray(y).reshape(-1), np.asarray(t, dtype=np.float64).reshape(-1)
+        p = structured_events(x, y, t, p)["p"]  # one length, integer coordinates, polarity 0/1, ±1 or bool
         if len(t) == 0:
             return
         if t[0] < self.last or np.any(np.diff(t) < 0):
             raise ValueError("EventWriter.append needs events sorted by time, continuing the previous chunk")
-        x, y = np.asarray(x), np.asarray(y)
         if x.min() < 0 or y.min() < 0 or x.max() > 65535 or y.max() > 65535:
             raise ValueError("event coordinates must be in [0, 65535] to be stored as uint16")
-        p = np.asarray(p)
-        p = np.where(p > 0, 1, -1).astype(np.int8)
         n = self.count
         for name, values in (("x", x), ("y", y), ("t", t), ("p", p)):
             self.ds[name].resize((n + len(t),))
@@ -462,6 +462,40 @@ def _require(g: h5py.Group, names: Iterable[str], path: Any, group: str) -> None
             raise RecordingError(f"{path}: missing dataset /{name}{where}")
 
 
+def _dataset_name(group: str, name: str) -> str:
+    return f"/{name}" if group == "/" else f"/{group.strip('/')}/{name}"
+
+
+def _check_event_columns(g: h5py.Group, path: Any, group: str, events: str) -> None:
+    """``<events>/x, y, t, p`` must be 1-D (or ``(N, 1)``) columns of one length."""
+    lengths = {}
+    for c in ("x", "y", "t", "p"):
+        shape = g[f"{events}/{c}"].shape
+        if len(shape) not in (1, 2) or (len(shape) == 2 and shape[1] != 1):
+            raise RecordingError(f"{path}: {_dataset_name(group, f'{events}/{c}')} must be a column (N,), got shape "
+                                 f"{shape}")
+        lengths[c] = shape[0]
+    if len(set(lengths.values())) > 1:
+        raise RecordingError(f"{path}: {_dataset_name(group, events)}/x, y, t, p differ in length: "
+                             + ", ".join(f"{c} {n}" for c, n in lengths.items()))
+
+
+def _check_frame_arrays(g: h5py.Group, path: Any, group: str) -> None:
+    """Every per-frame dataset under ``frames/`` (exposures, sharp, latency, ...) has one entry per frame."""
+    blurry = g["frames/blurry"]
+    if blurry.ndim != 4:
+        raise RecordingError(f"{path}: {_dataset_name(group, 'frames/blurry')} must be (F, C, H, W), got shape "
+                             f"{blurry.shape}")
+    count = blurry.shape[0]
+    for name, ds in g["frames"].items():
+        if isinstance(ds, h5py.Dataset) and ds.ndim >= 1 and ds.shape[0] != count:
+            raise RecordingError(f"{path}: {_dataset_name(group, f'frames/{name}')} has {ds.shape[0]} entries but "
+                                 f"{_dataset_name(group, 'frames/blurry')} has {count} frames")
+        if isinstance(ds, h5py.Dataset) and ds.ndim == 0:
+            raise RecordingError(f"{path}: {_dataset_name(group, f'frames/{name}')} is a scalar, expected one "
+                                 f"entry per frame ({count})")
+
+
 def is_sequence_file(path: str | Path) -> bool:
     """Whether ``path`` is one of our HDF5 files holding sequences with ideal and delayed events
     (written by :func:`write_sequence` / :func:`write_dataset`), as opposed to events alone."""
@@ -478,8 +512,12 @@ def num_sequences(path: str | Path) -> int:
         return len(_sequence_groups(f, path))
 
 
-def _read_events(g: h5py.Group, size: tuple[int, int]) -> Events:
-    return Events(g["x"][:].astype(np.int64), g["y"][:].astype(np.int64), g["t"][:], g["p"][:], sensor_size=size)
+def _read_events(g: h5py.Group, size: tuple[int, int], where: str = "") -> Events:
+    chunk = structured_events(g["x"][:], g["y"][:], g["t"][:], g["p"][:], where=where or g.name)
+    try:
+        return Events.from_numpy(chunk, sensor_size=size)
+    except ValueError as exc:
+        raise RecordingError(f"{where or g.name}: {exc}") from exc
 
 
 def _read_sequence_group(f: h5py.File, name: str, path: Any) -> Any:
@@ -491,6 +529,12 @@ def _read_sequence_group(f: h5py.File, name: str, path: Any) -> Any:
     missing = [n for n in needed if n not in g]
     if missing:
         raise RecordingError(f"{path}: /{name.strip('/')} is not a simulated sequence (missing {missing})")
+    for events in ("events", "ideal_events"):
+        _check_event_columns(g, path, name, events)
+    _check_frame_arrays(g, path, name)
+    if g["targets/times"].shape[:1] != g["targets/frames"].shape[:1]:
+        raise RecordingError(f"{path}: {_dataset_name(name, 'targets/times')} has {g['targets/times'].shape[:1]} "
+                             f"entries but {_dataset_name(name, 'targets/frames')} {g['targets/frames'].shape[:1]}")
     size = tuple(int(v) for v in g.attrs.get("sensor_size", f.attrs["sensor_size"]))
     try:
         config = json.loads(g.attrs.get("config", "{}"))
@@ -502,8 +546,10 @@ def _read_sequence_group(f: h5py.File, name: str, path: Any) -> Any:
     t = lambda n: torch.from_numpy(_read_images(g[n]) if n.endswith(("blurry", "sharp", "frames")) else g[n][:])  # noqa: E731
     return SimulatedSequence(
         blurry=t("frames/blurry"), sharp=t("frames/sharp"), exposure_start=torch.from_numpy(start),
-        exposure_end=torch.from_numpy(end), ideal_events=_read_events(g["ideal_events"], size),
-        delayed_events=_read_events(g["events"], size), true_latency=t("frames/latency"),
+        exposure_end=torch.from_numpy(end),
+        ideal_events=_read_events(g["ideal_events"], size, f"{path}: {_dataset_name(name, 'ideal_events')}"),
+        delayed_events=_read_events(g["events"], size, f"{path}: {_dataset_name(name, 'events')}"),
+        true_latency=t("frames/latency"),
         target_times=t("targets/times"), target_frames=t("targets/frames"),
         threshold=float(g.attrs.get("threshold", 0.2)), seed=int(g.attrs.get("seed", 0)), config=config,
     )
@@ -580,6 +626,8 @@ class H5Recording(Recording):
                 g = f[name]
                 _require(g, (f"{group}/t", f"{group}/x", f"{group}/y", f"{group}/p", "frames/blurry",
                              "frames/exposure_start", "frames/exposure_end"), self.path, name)
+                _check_event_columns(g, self.path, name, group)
+                _check_frame_arrays(g, self.path, name)
                 sizes.add(tuple(int(v) for v in g.attrs.get("sensor_size", f.attrs.get("sensor_size", (0, 0)))))
             if len(sizes) != 1:
                 raise RecordingError(f"{self.path}: sequences of different sensor sizes {sorted(sizes)}; "
@@ -628,9 +676,10 @@ class H5Recording(Recording):
                     yield SegmentEnd()
                 g = f[name][self.event_group]
                 n = g["t"].shape[0]
+                where = f"{self.path}: {_dataset_name(name, self.event_group)}"
                 for i in range(0, n, self.chunk_events):
                     j = min(n, i + self.chunk_events)
-                    yield structured_events(g["x"][i:j], g["y"][i:j], g["t"][i:j], g["p"][i:j])
+                    yield structured_events(g["x"][i:j], g["y"][i:j], g["t"][i:j], g["p"][i:j], where=where)
 
     def _slice(self, f: h5py.File, seg: int, t0: float, t1: float) -> np.ndarray:
         g = f[self.groups[seg]][self.event_group]
@@ -638,7 +687,8 @@ class H5Recording(Recording):
         j = _bisect(g["t"], t1, lo=i)
         if j == i:
             return np.zeros(0, dtype=EVENT_DTYPE)
-        return structured_events(g["x"][i:j], g["y"][i:j], g["t"][i:j], g["p"][i:j])
+        where = f"{self.path}: {_dataset_name(self.groups[seg], self.event_group)}"
+        return structured_events(g["x"][i:j], g["y"][i:j], g["t"][i:j], g["p"][i:j], where=where)
 
     def events_between(self, t0: float, t1: float, segment: int | None = None) -> Events:
         """Events with ``t0 <= t < t1`` (µs) by binary search: reads only that slice."""
@@ -656,5 +706,7 @@ class H5Recording(Recording):
             events = self._slice(f, seg, lo, hi)
             t = f[self.groups[seg]][self.event_group]["t"]
             first, last = (float(t[0]), float(t[-1])) if t.shape[0] else (None, -np.inf)
+        if len(events):  # what streaming checks chunk by chunk: sorted, finite, on the sensor
+            self._check_chunk(events, -np.inf, seg)
         self._warn_coverage(info, lo, hi, events, first, last, exhausted=last < hi)
         return self._batch(info, events, lo, hi)

@@ -202,8 +202,8 @@ class HighREVRecording(Recording):
                 if missing:
                     raise RecordingError(f"{file}: not a HighREV event file, missing keys {sorted(missing)}")
                 x, y = (z["y"], z["x"]) if self.swap_xy else (z["x"], z["y"])
-                ev = structured_events(x, y, to_microseconds(z["timestamp"], self.scale),
-                                       z["polarity"])
+                ev = structured_events(x, y, to_microseconds(z["timestamp"], self.scale), z["polarity"],
+                                       where=str(file))
         except RecordingError:
             raise
         except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
