@@ -1,13 +1,19 @@
-"""The ``evlatcorr`` command line: correct, deblur, simulate and inspect event recordings.
+"""The ``evlatcorr`` command line: correct, deblur, interpolate, simulate and inspect event recordings.
 
-Exit codes: 0 success, 2 bad input (unreadable or unsupported file, bad option), 1 other errors.
+Exit codes: 0 success; 2 bad input (unreadable or unsupported file, bad option, unknown or absent device,
+an output that cannot be written or would replace an input); 130 / 143 interrupted (SIGINT / SIGTERM);
+1 other errors. A run that fails or is interrupted leaves no output behind and never touches its input.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
+import itertools
+import signal
 import sys
+import time
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -15,9 +21,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from evlatcorr.restore import INTERPOLATION_MODELS, MODELS
+
 __all__ = ["main"]
 
 EXIT_OK, EXIT_ERROR, EXIT_BAD_INPUT = 0, 1, 2
+GIF_FRAMES = 200  # frames kept in the side-by-side GIF (each held in memory until it is written)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -35,16 +44,29 @@ def _parser() -> argparse.ArgumentParser:
                                    "with a per-frame CSV report next to OUT.")
     c.add_argument("input", type=Path, help="recording to correct")
     c.add_argument("output", type=Path, help="corrected recording to write (.h5)")
+    c.add_argument("--report", type=Path, help="per-frame CSV report (default: OUT with the suffix .csv)")
     c.add_argument("--mode", choices=("constant", "spatial"), default="constant")
     c.add_argument("--curve", type=Path, help="trained latency curve checkpoint (mode spatial)")
     _common(c)
 
-    d = sub.add_parser("deblur", help="write EDI deblurred frames as PNG",
-                       description="Deblur every frame with EDI and write PNGs (blurry and EDI) into OUTDIR.")
+    d = sub.add_parser("deblur", help="deblur every frame with EDI or a network; PNGs, a side-by-side GIF, a CSV",
+                       description="Deblur every frame with --model and write into OUTDIR: PNGs per frame (blurry, "
+                                   "the model's output with the stamped events and, with --correct, with the "
+                                   "corrected events), side_by_side.gif (blurry | uncorrected | corrected) and "
+                                   "frames.csv (latency, threshold, confidence, events, time per frame). OUTDIR is "
+                                   "written under a temporary name and appears only when every frame is done.")
     d.add_argument("input", type=Path)
     d.add_argument("outdir", type=Path)
-    d.add_argument("--correct", action="store_true", help="correct the latency first (constant per frame)")
-    _common(d)
+    _restore_options(d, MODELS)
+
+    i = sub.add_parser("interpolate", help="frames between exposures with EDI or REFID; PNGs, a GIF, a CSV",
+                       description="Interpolate --num frames evenly between each pair of consecutive exposures "
+                                   "and write them into OUTDIR as PNGs (with the stamped and, with --correct, the "
+                                   "corrected events), side_by_side.gif and frames.csv (one row per pair).")
+    i.add_argument("input", type=Path)
+    i.add_argument("outdir", type=Path)
+    i.add_argument("--num", type=int, default=1, help="frames between two exposures (default: 1)")
+    _restore_options(i, INTERPOLATION_MODELS)
 
     s = sub.add_parser("simulate", help="write a simulated recording with known latency (evlatcorr HDF5)")
     s.add_argument("output", type=Path)
@@ -57,10 +79,21 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--latency-us", type=float, default=4000.0, help="constant latency")
     s.add_argument("--seed", type=int, default=0)
 
-    i = sub.add_parser("info", help="summarise a recording")
-    i.add_argument("input", type=Path)
-    i.add_argument("--exposure-us", type=float, help="exposure for files that only stamp frame times")
+    n = sub.add_parser("info", help="summarise a recording")
+    n.add_argument("input", type=Path)
+    n.add_argument("--exposure-us", type=float, help="exposure for files that only stamp frame times")
     return p
+
+
+def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> None:
+    p.add_argument("--model", choices=models, default="edi", help="restoration model (default: edi)")
+    p.add_argument("--ckpt", type=Path, help="network weights (default: the shipped ones)")
+    p.add_argument("--correct", nargs="?", const="constant", default="none", choices=("none", "constant", "spatial"),
+                   help="latency correction (default: none; --correct alone: constant)")
+    p.add_argument("--curve", type=Path, help="trained latency curve checkpoint (--correct spatial)")
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty OUTDIR")
+    p.add_argument("--max-frames", type=int, help="only the first N frames (default: all)")
+    _common(p)
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -93,14 +126,43 @@ def _open(args: argparse.Namespace, after_us: float | None = None):
     return rec
 
 
+def _device(text: str) -> torch.device:
+    """``--device``, refused (exit 2) when unknown or not on this machine."""
+    try:
+        device = torch.device(text)
+    except RuntimeError:
+        raise ValueError(f"--device: unknown device {text!r}; use cpu, cuda or cuda:N") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"--device {text}: CUDA is not available on this machine; use --device cpu")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"--device {text}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    elif device.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"--device {text}: MPS is not available on this machine; use --device cpu")
+    elif device.type not in ("cpu", "cuda", "mps"):
+        raise ValueError(f"--device: unsupported device {text!r}; use cpu, cuda or cuda:N")
+    return device
+
+
 def _corrector(args: argparse.Namespace, mode: str = "constant", curve: Path | None = None):
     from evlatcorr import EventLatencyCorrector
 
     kwargs = {}
     if curve is not None:
+        if mode != "spatial":
+            raise ValueError("--curve needs the spatial mode")
+        if not curve.is_file():
+            raise ValueError(f"--curve {curve}: no such file")
         kwargs["curve"] = str(curve)
-    return EventLatencyCorrector(mode=mode, threshold=_threshold(args.threshold), num_bins=args.num_bins,
-                                 search_range=tuple(args.search_us) if args.search_us else None, **kwargs)
+    theta = _threshold(args.threshold)
+    search = tuple(args.search_us) if args.search_us else None
+    if curve is None:
+        return EventLatencyCorrector(mode=mode, threshold=theta, num_bins=args.num_bins, search_range=search)
+    try:
+        return EventLatencyCorrector(mode=mode, threshold=theta, num_bins=args.num_bins, search_range=search,
+                                     **kwargs)
+    except Exception as exc:  # noqa: BLE001 - whatever the reader raised, the file is not a curve checkpoint
+        raise ValueError(f"--curve {curve}: not a latency curve checkpoint ({type(exc).__name__}: {exc})") from None
 
 
 def _progress(iterable, total: int | None, desc: str):
@@ -109,32 +171,73 @@ def _progress(iterable, total: int | None, desc: str):
     return tqdm(iterable, total=total, desc=desc, unit="frame", file=sys.stderr, disable=not sys.stderr.isatty())
 
 
+def _skip_warning(batch, why: str) -> None:
+    warnings.warn(f"frame {batch.meta['frame']}: {why}", stacklevel=2)
+
+
+def _latency_row(batch, out, theta, seconds: float, skipped: str = "") -> dict:
+    """One CSV row: the frame, its latency (mean, min, max of the map), θ, the search's confidence."""
+    row = {"frame": batch.meta["frame"], "exposure_start_us": f"{float(batch.exposure_start):.1f}",
+           "exposure_end_us": f"{float(batch.exposure_end):.1f}"}
+    if out is not None and out.latency is not None:
+        lat = out.latency[0, 0]
+        cand, score = out.meta.get("etf_curve", (None, None))
+        finite = score[0][torch.isfinite(score[0])] if score is not None else None
+        row.update(latency_us=f"{float(lat.mean()):.1f}", latency_min_us=f"{float(lat.min()):.1f}",
+                   latency_max_us=f"{float(lat.max()):.1f}",
+                   score=f"{float(finite.min()):.5f}" if finite is not None and len(finite) else "",
+                   confidence=f"{float(out.meta['latency_confidence'][0]):.3f}"
+                   if "latency_confidence" in out.meta else "",
+                   fallback=int(bool(out.meta["latency_fallback"][0])) if "latency_fallback" in out.meta else "")
+        theta = out.meta.get("threshold", theta)
+    else:
+        row.update(latency_us="", latency_min_us="", latency_max_us="", score="", confidence="", fallback="")
+    theta = float(theta.flatten()[0]) if isinstance(theta, torch.Tensor) else theta
+    row.update(threshold=f"{theta:.4f}" if isinstance(theta, float) else str(theta),
+               events_in_window=len(batch.events), skipped=skipped, time_s=f"{seconds:.3f}")
+    return row
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["frame"])
+        w.writeheader()
+        w.writerows(rows)
+
+
 def cmd_correct(args: argparse.Namespace) -> int:
     import h5py
 
     from evlatcorr.io import EventUtilsRecording, EventWriter, write_event_utils
     from evlatcorr.io.h5 import _write_header, atomic_path
+    from evlatcorr.io.outputs import check_outputs
+    from evlatcorr.restore import has_events
 
+    report = args.report if args.report is not None else args.output.with_suffix(".csv")
+    if report.resolve() == args.output.resolve():
+        raise ValueError(f"the report {report} would replace the corrected recording {args.output}: name the "
+                         "output .h5 or pass --report")
+    check_outputs([args.input], files=[args.output, report])
+    device = _device(args.device)
     corrector = _corrector(args, args.mode, args.curve)
     high = args.search_us[1] if args.search_us else None
     rec = _open(args, after_us=high)
-    device = torch.device(args.device)
     rows, latencies, starts, ends, images = [], [], [], [], []
+    previous = 0.0
     for batch in _progress(rec, len(rec), "correct"):
-        out = corrector(batch.to(device))
+        t0 = time.perf_counter()
+        batch = batch.to(device)
+        h, w = batch.sensor_size
+        if not has_events(batch):  # nothing to estimate from: the previous frame's latency (or none)
+            _skip_warning(batch, f"no events in its exposure and search window; its events keep the previous "
+                                 f"frame's latency ({previous:.0f} us)")
+            out = batch.replace(latency=torch.full((1, 1, h, w), previous, dtype=torch.float64, device=device))
+            rows.append(_latency_row(batch, out, args.threshold, time.perf_counter() - t0, skipped="no events"))
+        else:
+            out = corrector(batch)
+            rows.append(_latency_row(batch, out, args.threshold, time.perf_counter() - t0))
         lat_map = out.latency[0, 0].cpu()
-        cand, etf = out.meta.get("etf_curve", (None, None))
-        rows.append({
-            "frame": batch.meta["frame"], "exposure_start_us": f"{float(batch.exposure_start):.1f}",
-            "exposure_end_us": f"{float(batch.exposure_end):.1f}", "latency_us": f"{float(lat_map.mean()):.1f}",
-            "latency_min_us": f"{float(lat_map.min()):.1f}", "latency_max_us": f"{float(lat_map.max()):.1f}",
-            "score": f"{float(etf[torch.isfinite(etf)].min()):.5f}" if etf is not None and bool(
-                torch.isfinite(etf).any()) else "",
-            "confidence": f"{float(out.meta['latency_confidence'][0]):.3f}" if "latency_confidence" in out.meta
-            else "",
-            "fallback": int(bool(out.meta["latency_fallback"][0])) if "latency_fallback" in out.meta else "",
-            "events_in_window": len(batch.events),
-        })
+        previous = float(lat_map.mean())
         latencies.append(lat_map)
         starts.append(float(batch.exposure_start))
         ends.append(float(batch.exposure_end))
@@ -142,34 +245,33 @@ def cmd_correct(args: argparse.Namespace) -> int:
     if not rows:
         raise ValueError(f"{args.input}: no frames")
     corrected = _corrected_stream(rec, np.array(starts), latencies)
-    report = args.output.with_suffix(".csv")
-    if isinstance(rec, EventUtilsRecording):
-        from evlatcorr.events import Events
+    with contextlib.ExitStack() as stack:  # both files appear only when both are complete
+        report_tmp = stack.enter_context(atomic_path(report))
+        if isinstance(rec, EventUtilsRecording):
+            from evlatcorr.events import Events
 
-        chunks = list(corrected)
-        cat = np.concatenate(chunks) if chunks else np.zeros(0)
-        ev = Events.from_numpy(cat, sensor_size=rec.sensor_size) if len(cat) else None
-        if ev is None:
-            raise ValueError(f"{args.input}: no events")
-        write_event_utils(args.output, ev, like=rec)
-    else:
-        with atomic_path(args.output) as tmp, h5py.File(tmp, "w") as f:
-            _write_header(f, rec.sensor_size, source=str(args.input), corrected_mode=args.mode)
-            writer = EventWriter(f, "events")
-            for chunk in corrected:
-                writer.append(chunk["x"], chunk["y"], chunk["t"], chunk["p"])
-            f.create_dataset("frames/blurry", data=np.stack(images), compression="lzf",
-                             chunks=(1, *images[0].shape))
-            f["frames/exposure_start"] = np.array(starts)
-            f["frames/exposure_end"] = np.array(ends)
-            f["frames/estimated_latency"] = np.array([float(m.mean()) for m in latencies], dtype=np.float32)
-    with atomic_path(report) as tmp:
-        with open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
+            chunks = list(corrected)
+            cat = np.concatenate(chunks) if chunks else np.zeros(0)
+            if not len(cat):
+                raise ValueError(f"{args.input}: no events")
+            write_event_utils(args.output, Events.from_numpy(cat, sensor_size=rec.sensor_size), like=rec)
+        else:
+            tmp = stack.enter_context(atomic_path(args.output))
+            with h5py.File(tmp, "w") as f:
+                _write_header(f, rec.sensor_size, source=str(args.input), corrected_mode=args.mode)
+                writer = EventWriter(f, "events")
+                for chunk in corrected:
+                    writer.append(chunk["x"], chunk["y"], chunk["t"], chunk["p"])
+                f.create_dataset("frames/blurry", data=np.stack(images), compression="lzf",
+                                 chunks=(1, *images[0].shape))
+                f["frames/exposure_start"] = np.array(starts)
+                f["frames/exposure_end"] = np.array(ends)
+                f["frames/estimated_latency"] = np.array([float(m.mean()) for m in latencies], dtype=np.float32)
+        _write_csv(report_tmp, rows)
+    skipped = sum(bool(r["skipped"]) for r in rows)
     print(f"wrote {args.output} and {report} ({len(rows)} frames, median latency "
-          f"{np.median([float(r['latency_us']) for r in rows]):.0f} us)")
+          f"{np.median([float(r['latency_us']) for r in rows]):.0f} us"
+          + (f", {skipped} without events kept the previous latency" if skipped else "") + ")")
     return EXIT_OK
 
 
@@ -203,33 +305,99 @@ def _corrected_stream(rec, starts: np.ndarray, latencies: list[torch.Tensor]):
 
 
 def cmd_deblur(args: argparse.Namespace) -> int:
+    return _restore(args, "deblur")
+
+
+def cmd_interpolate(args: argparse.Namespace) -> int:
+    if args.num < 1:
+        raise ValueError(f"--num must be >= 1, got {args.num}")
+    return _restore(args, "interpolation")
+
+
+def _restore(args: argparse.Namespace, task: str) -> int:
+    """deblur / interpolate: the model on every frame (or pair), with stamped and with corrected events."""
     from PIL import Image
 
-    from evlatcorr import edi_deblur
+    from evlatcorr.io.outputs import atomic_dir, check_outputs
+    from evlatcorr.restore import (
+        between_times,
+        build_model,
+        has_events,
+        needs_pairs,
+        pair_frames,
+        side_by_side,
+        to_uint8,
+    )
 
-    rec = _open(args, after_us=args.search_us[1] if args.search_us else None)
-    corrector = _corrector(args) if args.correct else None
-    args.outdir.mkdir(parents=True, exist_ok=True)
-    device = torch.device(args.device)
-    count = 0
-
-    def save(t: torch.Tensor, path: Path) -> None:
-        a = (t.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
-        Image.fromarray(a[0] if a.shape[0] == 1 else a.transpose(1, 2, 0)).save(path)
-
-    for batch in _progress(rec, len(rec), "deblur"):
-        batch = batch.to(device)
-        i = batch.meta["frame"]
-        if corrector is not None:
-            out = corrector(batch)
-            latent = out.latent
-        else:
-            latent = edi_deblur(batch.blurry, batch.events, batch.exposure_start, batch.exposure_end,
-                                _threshold(args.threshold), None, args.num_bins)
-        save(batch.blurry[0], args.outdir / f"frame_{i:05d}_blurry.png")
-        save(latent[0], args.outdir / f"frame_{i:05d}_edi{'_corrected' if args.correct else ''}.png")
-        count += 1
-    print(f"wrote {count} frames to {args.outdir}")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise ValueError(f"--max-frames must be >= 1, got {args.max_frames}")
+    check_outputs([args.input], folders=[args.outdir], overwrite_folders=args.overwrite)
+    device = _device(args.device)
+    model = build_model(args.model, task, args.ckpt, _threshold(args.threshold), args.num_bins).to(device)
+    corrector = None if args.correct == "none" else _corrector(args, args.correct, args.curve)
+    high = args.search_us[1] if args.search_us else None
+    rec = _open(args, after_us=high)
+    pairs = needs_pairs(args.model, task)
+    if pairs:  # the first frame's events must reach the next exposure's end, plus the latency searched
+        times = rec.frame_times()
+        reach = max((b[1] - a[1] for a, b in zip(times, times[1:]) if a[2] == b[2]), default=0.0)
+        rec.after_us = reach + (high if high is not None else max((e - s for s, e, _ in times), default=0.0))
+    name = args.model
+    rows, gif, count = [], [], 0
+    with atomic_dir(args.outdir, overwrite=args.overwrite) as tmp:
+        limit = len(rec) if args.max_frames is None else min(len(rec), args.max_frames)
+        frames_read = itertools.islice(rec, limit + 1 if pairs else limit)  # a pair reads one frame more
+        stream = itertools.islice(pair_frames(frames_read) if pairs else ((b, None) for b in frames_read), limit)
+        for batch, pair in _progress(stream, limit, task):
+            t0 = time.perf_counter()
+            i = batch.meta["frame"]
+            frames = (pair if pairs else batch)
+            if frames is None:
+                _skip_warning(batch, f"{name} {task} needs the next frame, and this is the last of its segment")
+                rows.append(_latency_row(batch, None, args.threshold, 0.0, skipped="no next frame"))
+                continue
+            frames = frames.to(device)
+            if task == "interpolation":
+                frames = frames.replace(target_times=between_times(frames, args.num))
+            elif args.model == "refid":
+                frames = frames.replace(target_times=((frames.exposure_start + frames.exposure_end) / 2)[:, None])
+            with torch.no_grad():
+                plain = model(frames).output
+            out, skipped = None, ""
+            corrected = plain
+            if corrector is not None:
+                if has_events(frames):
+                    out = corrector(frames)
+                    with torch.no_grad():
+                        corrected = model(out).output
+                else:
+                    skipped = "no events"
+                    _skip_warning(batch, "no events in its exposure and search window: not corrected")
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            rows.append(_latency_row(batch, out, args.threshold, time.perf_counter() - t0, skipped))
+            blurry = frames.blurry[0]
+            outputs = [plain[0]] if task == "deblur" and plain.dim() == 4 else list(plain[0])
+            fixed = [corrected[0]] if task == "deblur" and corrected.dim() == 4 else list(corrected[0])
+            if task == "deblur":
+                Image.fromarray(to_uint8(blurry)).save(tmp / f"frame_{i:05d}_blurry.png")
+            for k, (a, c) in enumerate(zip(outputs, fixed)):
+                tag = f"frame_{i:05d}" if task == "deblur" else f"frame_{i:05d}_{k + 1:02d}"
+                Image.fromarray(to_uint8(a)).save(tmp / f"{tag}_{name}.png")
+                if corrector is not None:
+                    Image.fromarray(to_uint8(c)).save(tmp / f"{tag}_{name}_corrected.png")
+                if len(gif) < GIF_FRAMES:
+                    panels = [blurry, a] + ([c] if corrector is not None else [])
+                    gif.append(Image.fromarray(side_by_side(panels)).quantize(colors=256))
+            count += 1
+        if not rows:
+            raise ValueError(f"{args.input}: no frames")
+        _write_csv(tmp / "frames.csv", rows)
+        if gif:
+            gif[0].save(tmp / "side_by_side.gif", save_all=True, append_images=gif[1:], duration=200, loop=0)
+    panels = "blurry | uncorrected" + (" | corrected" if corrector is not None else "")
+    print(f"wrote {count} {'frames' if task == 'deblur' else 'pairs'} to {args.outdir} ({name}; side_by_side.gif: "
+          f"{panels}{f', first {GIF_FRAMES}' if count > GIF_FRAMES else ''}; frames.csv)")
     return EXIT_OK
 
 
@@ -254,18 +422,42 @@ def cmd_info(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so every ``finally`` and temporary-file cleanup runs."""
+
+
+def _on_sigterm(signum, frame) -> None:  # noqa: ARG001
+    raise _Terminated()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from evlatcorr.io import RecordingError
 
     args = _parser().parse_args(argv)
-    command = {"correct": cmd_correct, "deblur": cmd_deblur, "simulate": cmd_simulate, "info": cmd_info}
+    command = {"correct": cmd_correct, "deblur": cmd_deblur, "interpolate": cmd_interpolate,
+               "simulate": cmd_simulate, "info": cmd_info}
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if _main_thread() else None
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("default")
             return command[args.command](args)
-    except (RecordingError, ValueError, FileNotFoundError) as exc:
+    except (RecordingError, ValueError, OSError) as exc:  # bad input, or an OS error on the user's paths
         print(f"evlatcorr {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except KeyboardInterrupt as exc:
+        terminated = isinstance(exc, _Terminated)
+        print(f"evlatcorr {args.command}: {'terminated' if terminated else 'interrupted'}; no output was written",
+              file=sys.stderr)
+        return 128 + (signal.SIGTERM if terminated else signal.SIGINT)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
 
 
 if __name__ == "__main__":

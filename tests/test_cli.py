@@ -1,15 +1,23 @@
 from __future__ import annotations
 
 import csv
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+import torch
+from PIL import Image
 
-from evlatcorr.io import H5Recording
+from evlatcorr.io import H5Recording, write_sequence
+from evlatcorr.simulate import simulate
+
+DAVIS = Path(__file__).resolve().parents[2] / "shared" / "data" / "davis346"
 
 
 def run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
@@ -66,7 +74,159 @@ def test_deblur_writes_pngs(simulated, tmp_path):
     r = run("deblur", str(simulated), str(tmp_path / "png"), "--num-bins", "100", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert sorted(p.name for p in (tmp_path / "png").iterdir()) == [
-        "frame_00000_blurry.png", "frame_00000_edi.png", "frame_00001_blurry.png", "frame_00001_edi.png"]
+        "frame_00000_blurry.png", "frame_00000_edi.png", "frame_00001_blurry.png", "frame_00001_edi.png",
+        "frames.csv", "side_by_side.gif"]
+    assert os.stat(tmp_path / "png").st_mode & 0o777 == 0o777 & ~_umask()
+    assert os.stat(tmp_path / "png" / "frames.csv").st_mode & 0o777 == 0o666 & ~_umask()
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _check_restored(outdir: Path, model: str, frames: int, size: tuple[int, int], corrected: bool,
+                    per_frame: int = 1, blurry: bool = True) -> list[dict]:
+    rows = list(csv.DictReader(open(outdir / "frames.csv")))
+    assert len(rows) == frames
+    outputs = sorted(outdir.glob(f"frame_*_{model}.png"))
+    assert len(sorted(outdir.glob(f"frame_*_{model}_corrected.png"))) == (len(outputs) if corrected else 0)
+    done = [r for r in rows if not r["skipped"]]
+    assert len(outputs) == len(done) * per_frame and done
+    assert len(list(outdir.glob("frame_*_blurry.png"))) == (len(done) if blurry else 0)
+    for path in outputs[:2]:
+        assert Image.open(path).size == (size[1], size[0])  # PIL: (W, H)
+    gif = Image.open(outdir / "side_by_side.gif")
+    assert gif.size == ((size[1] * (3 if corrected else 2) + (4 if corrected else 2)), size[0])
+    if corrected:
+        assert all(float(r["latency_us"]) >= 0 and r["threshold"] and int(r["events_in_window"]) > 0 for r in done)
+    return rows
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model", ["edi", "efnet", "gem", "refid"])
+def test_deblur_every_model(simulated, tmp_path, model):
+    out = tmp_path / model
+    r = run("deblur", str(simulated), str(out), "--model", model, "--correct", "constant", "--num-bins", "100",
+            cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    rows = _check_restored(out, model, 2, (48, 64), corrected=True)
+    # REFID reads two frames: the last one has no next frame and is reported as skipped
+    assert [r["skipped"] for r in rows] == (["", "no next frame"] if model == "refid" else ["", ""])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model", ["edi", "refid"])
+def test_interpolate(simulated, tmp_path, model):
+    out = tmp_path / model
+    r = run("interpolate", str(simulated), str(out), "--model", model, "--num", "3" if model == "edi" else "1",
+            "--num-bins", "100", *(["--correct"] if model == "edi" else []), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    _check_restored(out, model, 2, (48, 64), corrected=model == "edi", per_frame=3 if model == "edi" else 1,
+                    blurry=False)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (DAVIS / "cradle_lowlight.aedat4").is_file(), reason="shared DAVIS346 data absent")
+@pytest.mark.parametrize("model", ["efnet", "gem"])
+def test_deblur_a_davis346_recording(tmp_path, model):
+    out = tmp_path / model
+    r = run("deblur", str(DAVIS / "cradle_lowlight.aedat4"), str(out), "--model", model, "--correct",
+            "--max-frames", "2", "--num-bins", "100", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    _check_restored(out, model, 2, (260, 346), corrected=True)  # 346 is no multiple of 4 or 16: padded
+
+
+@pytest.fixture(scope="module")
+def first_frame_empty(tmp_path_factory):
+    """A recording whose first frame has no events in its window (a static start)."""
+    seq = simulate("coffee", num_frames=3, height=32, width=48, latency_us=2000.0, seed=3)
+    ev = seq.delayed_events
+    keep = ev.t > float(seq.exposure_end[0]) + 5000.0  # none in frame 0's window with --search-us 0 5000
+    seq.delayed_events = type(ev)(ev.x[keep], ev.y[keep], ev.t[keep], ev.p[keep], sensor_size=ev.sensor_size)
+    path = tmp_path_factory.mktemp("empty") / "empty.h5"
+    write_sequence(path, seq)
+    return path
+
+
+def test_correct_keeps_going_past_a_frame_without_events(first_frame_empty, tmp_path):
+    out = tmp_path / "c.h5"
+    r = run("correct", str(first_frame_empty), str(out), "--num-bins", "100", "--search-us", "0", "5000",
+            cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "frame 0: no events" in r.stderr
+    rows = list(csv.DictReader(open(out.with_suffix(".csv"))))
+    assert [r["skipped"] for r in rows] == ["no events", "", ""]
+    assert float(rows[0]["latency_us"]) == 0.0 and float(rows[1]["latency_us"]) > 0.0
+
+
+def _snapshot(path: Path) -> bytes:
+    return path.read_bytes()
+
+
+def test_correct_refuses_outputs_that_destroy_files(simulated, tmp_path):
+    before = _snapshot(simulated)
+    r = run("correct", str(simulated), str(simulated), cwd=tmp_path)  # output == input
+    assert r.returncode == 2 and "is the input" in r.stderr and "Traceback" not in r.stderr
+    assert _snapshot(simulated) == before
+    r = run("correct", str(simulated), str(tmp_path / "out.csv"), cwd=tmp_path)  # report == output
+    assert r.returncode == 2 and "would replace" in r.stderr
+    assert not (tmp_path / "out.csv").exists()
+    (tmp_path / "o.csv").mkdir()  # the report's name is a folder; o.h5 holds a user's file
+    (tmp_path / "o.h5").write_bytes(b"precious")
+    r = run("correct", str(simulated), str(tmp_path / "o.h5"), cwd=tmp_path)
+    assert r.returncode == 2 and "is a directory" in r.stderr and "Traceback" not in r.stderr
+    assert (tmp_path / "o.h5").read_bytes() == b"precious"
+    assert not list(tmp_path.glob(".*.tmp"))
+    (tmp_path / "file").write_text("x")
+    r = run("correct", str(simulated), str(tmp_path / "file" / "out.h5"), cwd=tmp_path)  # parent is a file
+    assert r.returncode == 2 and "not a folder" in r.stderr
+
+
+def test_deblur_refuses_bad_options_with_exit_2(simulated, tmp_path):
+    cases = [
+        (["--device", "foo"], "unknown device"),
+        (["--model", "unet"], "invalid choice"),
+        (["--correct", "spatial", "--curve", str(simulated)], "not a latency curve"),
+    ]
+    if not torch.cuda.is_available():
+        cases.append((["--device", "cuda"], "CUDA is not available"))
+    for extra, message in cases:
+        r = run("deblur", str(simulated), str(tmp_path / "o"), *extra, cwd=tmp_path)
+        assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr, (extra, r.stderr)
+        assert not (tmp_path / "o").exists()
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "mine.png").write_bytes(b"x")
+    r = run("deblur", str(simulated), str(tmp_path / "full"), cwd=tmp_path)
+    assert r.returncode == 2 and "not empty" in r.stderr
+    assert sorted(p.name for p in (tmp_path / "full").iterdir()) == ["mine.png"]
+
+
+@pytest.mark.slow
+def test_deblur_with_the_weights_of_another_model_exits_2(simulated, tmp_path):
+    from evlatcorr.adapters.checkpoint import resolve_checkpoint
+
+    efnet = resolve_checkpoint("default", "efnet")
+    r = run("deblur", str(simulated), str(tmp_path / "o"), "--model", "gem", "--ckpt", str(efnet), cwd=tmp_path)
+    assert r.returncode == 2 and "does not match" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_sigterm_leaves_nothing_behind(simulated, tmp_path):
+    out = tmp_path / "o"
+    proc = subprocess.Popen([sys.executable, "-m", "evlatcorr", "deblur", str(simulated), str(out), "--model",
+                             "efnet", "--correct"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(".o.*.tmp/*.png")) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)  # until the first PNG is written
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM and "no output was written" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
 def test_bad_input_exit_code(tmp_path):
