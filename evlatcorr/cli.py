@@ -98,7 +98,9 @@ def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> Non
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
-    p.add_argument("--threshold", default="0.2", help="contrast threshold, or 'auto' (default: 0.2)")
+    p.add_argument("--threshold", default="auto",
+                   help="contrast threshold θ, or 'auto' (default): one θ for the recording, the one that makes "
+                        "consecutive frames' EDI reconstructions agree best (per frame when it has one frame)")
     p.add_argument("--num-bins", type=int, default=500, help="EDI sub-intervals per exposure (default: 500)")
     p.add_argument("--search-us", type=float, nargs=2, metavar=("LOW", "HIGH"),
                    help="latency search range in us (default: 0 to the exposure time)")
@@ -144,7 +146,24 @@ def _device(text: str) -> torch.device:
     return device
 
 
-def _corrector(args: argparse.Namespace, mode: str = "constant", curve: Path | None = None):
+def _recording_threshold(args: argparse.Namespace, rec, device: torch.device) -> float | str:
+    """``--threshold``: a number, or for ``auto`` one θ for the recording (two-frame consistency)."""
+    from evlatcorr.restore import recording_threshold
+
+    theta = _threshold(args.threshold)
+    if theta != "auto":
+        return theta
+    found = recording_threshold(rec, tuple(args.search_us) if args.search_us else None, device=device)
+    if found is None:
+        warnings.warn("no pair of consecutive frames with events: the contrast threshold is estimated per frame",
+                      stacklevel=2)
+        return "auto"
+    print(f"contrast threshold: {found:.3f} (auto: two-frame consistency of the first frames)", file=sys.stderr)
+    return found
+
+
+def _corrector(args: argparse.Namespace, mode: str = "constant", curve: Path | None = None,
+               theta: float | str = 0.2):
     from evlatcorr import EventLatencyCorrector
 
     kwargs = {}
@@ -154,7 +173,6 @@ def _corrector(args: argparse.Namespace, mode: str = "constant", curve: Path | N
         if not curve.is_file():
             raise ValueError(f"--curve {curve}: no such file")
         kwargs["curve"] = str(curve)
-    theta = _threshold(args.threshold)
     search = tuple(args.search_us) if args.search_us else None
     if curve is None:
         return EventLatencyCorrector(mode=mode, threshold=theta, num_bins=args.num_bins, search_range=search)
@@ -219,9 +237,11 @@ def cmd_correct(args: argparse.Namespace) -> int:
                          "output .h5 or pass --report")
     check_outputs([args.input], files=[args.output, report])
     device = _device(args.device)
-    corrector = _corrector(args, args.mode, args.curve)
+    _threshold(args.threshold)  # a bad value fails before any reading
     high = args.search_us[1] if args.search_us else None
     rec = _open(args, after_us=high)
+    theta = _recording_threshold(args, rec, device)
+    corrector = _corrector(args, args.mode, args.curve, theta)
     rows, latencies, starts, ends, images = [], [], [], [], []
     previous = 0.0
     for batch in _progress(rec, len(rec), "correct"):
@@ -232,10 +252,10 @@ def cmd_correct(args: argparse.Namespace) -> int:
             _skip_warning(batch, f"no events in its exposure and search window; its events keep the previous "
                                  f"frame's latency ({previous:.0f} us)")
             out = batch.replace(latency=torch.full((1, 1, h, w), previous, dtype=torch.float64, device=device))
-            rows.append(_latency_row(batch, out, args.threshold, time.perf_counter() - t0, skipped="no events"))
+            rows.append(_latency_row(batch, out, theta, time.perf_counter() - t0, skipped="no events"))
         else:
             out = corrector(batch)
-            rows.append(_latency_row(batch, out, args.threshold, time.perf_counter() - t0))
+            rows.append(_latency_row(batch, out, theta, time.perf_counter() - t0))
         lat_map = out.latency[0, 0].cpu()
         previous = float(lat_map.mean())
         latencies.append(lat_map)
@@ -325,6 +345,7 @@ def _restore(args: argparse.Namespace, task: str) -> int:
         has_events,
         needs_pairs,
         pair_frames,
+        pair_reach_us,
         side_by_side,
         to_uint8,
     )
@@ -333,15 +354,17 @@ def _restore(args: argparse.Namespace, task: str) -> int:
         raise ValueError(f"--max-frames must be >= 1, got {args.max_frames}")
     check_outputs([args.input], folders=[args.outdir], overwrite_folders=args.overwrite)
     device = _device(args.device)
-    model = build_model(args.model, task, args.ckpt, _threshold(args.threshold), args.num_bins).to(device)
-    corrector = None if args.correct == "none" else _corrector(args, args.correct, args.curve)
+    _threshold(args.threshold)  # a bad value fails before any reading
+    model = build_model(args.model, task, args.ckpt, 0.2, args.num_bins).to(device)  # loads the weights first
     high = args.search_us[1] if args.search_us else None
     rec = _open(args, after_us=high)
+    theta = _recording_threshold(args, rec, device) if args.model == "edi" or args.correct != "none" else 0.2
+    if args.model == "edi":
+        model = build_model(args.model, task, None, theta, args.num_bins)
+    corrector = None if args.correct == "none" else _corrector(args, args.correct, args.curve, theta)
     pairs = needs_pairs(args.model, task)
     if pairs:  # the first frame's events must reach the next exposure's end, plus the latency searched
-        times = rec.frame_times()
-        reach = max((b[1] - a[1] for a, b in zip(times, times[1:]) if a[2] == b[2]), default=0.0)
-        rec.after_us = reach + (high if high is not None else max((e - s for s, e, _ in times), default=0.0))
+        rec.after_us = pair_reach_us(rec, high)
     name = args.model
     rows, gif, count = [], [], 0
     with atomic_dir(args.outdir, overwrite=args.overwrite) as tmp:
@@ -354,7 +377,7 @@ def _restore(args: argparse.Namespace, task: str) -> int:
             frames = (pair if pairs else batch)
             if frames is None:
                 _skip_warning(batch, f"{name} {task} needs the next frame, and this is the last of its segment")
-                rows.append(_latency_row(batch, None, args.threshold, 0.0, skipped="no next frame"))
+                rows.append(_latency_row(batch, None, theta, 0.0, skipped="no next frame"))
                 continue
             frames = frames.to(device)
             if task == "interpolation":
@@ -375,7 +398,7 @@ def _restore(args: argparse.Namespace, task: str) -> int:
                     _skip_warning(batch, "no events in its exposure and search window: not corrected")
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
-            rows.append(_latency_row(batch, out, args.threshold, time.perf_counter() - t0, skipped))
+            rows.append(_latency_row(batch, out, theta, time.perf_counter() - t0, skipped))
             blurry = frames.blurry[0]
             outputs = [plain[0]] if task == "deblur" and plain.dim() == 4 else list(plain[0])
             fixed = [corrected[0]] if task == "deblur" and corrected.dim() == 4 else list(corrected[0])

@@ -36,7 +36,10 @@ def correct_constant_latency(
 
     Args:
         frames: the batch; each sample's events must reach ``exposure_end + search_range[1]``.
-        threshold: contrast threshold θ, or ``"auto"`` (estimated by golden-section search).
+        threshold: contrast threshold θ, or ``"auto"``: for pairs (``blurry_next`` set) one θ for the batch
+            that makes both frames' reconstructions agree
+            (:func:`~evlatcorr.consistency.estimate_recording_threshold`), else per frame by
+            :func:`~evlatcorr.edi.estimate_threshold`; both at the latency found with θ = 0.2.
         num_bins: sub-intervals of the exposure for EDI (paper: 500).
         search_range: ``(low, high)`` µs, finite, ``high > low``; default 0 to the exposure time of each
             frame. The latency found lies in it.
@@ -72,8 +75,14 @@ def correct_constant_latency(
         first = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
                                         0.2, num_bins, search_range, num_candidates, False, previous_latency,
                                         epsilon, window, sigma_us, score=score)
-        theta = estimate_threshold(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                                   latency=first.latency, num_bins=num_bins)
+        if frames.blurry_next is not None and frames.exposure_start_next is not None:
+            # pairs: one θ that makes both frames' reconstructions agree between the exposures
+            from evlatcorr.consistency import estimate_recording_threshold
+
+            theta = estimate_recording_threshold(frames, latency=first.latency)
+        else:
+            theta = estimate_threshold(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                                       latency=first.latency, num_bins=num_bins)
     result = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
                                      theta, num_bins, search_range, num_candidates, refine, previous_latency,
                                      epsilon, window, sigma_us, score=score)
@@ -108,7 +117,8 @@ class EventLatencyCorrector(nn.Module):
 
     Args:
         mode: ``"constant"`` (one latency per frame) or ``"spatial"`` (a per-pixel map).
-        threshold: contrast threshold θ of the events, or ``"auto"``.
+        threshold: contrast threshold θ of the events, or ``"auto"`` (see :func:`correct_constant_latency`;
+            for a recording the command line estimates one θ from its first frame pairs).
         num_bins: sub-intervals of the exposure used by EDI (paper: 500).
         search_range: ``(low, high)`` µs, finite, ``high > low``; default 0 to each frame's exposure time.
         num_candidates: coarse candidates over the search range (default 100).

@@ -7,6 +7,7 @@ reads ``frames.corrected`` when a corrector filled it).
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterable, Iterator
 
 import numpy as np
@@ -16,7 +17,7 @@ from torch import Tensor, nn
 from evlatcorr.frames import EventFrames
 
 __all__ = ["MODELS", "INTERPOLATION_MODELS", "build_model", "needs_pairs", "pair_frames", "between_times",
-           "has_events", "to_uint8", "side_by_side"]
+           "has_events", "pair_reach_us", "recording_threshold", "to_uint8", "side_by_side"]
 
 MODELS = ("edi", "efnet", "gem", "refid")
 INTERPOLATION_MODELS = ("edi", "refid")
@@ -121,6 +122,59 @@ def has_events(frames: EventFrames) -> bool:
     some)."""
     inside = frames.events.window(frames.exposure_start, frames.exposure_end + frames.exposure_time)
     return bool((inside.counts() > 0).all())
+
+
+def pair_reach_us(rec, search_high_us: float | None = None) -> float:
+    """How far past a frame's exposure end its events must reach for pairs: to the next exposure's end,
+    plus the latest latency searched (default: the longest exposure)."""
+    times = rec.frame_times()
+    reach = max((b[1] - a[1] for a, b in zip(times, times[1:]) if a[2] == b[2]), default=0.0)
+    high = search_high_us if search_high_us is not None else max((e - s for s, e, _ in times), default=0.0)
+    return reach + high
+
+
+def recording_threshold(rec, search_range: tuple[float, float] | None = None, num_bins: int = 200,
+                        device: torch.device | str = "cpu", max_pairs: int = 3, scan_frames: int = 12) -> float | None:
+    """One contrast threshold θ for a recording, from its first frames (two-frame consistency).
+
+    Among the first ``scan_frames`` frame pairs, the ``max_pairs`` with the most events in the first
+    exposure are used: each gets its latency from the constant corrector (θ = 0.2 for the search),
+    then :func:`~evlatcorr.consistency.estimate_recording_threshold`; the median θ is returned.
+
+    Args:
+        rec: a :class:`~evlatcorr.io.Recording`; its ``after_us`` is changed for the pass and restored.
+        search_range: the latency search range, µs (default: 0 to the exposure time).
+        num_bins: EDI sub-intervals per exposure.
+        device: where to compute.
+        max_pairs: pairs used.
+        scan_frames: frames looked at.
+
+    Returns:
+        θ, or None when the recording has no pair of frames with events (use a per-frame estimate).
+    """
+    from evlatcorr.consistency import estimate_recording_threshold
+    from evlatcorr.correction import EventLatencyCorrector
+
+    saved = rec.after_us
+    rec.after_us = pair_reach_us(rec, None if search_range is None else search_range[1])
+    try:
+        candidates = []
+        for _, pair in itertools.islice(pair_frames(itertools.islice(rec, scan_frames + 1)), scan_frames):
+            if pair is not None and has_events(pair):
+                inside = pair.events.window(pair.exposure_start, pair.exposure_end)
+                candidates.append((len(inside), pair))
+    finally:
+        rec.after_us = saved
+    candidates.sort(key=lambda c: -c[0])
+    corrector = EventLatencyCorrector(threshold=0.2, num_bins=num_bins, search_range=search_range)
+    thetas = []
+    for _, pair in candidates[:max_pairs]:
+        pair = pair.to(device)
+        latency = corrector(pair).latency.mean(dim=(1, 2, 3))
+        thetas.append(estimate_recording_threshold(pair, latency=latency, num_bins=num_bins))
+    if not thetas:
+        return None
+    return sorted(thetas)[len(thetas) // 2]
 
 
 def to_uint8(image: Tensor) -> np.ndarray:

@@ -239,3 +239,14 @@ def test_bad_input_exit_code(tmp_path):
     assert r.returncode == 2 and "no such file" in r.stderr
     r = run("deblur", str(junk), str(tmp_path / "o"), "--threshold", "-1", cwd=tmp_path)
     assert r.returncode == 2
+
+
+def test_correct_estimates_the_recordings_threshold_by_default(tmp_path):
+    seq = simulate("astronaut", num_frames=3, height=64, width=80, threshold=0.5, latency_us=3000.0, seed=1)
+    write_sequence(tmp_path / "theta05.h5", seq)
+    r = run("correct", str(tmp_path / "theta05.h5"), str(tmp_path / "c.h5"), "--num-bins", "200", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "contrast threshold" in r.stderr
+    rows = list(csv.DictReader(open(tmp_path / "c.csv")))
+    thresholds = {float(row["threshold"]) for row in rows}
+    assert len(thresholds) == 1 and abs(thresholds.pop() - 0.5) < 0.075  # one θ per recording, within 15 %

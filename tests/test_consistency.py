@@ -1,0 +1,48 @@
+from __future__ import annotations
+
+import pytest
+import torch
+
+from evlatcorr import EventLatencyCorrector
+from evlatcorr.consistency import estimate_recording_threshold, pair_disagreement
+from evlatcorr.simulate import simulate
+
+
+@pytest.fixture(scope="module")
+def pairs_theta_05():
+    """Three pairs of a recording made with θ = 0.5 and a 3 ms latency."""
+    seq = simulate("astronaut", num_frames=4, height=64, width=80, threshold=0.5, latency_us=3000.0, seed=1)
+    return seq.pairs("delayed", after_us=20000.0)
+
+
+def test_disagreement_shapes_and_errors(pairs_theta_05):
+    d = pair_disagreement(pairs_theta_05, 0.5, 3000.0)
+    assert d.shape == (3,) and bool((d > 0).all())
+    per_pair = pair_disagreement(pairs_theta_05, 0.5, torch.full((3,), 3000.0))
+    torch.testing.assert_close(d, per_pair)
+    single = pairs_theta_05.replace(blurry_next=None)
+    with pytest.raises(ValueError, match="blurry_next"):
+        pair_disagreement(single)
+    with pytest.raises(ValueError, match="latency"):
+        pair_disagreement(pairs_theta_05, 0.5, torch.zeros(2))
+    with pytest.raises(ValueError, match="bounds"):
+        estimate_recording_threshold(pairs_theta_05, bounds=(0.5, 0.1))
+
+
+def test_disagreement_is_lowest_near_the_true_threshold_and_latency(pairs_theta_05):
+    at = lambda theta, latency: float(pair_disagreement(pairs_theta_05, theta, latency).mean())  # noqa: E731
+    assert at(0.5, 3000.0) < at(0.5, 0.0)  # the stamped events disagree more than the corrected ones
+    assert at(0.5, 3000.0) < at(0.2, 3000.0) and at(0.5, 3000.0) < at(1.0, 3000.0)
+
+
+def test_recording_threshold_recovers_theta_and_keeps_the_latency(pairs_theta_05):
+    theta = estimate_recording_threshold(pairs_theta_05, latency=3000.0)
+    assert theta == pytest.approx(0.5, rel=0.15)
+    # estimated jointly with the latency (the search at θ = 0.2 first), as the command line does
+    first = EventLatencyCorrector(threshold=0.2)(pairs_theta_05).latency.mean(dim=(1, 2, 3))
+    joint = estimate_recording_threshold(pairs_theta_05, latency=first)
+    assert joint == pytest.approx(0.5, rel=0.15)
+    known = EventLatencyCorrector(threshold=0.5)(pairs_theta_05).latency.mean(dim=(1, 2, 3))
+    auto = EventLatencyCorrector(threshold=joint)(pairs_theta_05).latency.mean(dim=(1, 2, 3))
+    error_known, error_auto = (known - 3000.0).abs(), (auto - 3000.0).abs()
+    assert float(error_auto.median()) <= float(error_known.median()) + 100.0
