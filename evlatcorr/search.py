@@ -43,9 +43,9 @@ SCORES = ("etf", *_SPARSITY, "consensus")
 DEFAULT_SCORE = "consensus"
 # Memory bound of one strip of the prefix-sum table (float64), in elements.
 _STRIP_ELEMENTS = 4_000_000
-# Bytes per grid point and pixel that the search table keeps: the cumulative event sum (float32),
-# exp(θC − peak) and its prefix sum (float64).
-_TABLE_BYTES = 4 + 8 + 8
+# Bytes per grid point and pixel that the search table keeps: the cumulative event sum (float32) and the
+# prefix sum of exp(θC − peak) (float64).
+_TABLE_BYTES = 4 + 8
 # Peak bytes per grid point and pixel while one strip of the table is built (the integral's work
 # arrays, θC in float64, its exponential and prefix sum).
 _BUILD_BYTES = 64
@@ -389,18 +389,22 @@ class _ShiftTable:
         # a strip is bounded by _STRIP_ELEMENTS (kept table) or by the budget (streamed): let it through
         self.strip_budget = max(limit, rows * (num_bins + 2) * width * _BUILD_BYTES)
         # events ordered by row once, so each strip is a contiguous slice (not a mask over all events)
-        self.strips: list[Events | tuple[Tensor, Tensor, Tensor, Tensor]] = [
+        self.strips: list[Events | tuple[Tensor, Tensor, Tensor]] = [
             self._build(sub) if self.keep else sub for _, _, sub in _row_strips(events, rows)]
 
-    def _build(self, sub: Events) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """(C float32, peak of θC, exp(θC − peak), its prefix sum) of one strip."""
+    def _build(self, sub: Events) -> tuple[Tensor, Tensor, Tensor]:
+        """(C float32, peak of θC, prefix sum of exp(θC − peak)) of one strip.
+
+        exp(θC − peak) itself is not kept: :meth:`log_ratio` recomputes it on the two slices it reads
+        (the same float64 values), which saves 8 bytes per grid point and pixel.
+        """
         cum = cumulative_event_grid(sub, self.grid_start, self.width_us, self.num_bins, self.integral,
                                     memory_budget=self.strip_budget)[0]  # (M+1, h, W)
         x = self.theta * cum.double()
         peak = x.amax(0, keepdim=True)
-        y = torch.exp(x - peak)
-        prefix = torch.cat([torch.zeros_like(y[:1]), y.cumsum(0)])
-        return cum, peak, y, prefix
+        prefix = torch.zeros((x.shape[0] + 1, *x.shape[1:]), dtype=x.dtype, device=x.device)
+        torch.cumsum(torch.exp_(x.sub_(peak)), 0, out=prefix[1:])  # in place: one float64 copy at a time
+        return cum, peak, prefix
 
     def log_ratio(self, shifts: Tensor, reference: float = 0.5) -> Tensor:
         """log R for each shift, latent at ``start + reference * exposure`` (0.5 = mid-exposure)."""
@@ -409,8 +413,10 @@ class _ShiftTable:
         w_hi = reference * n - r_lo
         out = []
         for strip in self.strips:
-            cum, peak, y, prefix = strip if isinstance(strip, tuple) else self._build(strip)
-            total = prefix[shifts + n + 1] - prefix[shifts] - 0.5 * (y[shifts] + y[shifts + n])
+            cum, peak, prefix = strip if isinstance(strip, tuple) else self._build(strip)
+            y_lo = torch.exp(self.theta * cum[shifts].double() - peak)
+            y_hi = torch.exp(self.theta * cum[shifts + n].double() - peak)
+            total = prefix[shifts + n + 1] - prefix[shifts] - 0.5 * (y_lo + y_hi)
             total = total.clamp_min(1e-300) / n
             # θC from the float32 sum, as when the table was built (the same float64 values)
             x_lo, x_hi = self.theta * cum[shifts + r_lo].double(), self.theta * cum[shifts + r_hi].double()
