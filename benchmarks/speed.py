@@ -10,18 +10,26 @@ one-pass search, frames per second.
     python benchmarks/speed.py                  # DAVIS346 frame, 500 bins, 20 ms, ~1 M events, 100 candidates
     python benchmarks/speed.py --repeats 3 --naive-repeats 1 --height 130 --width 173
     python benchmarks/speed.py --part adapters --device cuda   # corrector vs EFNet/GEM/REFID forward
+    python benchmarks/speed.py --part memory --events 3000000  # peak memory of one constant correction
 
 ``--part adapters`` times, at the benchmark's resolution (256x336, 20 ms exposure), the constant
 corrector (``EventLatencyCorrector()``: search, shift, EDI latent) against each adapter's forward pass
 (event representation + network, eval mode, no grad) on the same frame, and prints the corrector's
 cost as a percentage of each (``corrector/EFNet: <p> %``). Weights do not change the time; the shipped
 ones are used when present.
+
+``--part memory`` runs one constant correction (``EventLatencyCorrector()``, the defaults) on a
+DAVIS346 frame (260x346) with ``--events`` events spread over its exposure and search window, in a
+fresh process, and prints its peak resident memory (``peak RSS: <MB>``, from ``getrusage``) and,
+on a GPU, ``torch.cuda.max_memory_allocated``.
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -78,11 +86,16 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="repeats of the one-pass search")
     parser.add_argument("--naive-repeats", type=int, default=3, help="repeats of the naive loop")
     parser.add_argument("--device", action="append", help="cpu and/or cuda (default: cpu, and cuda if present)")
-    parser.add_argument("--part", choices=("search", "adapters", "all"), default="all")
+    parser.add_argument("--part", choices=("search", "adapters", "memory", "all"), default="all")
+    parser.add_argument("--events", type=int, default=3_000_000, help="events of --part memory")
+    parser.add_argument("--memory-child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--adapter-size", type=int, nargs=2, default=(256, 336), metavar=("H", "W"),
                         help="frame size of --part adapters (the benchmark's)")
     args = parser.parse_args()
     devices = args.device or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+    if args.memory_child:
+        memory_child(torch.device(devices[0]), args)
+        return
 
     print(f"frame {args.width}x{args.height}, {args.bins} bins, exposure {args.exposure_us / 1000:.0f} ms, "
           f"{args.candidates} candidates, true latency 4000 us; torch {torch.__version__}, "
@@ -92,6 +105,41 @@ def main() -> None:
             bench_device(torch.device(name), args)
         if args.part in ("adapters", "all"):
             bench_adapters(torch.device(name), args)
+        if args.part in ("memory", "all"):
+            bench_memory(name, args)
+
+
+def bench_memory(device: str, args: argparse.Namespace) -> None:
+    """One constant correction in a fresh process (so nothing else raised its peak)."""
+    command = [sys.executable, __file__, "--memory-child", "--device", device, "--events", str(args.events),
+               "--height", str(args.height), "--width", str(args.width), "--bins", str(args.bins),
+               "--exposure-us", str(args.exposure_us), "--candidates", str(args.candidates)]
+    out = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+    print(out.strip())
+
+
+def memory_child(device: torch.device, args: argparse.Namespace) -> None:
+    from evlatcorr.events import Events
+    from evlatcorr.frames import EventFrames
+
+    g = torch.Generator().manual_seed(0)
+    h, w, n, exposure = args.height, args.width, args.events, args.exposure_us
+    blurry = torch.rand(1, 1, h, w, generator=g)
+    t = torch.sort(torch.rand(n, generator=g, dtype=torch.float64) * 2 * exposure).values
+    events = Events(torch.randint(0, w, (n,), generator=g), torch.randint(0, h, (n,), generator=g), t,
+                    torch.randint(0, 2, (n,), generator=g), sensor_size=(h, w))
+    frames = EventFrames(blurry, events, torch.tensor([0.0]), torch.tensor([exposure])).to(device)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    corrector = EventLatencyCorrector(num_bins=args.bins, num_candidates=args.candidates)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        corrector(frames)
+    elapsed = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    gpu = (f"; torch.cuda.max_memory_allocated: {torch.cuda.max_memory_allocated() / 2**20:.0f} MB"
+           if device.type == "cuda" else "")
+    print(f"[{device.type}] one constant correction, {w}x{h}, {n} events, {args.bins} bins, {args.candidates} "
+          f"candidates: {elapsed:.2f} s; peak RSS: {peak:.0f} MB (before the correction: {before:.0f} MB){gpu}")
 
 
 def _adapters() -> dict[str, torch.nn.Module]:

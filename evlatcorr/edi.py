@@ -51,6 +51,8 @@ __all__ = [
 # Bytes per exposure sample and pixel that reading the grid takes (positions, indices, the two
 # values read, their blend and the log-sum-exp's work), in units of the computation dtype's size.
 _READ_ITEMS = 7
+# exposure samples read from the grid at once by the EDI (bounds its working memory)
+_SAMPLE_CHUNK = 64
 
 
 def latency_map(latency: Tensor | float | None, batch_size: int, sensor_size: tuple[int, int],
@@ -275,7 +277,8 @@ def edi_log_ratio(
     limit = resolve_memory_budget(memory_budget)
     itemsize = torch.empty((), dtype=dtype).element_size()
     # bytes per pixel (all samples): the grid while built, and its reads at the exposure samples
-    per_pixel = b * ((m + 1) * grid_bytes_per_point(integral, dtype) + (num_bins + 1) * _READ_ITEMS * itemsize)
+    reads = min(num_bins + 1, _SAMPLE_CHUNK)
+    per_pixel = b * ((m + 1) * grid_bytes_per_point(integral, dtype) + reads * _READ_ITEMS * itemsize)
     rows = height if per_pixel * height * width <= limit else limit // (per_pixel * width)
     if rows < 1:
         check_memory(per_pixel * width, f"one row of the EDI (its event grid has {m + 1} points x {width} pixels)",
@@ -294,12 +297,17 @@ def _log_ratio_on_grid(cum: Tensor, g0: Tensor, width_us: Tensor, start: Tensor,
     b, dtype, device = cum.shape[0], cum.dtype, cum.device
     # fractional grid positions: exposure samples (B, n+1, h, W) and the reference (B, 1, h, W)
     offset = ((start - g0) / width_us).to(dtype).view(b, 1, 1, 1) + lat / width_us.to(dtype).view(b, 1, 1, 1)
-    j = torch.arange(num_bins + 1, device=device, dtype=dtype).view(1, -1, 1, 1)
-    c_exposure = sample_grid(cum, offset + j)
     ref_pos = offset + ((ref - start) / width_us).to(dtype).view(b, 1, 1, 1)
     c_ref = sample_grid(cum, ref_pos)
     logw = trapezoid_log_weights(num_bins, device, dtype).view(1, -1, 1, 1)
-    return torch.logsumexp(theta * (c_exposure - c_ref) + logw, dim=1, keepdim=True)
+    # the exposure's samples a chunk at a time (a running log-sum-exp): reading all n + 1 at once
+    # held several (B, n + 1, H, W) arrays, over a GB at DAVIS346 size
+    parts = []
+    for j0 in range(0, num_bins + 1, _SAMPLE_CHUNK):
+        j = torch.arange(j0, min(j0 + _SAMPLE_CHUNK, num_bins + 1), device=device, dtype=dtype).view(1, -1, 1, 1)
+        x = theta * (sample_grid(cum, offset + j) - c_ref) + logw[:, j0:j0 + _SAMPLE_CHUNK]
+        parts.append(torch.logsumexp(x, dim=1, keepdim=True))
+    return parts[0] if len(parts) == 1 else torch.logsumexp(torch.cat(parts, dim=1), dim=1, keepdim=True)
 
 
 def _exposure_times(events: Events, exposure_start: Tensor, exposure_end: Tensor, num_bins: int,

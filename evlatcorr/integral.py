@@ -146,7 +146,9 @@ def cumulative_event_grid(
                  "use fewer num_bins or a shorter time span (num_bins x bin_width)", memory_budget)
     if integral == "step":
         hist = event_histogram(events, g0, g0 + num_bins * width_us, num_bins, dtype=dtype, memory_budget=memory_budget)
-        return torch.cat([torch.zeros_like(hist[:, :1]), hist.cumsum(1)], dim=1)
+        cum = hist.new_zeros((b, num_bins + 1, height, width))
+        torch.cumsum(hist, 1, out=cum[:, 1:])  # into its place: two grid-sized arrays at a time, not three
+        return cum
     return _linear_grid(events, g0, width_us, num_bins).to(dtype)
 
 

@@ -46,6 +46,10 @@ _STRIP_ELEMENTS = 4_000_000
 # Bytes per grid point and pixel that the search table keeps: the cumulative event sum (float32) and the
 # prefix sum of exp(θC − peak) (float64).
 _TABLE_BYTES = 4 + 8
+# The largest search table kept between reads (larger ones are rebuilt per read, in strips).
+_KEEP_TABLE_BYTES = 512 * 2**20
+# Candidates scored at once (their latent images and score work arrays).
+_SCORE_CHUNK = 16
 # Peak bytes per grid point and pixel while one strip of the table is built (the integral's work
 # arrays, θC in float64, its exponential and prefix sum).
 _BUILD_BYTES = 64
@@ -305,13 +309,18 @@ def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: f
             kept = shifts[valid]
             lat = (first + kept).to(torch.float64) * width_us
             log_r = table.log_ratio(kept)  # (K, 1, H, W), latent at mid-exposure
-            latent = (grey.to(log_r.dtype) * torch.exp(-log_r)).float()
             previous = None if prev is None else prev.expand(len(kept)).float()
-            for m, member in enumerate(members):
-                if only is not None and m != only:
-                    continue
-                out[m, valid.cpu()] = sharpness_score(latent, lat.float(), previous, member, epsilon, window,
-                                                      sigma_us).double().cpu()
+            scores = torch.full((len(members), len(kept)), math.inf, dtype=torch.float64)
+            # a few candidates' latent images at a time: scoring all at once held ~7 (K, H, W) arrays
+            for k0 in range(0, len(kept), _SCORE_CHUNK):
+                k1 = min(k0 + _SCORE_CHUNK, len(kept))
+                latent = (grey.to(log_r.dtype) * torch.exp(-log_r[k0:k1])).float()
+                for m, member in enumerate(members):
+                    if only is None or m == only:
+                        scores[m, k0:k1] = sharpness_score(latent, lat[k0:k1].float(),
+                                                           None if previous is None else previous[k0:k1], member,
+                                                           epsilon, window, sigma_us).double().cpu()
+            out[:, valid.cpu()] = scores
         return out
 
     coarse_scores = scores_of(coarse)
@@ -380,7 +389,9 @@ class _ShiftTable:
         elements = _STRIP_ELEMENTS * (16 if events.device.type == "cuda" else 1)
         rows = max(1, min(height, elements // ((num_bins + 2) * width)))
         # sizes from Python ints only: nothing is read from the device to decide
-        self.keep = (num_bins + 2) * height * width * _TABLE_BYTES <= limit
+        # a table over _KEEP_TABLE_BYTES is rebuilt strip by strip at each read: at DAVIS346 size that takes
+        # no longer than building and keeping it (page faults of a GB-sized table), at a third of the memory
+        self.keep = (num_bins + 2) * height * width * _TABLE_BYTES <= min(limit, _KEEP_TABLE_BYTES)
         if not self.keep:
             row_bytes = (num_bins + 2) * width * _BUILD_BYTES
             check_memory(row_bytes, f"one row of the latency search table ({num_bins + 1} grid points x {width} "
