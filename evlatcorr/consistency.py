@@ -23,6 +23,15 @@ __all__ = ["pair_disagreement", "estimate_recording_threshold"]
 
 # log(I + c): c keeps the dark pixels' noise from dominating (images in [0, 1])
 _FLOOR = 0.02
+# Most grid points an EDI grid may span: it reaches from an exposure to the gap's middle in steps of
+# exposure / num_bins, so short exposures far apart get fewer sub-intervals (not gigabytes of grid).
+_MAX_GRID_POINTS = 4000
+
+
+def _num_bins(pairs: EventFrames, latency: Tensor, num_bins: int) -> int:
+    exposure = float(torch.minimum(pairs.exposure_time, pairs.exposure_end_next - pairs.exposure_start_next).min())
+    span = float((pairs.exposure_end_next - pairs.exposure_start + latency.abs()).max())
+    return max(8, min(num_bins, int(_MAX_GRID_POINTS * exposure / max(span, exposure))))
 
 
 def _check_pairs(pairs: EventFrames) -> None:
@@ -79,7 +88,8 @@ def pair_disagreement(pairs: EventFrames, threshold: float | Tensor = 0.2, laten
             and events covering both exposures plus the latency.
         threshold: contrast threshold θ, float or :math:`(B,)`.
         latency: one latency per pair (scalar or :math:`(B,)`, µs) for both frames' events; None: 0.
-        num_bins: EDI sub-intervals per exposure.
+        num_bins: EDI sub-intervals per exposure (fewer when the exposures are short and far apart: the
+            grid spans at most 4000 of them).
 
     Returns:
         :math:`(B,)`.
@@ -93,6 +103,7 @@ def pair_disagreement(pairs: EventFrames, threshold: float | Tensor = 0.2, laten
     """
     _check_pairs(pairs)
     latency = _latency_vector(latency, pairs)
+    num_bins = _num_bins(pairs, latency, num_bins)
     return _disagreement(pairs, threshold, latency, num_bins, _grids(pairs, latency, num_bins))
 
 
@@ -131,6 +142,7 @@ def estimate_recording_threshold(pairs: EventFrames, latency: Tensor | float | N
     if iterations < 1:
         raise ValueError(f"iterations must be >= 1, got {iterations}")
     latency = _latency_vector(latency, pairs)
+    num_bins = _num_bins(pairs, latency, num_bins)
     grids = _grids(pairs, latency, num_bins)
 
     def energy(log_theta: float) -> float:

@@ -77,6 +77,9 @@ __all__ = [
     "SimulatedSequence",
 ]
 
+# Largest latency simulated, µs: the sequence runs this much past its last exposure (memory grows with it).
+MAX_LATENCY_US = 1_000_000.0
+
 # scikit-image photographs stored inside the package (no download). Disjoint splits.
 _FILES = {
     "astronaut": "astronaut.png", "coffee": "coffee.png", "chelsea": "chelsea.png", "rocket": "rocket.jpg",
@@ -836,10 +839,13 @@ def simulate(
         raise ValueError(f"frame_interval_us ({frame_interval_us}) must be >= exposure_us ({exposure_us})")
     if threshold <= 0:
         raise ValueError(f"threshold must be positive, got {threshold}")
-    if latency_us < 0:
-        raise ValueError(f"latency_us must be >= 0, got {latency_us}")
-    if len(latency_range_us) != 2 or not 0 < float(latency_range_us[0]) <= float(latency_range_us[1]) < math.inf:
-        raise ValueError(f"latency_range_us must be (bright, dim) with 0 < bright <= dim, got {latency_range_us}")
+    if not 0 <= latency_us <= MAX_LATENCY_US:
+        raise ValueError(f"latency_us must be in [0, {MAX_LATENCY_US:.0f}] (event-camera latencies are µs to tens of "
+                         f"ms; the sequence is simulated that much longer), got {latency_us}")
+    if (len(latency_range_us) != 2 or not 0 < float(latency_range_us[0]) <= float(latency_range_us[1])
+            <= MAX_LATENCY_US):
+        raise ValueError(f"latency_range_us must be (bright, dim) with 0 < bright <= dim <= {MAX_LATENCY_US:.0f}, "
+                         f"got {latency_range_us}")
     for key in ("threshold_sigma", "noise_rate_hz", "max_speed_px_per_ms", "leak_rate_hz", "refractory_us"):
         if numbers[key] < 0:
             raise ValueError(f"{key} must be >= 0, got {numbers[key]}")

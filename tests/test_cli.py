@@ -68,6 +68,8 @@ def test_correct_writes_events_and_report(simulated):
     np.testing.assert_allclose(corrected_t, expected, atol=0.2)
     assert len(list(H5Recording(out).frames())) == 2
     assert not list(simulated.parent.glob(".*.tmp"))
+    for written in (out, out.with_suffix(".csv")):  # the umask's mode, not mkstemp's 0600
+        assert os.stat(written).st_mode & 0o777 == 0o666 & ~_umask()
 
 
 def test_deblur_writes_pngs(simulated, tmp_path):

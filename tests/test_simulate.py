@@ -591,3 +591,10 @@ def test_new_noise_is_seeded():
     for name in ("x", "y", "t", "p"):
         assert torch.equal(getattr(a.delayed_events, name), getattr(b.delayed_events, name))
         assert torch.equal(getattr(a.ideal_events, name), getattr(b.ideal_events, name))
+
+
+def test_latency_beyond_a_second_is_refused_before_allocating():
+    with pytest.raises(ValueError, match=r"latency_us must be in \[0, 1000000\]"):
+        simulate("camera", num_frames=1, height=8, width=8, latency_us=1e9)
+    with pytest.raises(ValueError, match="latency_range_us"):
+        simulate("camera", num_frames=1, height=8, width=8, latency="intensity", latency_range_us=(500.0, 1e12))
