@@ -300,53 +300,68 @@ def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: f
     table = _ShiftTable(events, grid_start, width_us, n, min(span, max_shift), theta, integral, budget, advice)
     members = tuple(_SPARSITY) if score == "consensus" else (score,)
 
-    def scores_of(shifts: Tensor, only: int | None = None) -> Tensor:
-        """(M, K) scores of every member (or of member ``only`` alone, the others inf); inf where the window
-        runs past the last event."""
-        valid = shifts <= max_shift
-        out = torch.full((len(members), len(shifts)), math.inf, dtype=torch.float64)
+    def scores_of(shifts: Tensor) -> Tensor:
+        """(M, K) scores of every member; inf where the window runs past the last event."""
+        return torch.stack(score_requests([shifts] * len(members)))
+
+    def score_requests(requests: list[Tensor]) -> list[Tensor]:
+        """Each member's scores :math:`(K_m,)` on its own shifts, from one read of the table (a table over
+        the memory budget is rebuilt at each read)."""
+        union = torch.unique(torch.cat(requests))  # sorted
+        valid = union <= max_shift
+        out = torch.full((len(members), len(union)), math.inf, dtype=torch.float64)
         if bool(valid.any()):
-            kept = shifts[valid]
+            kept = union[valid]
+            kept_cols = torch.nonzero(valid.cpu()).flatten()
+            wanted = torch.zeros((len(members), len(kept)), dtype=torch.bool)
+            for m, shifts in enumerate(requests):
+                wanted[m, torch.searchsorted(kept.cpu(), shifts.cpu()[shifts.cpu() <= max_shift])] = True
             lat = (first + kept).to(torch.float64) * width_us
             log_r = table.log_ratio(kept)  # (K, 1, H, W), latent at mid-exposure
             previous = None if prev is None else prev.expand(len(kept)).float()
-            scores = torch.full((len(members), len(kept)), math.inf, dtype=torch.float64)
             # a few candidates' latent images at a time: scoring all at once held ~7 (K, H, W) arrays
             for k0 in range(0, len(kept), _SCORE_CHUNK):
                 k1 = min(k0 + _SCORE_CHUNK, len(kept))
+                needed = [m for m in range(len(members)) if bool(wanted[m, k0:k1].any())]
+                if not needed:
+                    continue
                 latent = (grey.to(log_r.dtype) * torch.exp(-log_r[k0:k1])).float()
-                for m, member in enumerate(members):
-                    if only is None or m == only:
-                        scores[m, k0:k1] = sharpness_score(latent, lat[k0:k1].float(),
-                                                           None if previous is None else previous[k0:k1], member,
-                                                           epsilon, window, sigma_us).double().cpu()
-            out[:, valid.cpu()] = scores
-        return out
+                for m in needed:
+                    value = sharpness_score(latent, lat[k0:k1].float(), None if previous is None else
+                                            previous[k0:k1], members[m], epsilon, window, sigma_us).double().cpu()
+                    out[m, kept_cols[k0:k1]] = torch.where(wanted[m, k0:k1], value, math.inf)
+        return [out[m, torch.searchsorted(union.cpu(), shifts.cpu())] for m, shifts in enumerate(requests)]
 
     coarse_scores = scores_of(coarse)
-    estimates = [_refine(coarse, coarse_scores[m], step, span, max_shift, refine, scores_of, m, events.device)
-                 for m in range(len(members))]
+    fines = [_fine_shifts(coarse, coarse_scores[m], step, span, max_shift, events.device) for m in range(len(members))]
+    fine_scores = score_requests(fines) if refine else [None] * len(members)
+    estimates = [_refine(coarse, coarse_scores[m], fines[m], fine_scores[m], refine) for m in range(len(members))]
     confidence = sorted(e[1] for e in estimates)[len(estimates) // 2]
     if confidence == 0.0:  # most scores have no interior minimum
         fallback = low if prev is None else min(max(float(prev), low), high)
         return _OneResult(fallback, to_us(coarse), coarse_scores[0], to_us(coarse), coarse_scores[0], 0.0, True)
     chosen = sorted(range(len(members)), key=lambda m: estimates[m][0])[len(members) // 2]  # the median
-    best, _, fine, fine_scores = estimates[chosen]
+    best, _, fine, fine_score = estimates[chosen]
     latency = min(max((first + best) * width_us, low), high)
-    return _OneResult(latency, to_us(coarse), coarse_scores[0], to_us(fine), fine_scores, confidence, False)
+    return _OneResult(latency, to_us(coarse), coarse_scores[0], to_us(fine), fine_score, confidence, False)
 
 
-def _refine(coarse: Tensor, coarse_scores: Tensor, step: int, span: int, max_shift: int, refine: bool,
-            scores_of, member: int, device: torch.device) -> tuple[float, float, Tensor, Tensor]:
+def _fine_shifts(coarse: Tensor, coarse_scores: Tensor, step: int, span: int, max_shift: int,
+                 device: torch.device) -> Tensor:
+    """Every sub-interval shift within one coarse step of a score's best coarse candidate."""
+    best = int(coarse[int(torch.argmin(coarse_scores))])
+    return torch.arange(max(0, best - step), min(span, max_shift, best + step) + 1, device=device)
+
+
+def _refine(coarse: Tensor, coarse_scores: Tensor, fine: Tensor, fine_scores: Tensor | None,
+            refine: bool) -> tuple[float, float, Tensor, Tensor]:
     """One score's best shift (fractional, in sub-intervals), its confidence, and the candidates it refined."""
     finite = torch.isfinite(coarse_scores)
     k_best = int(torch.argmin(coarse_scores))
     confidence = _confidence(coarse_scores[finite], k_best)
     best = int(coarse[k_best])
-    if not refine:
+    if not refine or fine_scores is None:
         return float(best), confidence, coarse, coarse_scores
-    fine = torch.arange(max(0, best - step), min(span, max_shift, best + step) + 1, device=device)
-    fine_scores = scores_of(fine, member)[member]
     k = int(torch.argmin(fine_scores))
     best, offset = int(fine[k]), 0.0
     if 0 < k < len(fine) - 1:
