@@ -25,6 +25,7 @@ gradient reaches the latency through them).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
@@ -576,6 +577,10 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, default=Path("runs/train"))
     p.add_argument("--resume", default=None, help="'last' or a .ckpt path")
     p.add_argument("--export", type=Path, default=None, help="folder for the fp16 safetensors of the network")
+    p.add_argument("--data", type=Path, default=None,
+                   help="fine-tune on this recording (any format evlatcorr.io reads) instead of simulated data: "
+                        "without sharp frames the network stays frozen and the latency polynomial trains by the "
+                        "self-supervised objective (Eq. 21), see evlatcorr.training")
     args = p.parse_args(argv)
     if args.max_steps < 1 or args.batch_size < 1:
         p.error("--max-steps and --batch-size must be >= 1")
@@ -638,11 +643,39 @@ def _precision(args: argparse.Namespace) -> str:
     return "bf16-mixed" if gpu else "32-true"
 
 
+def _finetune_on_recording(args: argparse.Namespace) -> dict[str, Any]:
+    """``--data``: a recording without ground truth trains the latency polynomial, the network frozen."""
+    from evlatcorr.io import open_recording
+    from evlatcorr.training import main as train_curve
+
+    try:
+        rec = open_recording(args.data)
+        has_sharp = any(info.sharp is not None for info in itertools.islice(rec.frames(), 3))
+    except (ValueError, OSError) as exc:
+        print(f"evlatcorr.train: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    if has_sharp:
+        print(f"evlatcorr.train: error: {args.data} has sharp frames; fine-tuning {args.model} on recorded ground "
+              "truth is not supported yet (--data trains the latency polynomial on recordings without it)",
+              file=sys.stderr)
+        raise SystemExit(2)
+    print(f"{args.data}: no sharp frames, so {args.model} stays frozen (its weights are not changed) and the latency "
+          "polynomial trains by the self-supervised objective (Eq. 21)")
+    crop = [str(v) for v in args.crop]
+    curve_args = ["--data", str(args.data), "--crop", *crop, "--out", str(args.out), "--seed", str(args.seed),
+                  "--accelerator", args.accelerator, "--devices", str(args.devices), "--strategy", args.strategy,
+                  "--max-steps", str(args.max_steps), "--epochs", "1000"]
+    train_curve(curve_args)
+    return {"model": args.model, "data": str(args.data), "network": "frozen", "curve": str(args.out / "curve.pt")}
+
+
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Run the command line; returns the exported card (validation metrics, steps, configuration)."""
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     args = parse_args(argv)
+    if args.data is not None:
+        return _finetune_on_recording(args)
     L.seed_everything(args.seed, workers=True)
     task = MODELS[args.model]
     layout = tuple(args.refid_layout)

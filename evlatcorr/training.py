@@ -8,11 +8,18 @@ Command line (simulated training scenes, a checkpoint and the curve under ``--ou
 
     python -m evlatcorr.training --epochs 5 --out runs/curve
     python -m evlatcorr.training --devices 2 --strategy ddp --accelerator cpu --epochs 1 --size 32 40
+    python -m evlatcorr.training --data my_camera.aedat4 --crop 96 128 --out runs/my_curve   # your recording
+
+With ``--data`` the frames of any recording ``evlatcorr.io`` reads are the training data (no ground
+truth needed): frames with events, cut into ``--crop`` tiles, every ``--val-every``-th frame held out
+for validation, and the recording's contrast threshold estimated (``--threshold auto``, two-frame
+consistency) unless given.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -193,6 +200,64 @@ def simulated_training_frames(names: Sequence[str], size: tuple[int, int], seed:
     return frames
 
 
+def recording_training_frames(path: str | Path, crop: tuple[int, int] | None = None, threshold: float | str = "auto",
+                              search_high_us: float | None = None, val_every: int = 5
+                              ) -> tuple[list[EventFrames], list[EventFrames], float]:
+    """Training and validation samples from a recording (any format ``evlatcorr.io`` reads), no ground truth.
+
+    Every frame with events in its exposure and search window becomes one sample, cut into
+    non-overlapping ``crop`` tiles (None: whole frames); every ``val_every``-th frame is held out.
+
+    Args:
+        path: the recording.
+        crop: ``(H, W)`` of the tiles.
+        threshold: θ, or ``"auto"`` for one θ of the recording (:func:`~evlatcorr.restore.recording_threshold`).
+        search_high_us: the largest latency searched (default: the exposure time); events are read
+            that far past each exposure.
+        val_every: every this-many-th frame goes to validation (0: none).
+
+    Returns:
+        ``(train, val, θ)``.
+
+    Raises:
+        ValueError: when the recording has no frame with events, or ``crop`` is larger than the sensor.
+    """
+    from evlatcorr.io import open_recording
+    from evlatcorr.restore import has_events, recording_threshold
+
+    rec = open_recording(path, after_us=search_high_us)
+    if isinstance(threshold, str):
+        found = recording_threshold(rec, None if search_high_us is None else (0.0, search_high_us))
+        theta = found if found is not None else 0.2
+    else:
+        theta = float(threshold)
+    height, width = rec.sensor_size
+    ch, cw = crop if crop is not None else (height, width)
+    if not (0 < ch <= height and 0 < cw <= width):
+        raise ValueError(f"crop {crop} must fit the sensor {rec.sensor_size} (H, W)")
+    train, val, used = [], [], 0
+    for batch in rec:
+        if not has_events(batch):
+            continue
+        tiles = [_crop(batch, y, x, ch, cw) for y in range(0, height - ch + 1, ch)
+                 for x in range(0, width - cw + 1, cw)]
+        tiles = [t for t in tiles if has_events(t)]
+        (val if val_every and used % val_every == val_every - 1 else train).extend(tiles)
+        used += 1
+    if not train:
+        raise ValueError(f"{path}: no frame with events in its exposure and search window to train on")
+    return train, val, theta
+
+
+def _crop(frames: EventFrames, y0: int, x0: int, h: int, w: int) -> EventFrames:
+    ev = frames.events
+    keep = (ev.y >= y0) & (ev.y < y0 + h) & (ev.x >= x0) & (ev.x < x0 + w)
+    events = Events._trusted(ev.x[keep] - x0, ev.y[keep] - y0, ev.t[keep], ev.p[keep], ev.batch[keep], (h, w),
+                             ev.batch_size)
+    return EventFrames(frames.blurry[..., y0:y0 + h, x0:x0 + w].contiguous(), events, frames.exposure_start,
+                       frames.exposure_end, meta={"frame": frames.meta.get("frame"), "tile": (y0, x0)})
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     from evlatcorr.simulate import PHOTOGRAPHS_TRAIN
 
@@ -209,23 +274,43 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--strategy", default="auto")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("runs/latency_curve"))
+    p.add_argument("--data", type=Path, help="train on this recording (any format evlatcorr.io reads) instead of "
+                                             "simulated scenes")
+    p.add_argument("--crop", type=int, nargs=2, metavar=("H", "W"), help="--data: tiles of this size (default: "
+                                                                          "whole frames)")
+    p.add_argument("--threshold", default="auto", help="--data: contrast threshold, or 'auto' (default): one θ "
+                                                       "for the recording")
+    p.add_argument("--val-every", type=int, default=5, help="--data: every N-th frame is held out (0: none)")
+    p.add_argument("--max-steps", type=int, default=-1, help="stop after this many steps (default: --epochs only)")
     args = p.parse_args(argv)
 
     L.seed_everything(args.seed, workers=True)
-    frames = simulated_training_frames(args.scenes, tuple(args.size), args.seed)
-    module = LatencyCorrectionModule(order=args.order, lr=args.lr, num_bins=args.num_bins,
+    val: list[EventFrames] = []
+    theta = 0.2
+    if args.data is not None:
+        try:
+            threshold = args.threshold if args.threshold == "auto" else float(args.threshold)
+            frames, val, theta = recording_training_frames(args.data, tuple(args.crop) if args.crop else None,
+                                                           threshold, val_every=args.val_every)
+        except (ValueError, OSError) as exc:  # bad input: one line and exit code 2, as the evlatcorr command
+            print(f"evlatcorr.training: error: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
+        print(f"{args.data}: {len(frames)} training and {len(val)} validation samples, threshold {theta:.3f}")
+    else:
+        frames = simulated_training_frames(args.scenes, tuple(args.size), args.seed)
+    module = LatencyCorrectionModule(order=args.order, lr=args.lr, num_bins=args.num_bins, threshold=theta,
                                      constant_epochs=args.constant_epochs,
                                      decay_epochs=max(0, args.epochs - args.constant_epochs))
     devices: int | str = int(args.devices) if args.devices.isdigit() else args.devices
-    trainer = L.Trainer(max_epochs=args.epochs, accelerator=args.accelerator, devices=devices,
+    trainer = L.Trainer(max_epochs=args.epochs, max_steps=args.max_steps, accelerator=args.accelerator, devices=devices,
                         strategy=args.strategy, default_root_dir=args.out, log_every_n_steps=1,
                         enable_model_summary=False)
-    trainer.fit(module, EventFramesDataModule(frames))
+    trainer.fit(module, EventFramesDataModule(frames, val or None))
     args.out.mkdir(parents=True, exist_ok=True)
     trainer.save_checkpoint(args.out / "last.ckpt")  # every rank: it synchronises
     if trainer.is_global_zero:
         save_curve(module.latency_model, args.out / "curve.pt", world_size=trainer.world_size,
-                   scenes=list(args.scenes))
+                   scenes=[str(args.data)] if args.data is not None else list(args.scenes), threshold=theta)
         print(f"world_size={trainer.world_size} coefficients={module.latency_model.coefficients.tolist()} "
               f"saved {args.out / 'curve.pt'}")
 

@@ -115,3 +115,39 @@ def test_ddp_two_cpu_processes(tmp_path):
     assert "world_size=2" in r.stdout
     assert (tmp_path / "run" / "curve.pt").is_file() and (tmp_path / "run" / "last.ckpt").is_file()
     assert load_curve(tmp_path / "run" / "curve.pt").order == 5
+
+
+@pytest.fixture(scope="module")
+def recording_without_ground_truth(tmp_path_factory):
+    """An event_utils HDF5 recording (events and blurry frames only, no sharp frames), 32x48."""
+    from evlatcorr.io import H5Recording, write_event_utils, write_sequence
+
+    seq = simulate("camera", num_frames=4, height=32, width=48, latency_us=3000.0, seed=0)
+    folder = tmp_path_factory.mktemp("rec")
+    write_sequence(folder / "sim.h5", seq)
+    path = folder / "rec.h5"
+    write_event_utils(path, seq.delayed_events, like=H5Recording(folder / "sim.h5"))  # frames only, no sharp ones
+    return path
+
+
+def test_curve_trains_on_a_recording(recording_without_ground_truth, tmp_path):
+    from evlatcorr.spatial import PolynomialLatency
+    from evlatcorr.training import main as train_curve
+
+    train_curve(["--data", str(recording_without_ground_truth), "--crop", "16", "24", "--epochs", "1",
+                 "--max-steps", "2", "--val-every", "0", "--out", str(tmp_path / "curve")])
+    saved = torch.load(tmp_path / "curve" / "curve.pt", weights_only=False)
+    assert saved["scenes"] == [str(recording_without_ground_truth)] and 0.02 < saved["threshold"] < 1.5
+    start = PolynomialLatency(saved["order"], saved["eps"], saved["scale_us"]).coefficients
+    assert not torch.allclose(saved["coefficients"], start)  # the objective moved the polynomial
+
+
+def test_train_data_freezes_the_network_and_refuses_bad_paths(recording_without_ground_truth, tmp_path):
+    from evlatcorr.train import main as train_main
+
+    card = train_main(["--model", "efnet", "--data", str(recording_without_ground_truth), "--crop", "16", "24",
+                       "--max-steps", "1", "--out", str(tmp_path / "ft"), "--accelerator", "cpu"])
+    assert card["network"] == "frozen" and (tmp_path / "ft" / "curve.pt").is_file()
+    with pytest.raises(SystemExit) as exit_info:
+        train_main(["--model", "efnet", "--data", str(tmp_path / "missing.aedat4"), "--out", str(tmp_path / "x")])
+    assert exit_info.value.code == 2
