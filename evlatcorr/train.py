@@ -14,6 +14,18 @@ Command line::
     python -m evlatcorr.train --model gem --accelerator gpu --devices 4 --strategy ddp
     python -m evlatcorr.train --model refid --refid-layout 4 1                 # REFID 4+1 frames
     python -m evlatcorr.train --model efnet --checkpoint default --finetune spatial   # corrector + EFNet
+    python -m evlatcorr.train --model efnet --checkpoint default --data my_camera.aedat4 --crop 96 128
+
+``--data PATH`` fine-tunes on a recording instead (any format :func:`evlatcorr.io.open_recording`
+reads, any sensor size; see :class:`RecordingRestorationData`): its frames (pairs of consecutive
+frames for REFID) as random crops, every ``--holdout``-th held out to validate, the contrast
+threshold estimated for the recording (``--threshold auto``). It implies ``--finetune spatial``.
+Recordings of real cameras have no sharp frames: the network is then frozen (a note says so) and
+only the latency polynomial trains, by the self-supervised objective, whose value on the held-out
+frames is printed before and after; the polynomial is saved as ``OUT/curve.pt`` (for
+``evlatcorr deblur --correct spatial --curve``). With sharp frames the network trains by L1 on them
+too. A path that does not exist or cannot be read, too few usable frames or nothing to train exits
+with code 2 and a one-line message.
 
 :class:`CorrectedRestorationModule` puts a latency corrector in front of an adapter and fine-tunes
 both end to end on delayed events: the network by the supervised L1 loss when sharp frames exist,
@@ -30,13 +42,15 @@ import json
 import math
 import sys
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import lightning as L
 import torch
 import torch.nn.functional as F
+from lightning.pytorch.utilities import rank_zero_only
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 from torchmetrics.image import PeakSignalNoiseRatio, StructuralSimilarityIndexMeasure
@@ -51,6 +65,8 @@ __all__ = [
     "crop_frames",
     "collate_frames",
     "SimulatedRestorationData",
+    "RecordingRestorationData",
+    "has_truth",
     "RestorationModule",
     "CorrectedRestorationModule",
     "write_checkpoint_readme",
@@ -291,6 +307,222 @@ class SimulatedRestorationData(L.LightningDataModule):
                           collate_fn=collate_frames)
 
 
+def has_truth(frames: EventFrames, task: str) -> bool:
+    """Whether a batch carries the ground truth of ``task``: ``sharp`` (deblur) or ``target_frames``.
+
+    Example:
+        >>> ev = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([1.0]), torch.ones(1), sensor_size=(2, 2))
+        >>> fr = EventFrames(torch.rand(1, 1, 2, 2), ev, torch.tensor([0.0]), torch.tensor([5.0]))
+        >>> has_truth(fr, "deblur"), has_truth(fr.replace(sharp=fr.blurry), "deblur")
+        (False, True)
+    """
+    if task == "deblur":
+        return frames.sharp is not None
+    return frames.target_frames is not None and frames.target_times is not None
+
+
+class _RecordingSamples(Dataset):
+    """Random crops (mirrored at random) of whole-frame samples; a crop without events is drawn again."""
+
+    def __init__(self, samples: list[EventFrames], crop: tuple[int, int], length: int, tries: int = 10) -> None:
+        self.samples, self.crop, self.length, self.tries = samples, crop, length, tries
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, index: int) -> EventFrames:
+        from evlatcorr.restore import has_events
+
+        frames = self.samples[index % len(self.samples)]
+        h, w = frames.sensor_size
+        ch, cw = self.crop
+        for _ in range(self.tries):  # dark or static tiles of a real scene may hold no events
+            top = int(torch.randint(h - ch + 1, ()).item())
+            left = int(torch.randint(w - cw + 1, ()).item())
+            out = crop_frames(frames, top, left, ch, cw, hflip=bool(torch.randint(2, ()).item()))
+            if has_events(out):
+                break
+        return out
+
+
+class RecordingRestorationData(L.LightningDataModule):
+    """Training and validation samples from a recording (any format :func:`evlatcorr.io.open_recording` reads).
+
+    Each frame (``"deblur"``) or pair of consecutive frames of one segment (``"interpolation"``; the first
+    frame's events then reach the next exposure's end plus the latency searched,
+    :func:`~evlatcorr.restore.pair_reach_us`) is one sample. Samples are left out when their exposure
+    and latency-search window (0 to the exposure time past its end) hold no events, or when their
+    event window runs past the last event of the recording (it stopped during the window). Every
+    ``holdout``-th sample is held out for validation (the last one when there are fewer than
+    ``holdout``); the others are served as random ``crop`` tiles, mirrored left-right at random, like
+    :class:`SimulatedRestorationData`. Validation uses whole frames.
+
+    Ground truth: deblurring uses the ``sharp`` frames; interpolation the recording's ``target_frames``
+    or, failing those, the ``sharp`` frames of the pair's two frames at mid-exposure. It is kept only
+    when every sample has it (:attr:`has_truth`), else dropped from all; real cameras record none.
+
+    Args:
+        path: the recording (a file or folder).
+        task: ``"deblur"`` or ``"interpolation"``.
+        crop: training crop (H, W); must fit the sensor.
+        holdout: every this-many-th sample goes to validation (0: none).
+        max_frames: read at most this many frames (None: all; bounds the memory on long recordings).
+        batch_size, num_workers: data loading.
+        steps_per_epoch: training batches per epoch.
+
+    Example:
+        >>> data = RecordingRestorationData("cradle_lowlight.aedat4", crop=(64, 64))  # doctest: +SKIP
+        >>> data.read()  # doctest: +SKIP
+        >>> len(data.train_samples), len(data.val_samples), data.has_truth  # doctest: +SKIP
+        (11, 1, False)
+    """
+
+    #: a window counts as cut short when it ends this fraction of its length after the recording's last event
+    COVERAGE_SLACK = 0.02
+
+    def __init__(self, path: str | Path, task: str = "deblur", crop: tuple[int, int] = (64, 64), holdout: int = 10,
+                 max_frames: int | None = None, batch_size: int = 4, num_workers: int = 0,
+                 steps_per_epoch: int = 200) -> None:
+        super().__init__()
+        if task not in ("deblur", "interpolation"):
+            raise ValueError(f"task must be 'deblur' or 'interpolation', got {task!r}")
+        if len(crop) != 2 or min(crop) < 1:
+            raise ValueError(f"crop must be two sizes (H, W) >= 1, got {tuple(crop)}")
+        if holdout < 0:
+            raise ValueError(f"holdout must be >= 0 (0: no validation), got {holdout}")
+        if max_frames is not None and max_frames < 1:
+            raise ValueError(f"max_frames must be >= 1 or None, got {max_frames}")
+        if batch_size < 1 or steps_per_epoch < 1:
+            raise ValueError(f"batch_size and steps_per_epoch must be >= 1, got {batch_size} and {steps_per_epoch}")
+        self.path, self.task, self.crop = Path(path), task, (int(crop[0]), int(crop[1]))
+        self.holdout, self.max_frames = holdout, max_frames
+        self.batch_size, self.num_workers, self.steps_per_epoch = batch_size, num_workers, steps_per_epoch
+        self.train_samples: list[EventFrames] = []
+        self.val_samples: list[EventFrames] = []
+        self.has_truth = False
+        self.recording: Any = None
+        #: what :meth:`read` found: frames read, samples used, left out and why
+        self.summary: dict[str, Any] = {}
+        self.train_set: Dataset | None = None
+        self.val_set: Dataset | None = None
+
+    @property
+    def pairs(self) -> bool:
+        return self.task == "interpolation"
+
+    def read(self) -> None:
+        """Read the recording into training and validation samples (once; every DDP rank reads the same).
+
+        Raises:
+            FileNotFoundError: the path does not exist.
+            ValueError: (``RecordingError`` included) an unreadable recording, a crop larger than the
+                sensor, or fewer usable samples than training and validation need.
+        """
+        from evlatcorr.io import open_recording
+        from evlatcorr.restore import has_events, pair_frames, pair_reach_us
+
+        if self.recording is not None:
+            return
+        rec = open_recording(self.path)
+        h, w = rec.sensor_size
+        if self.crop[0] > h or self.crop[1] > w:
+            raise ValueError(f"crop {self.crop} does not fit the sensor of {self.path}, (H, W)=({h}, {w}); "
+                             "pass a smaller --crop")
+        if self.pairs:  # the first frame's events reach the next exposure's end plus the latency searched
+            rec.after_us = pair_reach_us(rec)
+        frames = list(itertools.islice(rec, self.max_frames))
+        if self.pairs:
+            nexts = [f for _, f in itertools.zip_longest(frames, frames[1:])]
+            candidates = [(pair, nxt) for (_, pair), nxt in zip(pair_frames(frames), nexts)]
+        else:
+            candidates = [(f, None) for f in frames]
+        last_event: dict[int, float] = {}
+        for f in frames:
+            if len(f.events):
+                segment = f.meta.get("segment", 0)
+                last_event[segment] = max(last_event.get(segment, -math.inf), float(f.events.t[-1]))
+        samples, no_next, no_events, cut = [], 0, 0, []
+        for sample, nxt in candidates:
+            if sample is None:
+                no_next += 1
+                continue
+            lo, hi = sample.meta["window_us"]
+            if hi - last_event.get(sample.meta.get("segment", 0), -math.inf) > self.COVERAGE_SLACK * (hi - lo):
+                cut.append(sample.meta["frame"])
+                continue
+            if not has_events(sample):
+                no_events += 1
+                continue
+            samples.append(self._truth(sample, nxt))
+        self.has_truth = bool(samples) and all(has_truth(s, self.task) for s in samples)
+        with_truth = sum(has_truth(s, self.task) for s in samples)
+        if not self.has_truth:
+            samples = [s.replace(sharp=None, target_times=None, target_frames=None) for s in samples]
+        what = "pairs of consecutive frames" if self.pairs else "frames"
+        need = 2 if self.holdout else 1
+        if len(samples) < need:
+            reasons = [f"{len(frames)} frames read"]
+            if no_next:
+                reasons.append(f"{no_next} without a next frame of their segment")
+            if no_events:
+                reasons.append(f"{no_events} without events in the exposure and latency-search window")
+            if cut:
+                reasons.append(f"{len(cut)} whose event window runs past the end of the events")
+            raise ValueError(f"{self.path}: usable {what}: {len(samples)} ({', '.join(reasons)}); fine-tuning needs "
+                             f"at least {need}" + (" (one to train, one held out for validation; --holdout 0 "
+                                                   "validates on none)" if self.holdout else ""))
+        val_index = set(range(self.holdout - 1, len(samples), self.holdout)) if self.holdout else set()
+        if self.holdout and not val_index:
+            val_index = {len(samples) - 1}
+        if len(val_index) == len(samples):
+            raise ValueError(f"holdout {self.holdout} holds out all {len(samples)} usable {what}, leaving none "
+                             "to train on; pass a larger --holdout")
+        self.val_samples = [s for i, s in enumerate(samples) if i in val_index]
+        self.train_samples = [s for i, s in enumerate(samples) if i not in val_index]
+        self.recording = rec
+        self.summary = {"format": rec.format_name, "sensor_size": [h, w], "frames_read": len(frames),
+                        "samples": len(samples), "train": len(self.train_samples), "val": len(self.val_samples),
+                        "samples_with_truth": int(with_truth), "left_out_no_events": no_events,
+                        "left_out_cut_short": cut, "left_out_no_next": no_next, "pairs": self.pairs}
+
+    def _truth(self, sample: EventFrames, nxt: EventFrames | None) -> EventFrames:
+        """Interpolation targets from the pair's sharp frames when the recording has no target frames."""
+        if not self.pairs:
+            return sample.replace(target_times=None, target_frames=None)
+        if sample.target_frames is not None or sample.sharp is None or nxt is None or nxt.sharp is None:
+            return sample
+        mid = torch.stack([(sample.exposure_start + sample.exposure_end) / 2,
+                           (nxt.exposure_start + nxt.exposure_end) / 2], dim=1)
+        return sample.replace(target_times=mid, target_frames=torch.stack([sample.sharp, nxt.sharp], dim=1))
+
+    def setup(self, stage: str | None = None) -> None:
+        self.read()
+        if self.train_set is None:
+            self.train_set = _RecordingSamples(self.train_samples, self.crop, self.steps_per_epoch * self.batch_size)
+            self.val_set = _ListSamples(self.val_samples)
+
+    def train_dataloader(self) -> DataLoader:
+        assert self.train_set is not None, "call setup() first"
+        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers,
+                          collate_fn=collate_frames, persistent_workers=self.num_workers > 0)
+
+    def val_dataloader(self) -> DataLoader:
+        assert self.val_set is not None, "call setup() first"
+        return DataLoader(self.val_set, batch_size=1, shuffle=False, num_workers=self.num_workers,
+                          collate_fn=collate_frames)
+
+
+class _ListSamples(Dataset):
+    def __init__(self, samples: list[EventFrames]) -> None:
+        self.samples = samples
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def __getitem__(self, index: int) -> EventFrames:
+        return self.samples[index]
+
+
 def _one(frames: EventFrames, i: int) -> EventFrames:
     """Sample ``i`` of a batch as a one-sample batch."""
     def pick(t: Tensor | None) -> Tensor | None:
@@ -526,8 +758,12 @@ class CorrectedRestorationModule(_RestorationBase):
         return total
 
     def validation_step(self, batch: EventFrames, batch_idx: int) -> None:
-        corrected, _ = self.correct(batch)
-        self._validate(batch, self.adapter(corrected))
+        corrected, corrector_loss = self.correct(batch)
+        if corrector_loss is not None:  # the self-supervised objective (Eq. 21) on held-out frames
+            self.log("val/corrector", corrector_loss, batch_size=batch.batch_size, on_epoch=True, sync_dist=True,
+                     prog_bar=True)
+        if has_truth(batch, self.task):  # without ground truth the network's output has nothing to be scored on
+            self._validate(batch, self.adapter(corrected))
 
     def param_groups(self) -> list[dict[str, Any]]:
         # the polynomial's 6 coefficients (ms) take a much larger step than the network's weights
@@ -542,27 +778,67 @@ class CorrectedRestorationModule(_RestorationBase):
 # --------------------------------------------------------------------------------------------------
 # command line
 # --------------------------------------------------------------------------------------------------
+class _Parser(argparse.ArgumentParser):
+    """Bad arguments: one line on stderr and exit code 2 (the usage is long; ``--help`` shows it)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def _threshold(text: str) -> float | str:
+    """``--threshold``: ``auto`` or a positive number."""
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive number or 'auto', got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number or 'auto', got {text!r}")
+    return value
+
+
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m evlatcorr.train", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = _Parser(prog="python -m evlatcorr.train", description=__doc__,
+                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", choices=sorted(MODELS), required=True)
     p.add_argument("--checkpoint", help="initial weights: 'default' (shipped) or a path; default random")
-    p.add_argument("--finetune", choices=("none", "constant", "spatial"), default="none",
-                   help="put a corrector in front and fine-tune on delayed events (CorrectedRestorationModule)")
+    p.add_argument("--data", type=Path, default=None, metavar="PATH",
+                   help="train on this recording instead of simulated photographs: any format evlatcorr.io reads "
+                        "(AEDAT4, our HDF5, event_utils HDF5, GEM npz, a HighREV folder), any sensor size. Implies "
+                        "--finetune spatial. Without ground truth (sharp frames; real cameras record none) the "
+                        "network is frozen and only the latency polynomial trains, by the self-supervised "
+                        "objective (Eq. 21); with sharp frames the network trains by L1 on them too")
+    p.add_argument("--finetune", choices=("none", "constant", "spatial"), default=None,
+                   help="put a corrector in front and fine-tune on delayed events (CorrectedRestorationModule); "
+                        "default: none on simulated data, spatial with --data")
     p.add_argument("--freeze-network", action="store_true", help="with --finetune spatial: train the polynomial only")
+    p.add_argument("--curve", type=Path, default=None,
+                   help="with --finetune spatial: initial latency polynomial (a curve.pt or checkpoint of "
+                        "python -m evlatcorr.training); default zero latency")
+    p.add_argument("--threshold", type=_threshold, default="auto",
+                   help="contrast threshold of the correction: a number, or 'auto' (default): with --data one "
+                        "threshold estimated for the recording (evlatcorr.restore.recording_threshold, printed), "
+                        "on simulated data 0.2")
+    p.add_argument("--holdout", type=int, default=10,
+                   help="--data: every K-th usable frame (pair for REFID) is held out for validation, at least one "
+                        "(0: none)")
+    p.add_argument("--max-frames", type=int, default=None, help="--data: read at most this many frames")
     p.add_argument("--events", choices=("ideal", "delayed", "mixed"), default=None,
-                   help="events of the training samples (default: ideal; delayed with --finetune)")
+                   help="simulated data: events of the training samples (default: ideal; delayed with --finetune)")
     p.add_argument("--max-steps", type=int, default=2000)
     p.add_argument("--max-time", default=None, help="stop after this wall time, DD:HH:MM:SS")
     p.add_argument("--batch-size", type=int, default=4)
-    p.add_argument("--crop", type=int, nargs=2, default=(64, 64), metavar=("H", "W"))
+    p.add_argument("--crop", type=int, nargs=2, default=(64, 64), metavar=("H", "W"),
+                   help="training crop (random position, mirrored at random); validation uses whole frames")
     p.add_argument("--size", type=int, nargs=2, default=(128, 160), metavar=("H", "W"), help="simulated size")
     p.add_argument("--photographs", nargs="+", default=None, help="training photographs (default: the training "
                    "split, disjoint from the benchmark's test photographs)")
     p.add_argument("--allow-test-photographs", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--sequences", type=int, default=2, help="training sequences per photograph")
+    p.add_argument("--sequences", type=int, default=2, help="simulated training sequences per photograph")
     p.add_argument("--num-frames", type=int, default=3, help="frames per simulated sequence")
-    p.add_argument("--lr", type=float, default=None, help="default 2e-4 (5e-5 when fine-tuning)")
+    p.add_argument("--lr", type=float, default=None,
+                   help="network learning rate, default 2e-4 (5e-5 when fine-tuning or with --data)")
     p.add_argument("--warmup-steps", type=int, default=100)
     p.add_argument("--gradient-clip", type=float, default=None, help="clip the gradient norm (REFID: 0.5)")
     p.add_argument("--refid-layout", type=int, nargs=2, default=(4, 1), metavar=("M", "N"),
@@ -577,13 +853,20 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, default=Path("runs/train"))
     p.add_argument("--resume", default=None, help="'last' or a .ckpt path")
     p.add_argument("--export", type=Path, default=None, help="folder for the fp16 safetensors of the network")
-    p.add_argument("--data", type=Path, default=None,
-                   help="fine-tune on this recording (any format evlatcorr.io reads) instead of simulated data: "
-                        "without sharp frames the network stays frozen and the latency polynomial trains by the "
-                        "self-supervised objective (Eq. 21), see evlatcorr.training")
     args = p.parse_args(argv)
-    if args.max_steps < 1 or args.batch_size < 1:
-        p.error("--max-steps and --batch-size must be >= 1")
+    if args.max_steps < 1 or args.batch_size < 1 or args.val_every < 1:
+        p.error("--max-steps, --batch-size and --val-every must be >= 1")
+    if min(args.crop) < 1:
+        p.error(f"--crop must be two sizes >= 1, got {list(args.crop)}")
+    if args.holdout < 0:
+        p.error(f"--holdout must be >= 0 (0: no validation), got {args.holdout}")
+    if args.max_frames is not None and args.max_frames < 1:
+        p.error(f"--max-frames must be >= 1, got {args.max_frames}")
+    if args.finetune is None:
+        args.finetune = "spatial" if args.data is not None else "none"
+    if args.data is not None and (args.photographs or args.events):
+        p.error("--photographs and --events choose simulated data; --data trains on the recording's events as "
+                "stamped")
     from evlatcorr.simulate import PHOTOGRAPHS_TEST
 
     leaked = sorted(set(args.photographs or ()) & set(PHOTOGRAPHS_TEST))
@@ -591,6 +874,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         p.error(f"{leaked} belong to the benchmark's test split; training on them would inflate its scores")
     if args.freeze_network and args.finetune != "spatial":
         p.error("--freeze-network needs --finetune spatial (otherwise nothing is trained)")
+    if args.curve is not None and args.finetune != "spatial":
+        p.error("--curve needs --finetune spatial (the polynomial it starts)")
     return args
 
 
@@ -643,101 +928,225 @@ def _precision(args: argparse.Namespace) -> str:
     return "bf16-mixed" if gpu else "32-true"
 
 
-def _finetune_on_recording(args: argparse.Namespace) -> dict[str, Any]:
-    """``--data``: a recording without ground truth trains the latency polynomial, the network frozen."""
-    from evlatcorr.io import open_recording
-    from evlatcorr.training import main as train_curve
-
-    try:
-        rec = open_recording(args.data)
-        has_sharp = any(info.sharp is not None for info in itertools.islice(rec.frames(), 3))
-    except (ValueError, OSError) as exc:
-        print(f"evlatcorr.train: error: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
-    if has_sharp:
-        print(f"evlatcorr.train: error: {args.data} has sharp frames; fine-tuning {args.model} on recorded ground "
-              "truth is not supported yet (--data trains the latency polynomial on recordings without it)",
-              file=sys.stderr)
-        raise SystemExit(2)
-    print(f"{args.data}: no sharp frames, so {args.model} stays frozen (its weights are not changed) and the latency "
-          "polynomial trains by the self-supervised objective (Eq. 21)")
-    crop = [str(v) for v in args.crop]
-    curve_args = ["--data", str(args.data), "--crop", *crop, "--out", str(args.out), "--seed", str(args.seed),
-                  "--accelerator", args.accelerator, "--devices", str(args.devices), "--strategy", args.strategy,
-                  "--max-steps", str(args.max_steps), "--epochs", "1000"]
-    train_curve(curve_args)
-    return {"model": args.model, "data": str(args.data), "network": "frozen", "curve": str(args.out / "curve.pt")}
+@rank_zero_only
+def _note(message: str) -> None:
+    """A line for the user, printed once (by the first process under DDP)."""
+    print(message, flush=True)
 
 
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """Run the command line; returns the exported card (validation metrics, steps, configuration)."""
-    from lightning.pytorch.callbacks import ModelCheckpoint
-
-    args = parse_args(argv)
-    if args.data is not None:
-        return _finetune_on_recording(args)
-    L.seed_everything(args.seed, workers=True)
-    task = MODELS[args.model]
-    layout = tuple(args.refid_layout)
-    target_times = None
-    if args.model == "refid":
-        from evlatcorr.adapters.refid import refid_output_times
-
-        def target_times(frames: EventFrames) -> Tensor:  # supervise every REFID output frame
-            return refid_output_times(frames, layout[0], layout[1])
-    finetune = args.finetune != "none"
-    events = args.events or ("delayed" if finetune else "ideal")
-    data = SimulatedRestorationData(task, photographs=args.photographs, size=tuple(args.size), crop=tuple(args.crop),
-                                    sequences=args.sequences,
-                                    num_frames=args.num_frames, events=events, target_times=target_times,
-                                    batch_size=args.batch_size, num_workers=args.num_workers,
-                                    steps_per_epoch=args.val_every, seed=args.seed)
-    if finetune:
-        adapter = build_adapter(args.model, args.checkpoint, clamp=False, refid_layout=layout)
-        module: L.LightningModule = CorrectedRestorationModule(
-            adapter, task, corrector=args.finetune, train_network=not args.freeze_network,
-            lr=args.lr or 5e-5, warmup_steps=min(args.warmup_steps, args.max_steps - 1), max_steps=args.max_steps)
-    else:
-        module = RestorationModule(args.model, args.checkpoint, lr=args.lr or 2e-4,
-                                   warmup_steps=min(args.warmup_steps, args.max_steps - 1),
-                                   max_steps=args.max_steps, refid_layout=layout)
-    devices: int | str = int(args.devices) if str(args.devices).isdigit() else args.devices
-    checkpointing = ModelCheckpoint(dirpath=args.out / "checkpoints", save_last=True, monitor="val/psnr",
-                                    mode="max", save_top_k=1, filename="best-{step}")
-    trainer = L.Trainer(max_steps=args.max_steps, max_time=args.max_time, max_epochs=-1,
-                        accelerator=args.accelerator, devices=devices, strategy=args.strategy,
-                        precision=_precision(args), default_root_dir=args.out, callbacks=[checkpointing],
-                        gradient_clip_val=args.gradient_clip,
-                        log_every_n_steps=10, enable_model_summary=False, num_sanity_val_steps=0)
-    resume = None
+def _resume_path(args: argparse.Namespace) -> Path | None:
     if args.resume == "last":
         resume = args.out / "checkpoints" / "last.ckpt"
         if not resume.is_file():
-            raise SystemExit(f"evlatcorr.train: error: --resume last, but {resume} does not exist")
-    elif args.resume:
+            raise ValueError(f"--resume last, but {resume} does not exist")
+        return resume
+    if args.resume:
         resume = Path(args.resume)
         if not resume.is_file():
-            raise SystemExit(f"evlatcorr.train: error: checkpoint {resume} not found")
+            raise ValueError(f"--resume: checkpoint {resume} not found")
+        return resume
+    return None
+
+
+def _refid_targets(args: argparse.Namespace) -> Any:
+    if args.model != "refid":
+        return None
+    from evlatcorr.adapters.refid import refid_output_times
+
+    m, n = args.refid_layout
+
+    def target_times(frames: EventFrames) -> Tensor:  # supervise every REFID output frame
+        return refid_output_times(frames, m, n)
+
+    return target_times
+
+
+def _corrected_module(args: argparse.Namespace, task: str, train_network: bool, threshold: float,
+                      adapter: nn.Module | None = None) -> CorrectedRestorationModule:
+    if adapter is None:
+        adapter = build_adapter(args.model, args.checkpoint, clamp=False, refid_layout=tuple(args.refid_layout))
+    return CorrectedRestorationModule(
+        adapter, task, corrector=args.finetune, curve=args.curve, train_network=train_network,
+        lr=args.lr or 5e-5, warmup_steps=min(args.warmup_steps, args.max_steps - 1), max_steps=args.max_steps,
+        threshold=threshold)
+
+
+def _simulated_setup(args: argparse.Namespace) -> tuple[L.LightningDataModule, L.LightningModule, dict[str, Any]]:
+    """Data and module for training on the simulator's training photographs."""
+    task = MODELS[args.model]
+    finetune = args.finetune != "none"
+    events = args.events or ("delayed" if finetune else "ideal")
+    data = SimulatedRestorationData(task, photographs=args.photographs, size=tuple(args.size), crop=tuple(args.crop),
+                                    sequences=args.sequences, num_frames=args.num_frames, events=events,
+                                    target_times=_refid_targets(args), batch_size=args.batch_size,
+                                    num_workers=args.num_workers, steps_per_epoch=min(args.val_every, args.max_steps),
+                                    seed=args.seed)
+    if finetune:
+        threshold = 0.2 if args.threshold == "auto" else float(args.threshold)
+        module: L.LightningModule = _corrected_module(args, task, not args.freeze_network, threshold)
+    else:
+        module = RestorationModule(args.model, args.checkpoint, lr=args.lr or 2e-4,
+                                   warmup_steps=min(args.warmup_steps, args.max_steps - 1),
+                                   max_steps=args.max_steps, refid_layout=tuple(args.refid_layout))
+    info = {"events": events, "truth": True, "network": "trained" if not args.freeze_network else "frozen",
+            "data": {"photographs": data.photographs, "size": list(data.size), "crop": list(data.crop),
+                     "sequences": data.sequences, "num_frames": data.num_frames, "exposure_us": data.exposure_us,
+                     "interval_us": data.interval_us, "latency_us": list(data.latency_us), "seed": args.seed}}
+    return data, module, info
+
+
+def _threshold_device(args: argparse.Namespace) -> str:
+    """Where to estimate the threshold: the current GPU when training runs on GPUs, else the CPU."""
+    gpu = args.accelerator in ("gpu", "cuda") or (args.accelerator == "auto" and torch.cuda.is_available())
+    return "cuda" if gpu and torch.cuda.is_available() else "cpu"
+
+
+def _recording_setup(args: argparse.Namespace) -> tuple[L.LightningDataModule, L.LightningModule, dict[str, Any]]:
+    """``--data``: samples from the recording; the network trains only where it has ground truth."""
+    from evlatcorr.restore import recording_threshold
+
+    task = MODELS[args.model]
+    adapter = None
+    if args.finetune != "none":  # weights that do not load fail before the recording is read
+        adapter = build_adapter(args.model, args.checkpoint, clamp=False, refid_layout=tuple(args.refid_layout))
+    data = RecordingRestorationData(args.data, task, tuple(args.crop), args.holdout, args.max_frames,
+                                    args.batch_size, args.num_workers,
+                                    steps_per_epoch=min(args.val_every, args.max_steps))
+    data.read()
+    found = data.summary
+    what = "pairs of consecutive frames" if data.pairs else "frames"
+    left = [f"{found['left_out_no_events']} without events in the exposure and latency-search window"] \
+        if found["left_out_no_events"] else []
+    if found["left_out_cut_short"]:
+        left.append(f"frame(s) {found['left_out_cut_short']}, whose event window runs past the end of the events")
+    _note(f"{args.data}: {found['format']}, (H, W)={tuple(found['sensor_size'])}, {found['frames_read']} frames read; "
+          f"{found['train']} {what} to train on (random {args.crop[0]}x{args.crop[1]} crops), {found['val']} held out "
+          f"for validation" + (f"; left out: {'; '.join(left)}" if left else ""))
+    truth = "sharp frames" if task == "deblur" else "target frames (or sharp frames)"
+    if not data.has_truth and found["samples_with_truth"]:
+        _note(f"only {found['samples_with_truth']} of {found['samples']} samples have {truth}: they are ignored")
+    # what trains, decided (and refused) before the threshold is estimated
+    if args.finetune == "none":
+        if not data.has_truth:
+            raise ValueError(f"{args.data} has no {truth}, so --finetune none has nothing to train {args.model} on; "
+                             "use --finetune spatial (the default with --data) to train the latency polynomial")
+        network = "trained"
+    else:
+        network = "trained" if data.has_truth and not args.freeze_network else "frozen"
+        if not data.has_truth and args.finetune == "constant":
+            raise ValueError(f"nothing to train: {args.data} has no {truth}, so {args.model} stays frozen, and "
+                             "--finetune constant has no parameters (it searches one latency per frame); use "
+                             "--finetune spatial")
+    if args.export is not None and network == "frozen":
+        raise ValueError(f"--export writes the network's weights, but {args.model} stays frozen on {args.data}; "
+                         f"the trained latency polynomial is saved as {args.out / 'curve.pt'}")
+    if not data.has_truth:
+        _note(f"note: {args.data} has no {truth}: {args.model} is frozen (its weights are not changed) and only "
+              "the latency polynomial trains, by the self-supervised objective (Eq. 21)")
+    elif network == "trained":
+        _note(f"{args.data} has {truth}: {args.model} trains by L1 on them" + (
+            ", the latency polynomial by the self-supervised objective (Eq. 21)" if args.finetune == "spatial" else ""))
+    threshold = 0.2
+    if args.finetune != "none":
+        if args.threshold == "auto":
+            with warnings.catch_warnings():  # the reader's notes on windows were given by the read above
+                warnings.simplefilter("ignore")
+                estimated = recording_threshold(data.recording, device=_threshold_device(args))
+            if estimated is None:
+                _note("contrast threshold: 0.2 (auto: no pair of consecutive frames with events to estimate one)")
+            else:
+                threshold = float(estimated)
+                _note(f"contrast threshold: {threshold:.3f} (auto: two-frame consistency of the first frames)")
+        else:
+            threshold = float(args.threshold)
+    if args.finetune == "none":
+        module: L.LightningModule = RestorationModule(
+            args.model, args.checkpoint, lr=args.lr or 5e-5, warmup_steps=min(args.warmup_steps, args.max_steps - 1),
+            max_steps=args.max_steps, refid_layout=tuple(args.refid_layout))
+    else:
+        module = _corrected_module(args, task, network == "trained", threshold, adapter)
+    info = {"events": "recorded", "truth": data.has_truth, "network": network,
+            "threshold": None if args.finetune == "none" else round(threshold, 4),
+            "data": {"recording": str(args.data), **{k: found[k] for k in ("format", "sensor_size", "frames_read")},
+                     "crop": list(data.crop), "train_samples": found["train"], "val_samples": found["val"],
+                     "pairs": data.pairs, "holdout": args.holdout, "max_frames": args.max_frames, "seed": args.seed}}
+    return data, module, info
+
+
+def _metric(metrics: dict[str, Any], key: str, digits: int) -> float | None:
+    return round(float(metrics[key]), digits) if key in metrics else None
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """Run the command line; returns the card (validation metrics, steps, configuration).
+
+    Bad input (a missing or unreadable recording, too few usable frames, a checkpoint that does not
+    fit, nothing to train) prints one line on stderr and exits with code 2, like bad arguments.
+    """
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    args = parse_args(argv)
+    L.seed_everything(args.seed, workers=True)
+    try:
+        resume = _resume_path(args)
+        data, module, info = _recording_setup(args) if args.data is not None else _simulated_setup(args)
+    except (ValueError, OSError) as exc:  # RecordingError is a ValueError; FileNotFoundError an OSError
+        print(f"evlatcorr.train: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    task = MODELS[args.model]
+    layout = tuple(args.refid_layout)
+    has_val = args.data is None or bool(data.val_samples)
+    if info["truth"]:
+        monitor, mode = "val/psnr", "max"
+    elif has_val:
+        monitor, mode = "val/corrector", "min"
+    else:
+        monitor, mode = None, "min"
+    checkpointing = ModelCheckpoint(dirpath=args.out / "checkpoints", save_last=True, monitor=monitor, mode=mode,
+                                    save_top_k=1, filename="best-{step}")
+    devices: int | str = int(args.devices) if str(args.devices).isdigit() else args.devices
+    trainer = L.Trainer(max_steps=args.max_steps, max_time=args.max_time, max_epochs=-1,
+                        accelerator=args.accelerator, devices=devices, strategy=args.strategy,
+                        precision=_precision(args), default_root_dir=args.out, callbacks=[checkpointing],
+                        gradient_clip_val=args.gradient_clip, limit_val_batches=None if has_val else 0,
+                        log_every_n_steps=10, enable_model_summary=False, num_sanity_val_steps=0,
+                        inference_mode=False)  # no_grad: metric states of a validation before fit stay trainable
+    before: dict[str, Any] = {}
+    if args.data is not None and has_val:  # the held-out objective of the starting point
+        before = trainer.validate(module, data, ckpt_path=resume, verbose=False)[0]
     start = time.perf_counter()
     trainer.fit(module, data, ckpt_path=resume)
     seconds = time.perf_counter() - start
-    final = trainer.validate(module, data, verbose=False)[0]
+    final = trainer.validate(module, data, verbose=False)[0] if has_val else {}
+    if args.data is not None:
+        trainer.save_checkpoint(args.out / "checkpoints" / "last.ckpt")  # every rank: it synchronises
     card = {
         "model": args.model, "name": checkpoint_name(args.model, layout), "task": task,
         "command": "python -m evlatcorr.train " + " ".join(sys.argv[1:] if argv is None else argv),
         "steps": int(trainer.global_step), "train_seconds": round(seconds, 1),
-        "val_psnr": round(float(final["val/psnr"]), 3), "val_ssim": round(float(final["val/ssim"]), 4),
-        "val_blurry_psnr": round(float(final["val/blurry_psnr"]), 3), "events": events,
-        "data": {"photographs": data.photographs, "size": list(data.size), "crop": list(data.crop),
-                 "sequences": data.sequences, "num_frames": data.num_frames, "exposure_us": data.exposure_us,
-                 "interval_us": data.interval_us, "latency_us": list(data.latency_us), "seed": args.seed},
+        "val_psnr": _metric(final, "val/psnr", 3), "val_ssim": _metric(final, "val/ssim", 4),
+        "val_blurry_psnr": _metric(final, "val/blurry_psnr", 3), "events": info["events"], "data": info["data"],
         "world_size": trainer.world_size, "precision": str(trainer.precision),
         "device": torch.cuda.get_device_name() if torch.cuda.is_available() and trainer.on_gpu else
         f"CPU, {torch.get_num_threads()} threads", "torch": torch.__version__,
     }
     if args.model == "refid":
         card["refid_layout"] = list(layout)
+    if args.data is not None:
+        card.update(finetune=args.finetune, network=info["network"], threshold=info["threshold"],
+                    val_objective_before=_metric(before, "val/corrector", 5),
+                    val_objective_after=_metric(final, "val/corrector", 5))
     if trainer.is_global_zero:
+        if args.data is not None and args.finetune == "spatial":
+            from evlatcorr.spatial import save_curve
+
+            card["curve"] = str(args.out / "curve.pt")
+            save_curve(module.latency_model, card["curve"], scenes=[str(args.data)], threshold=info["threshold"],
+                       network=args.model, steps=card["steps"])
+        if card.get("val_objective_before") is not None:
+            print(f"self-supervised objective (Eq. 21) on {len(data.val_samples)} held-out sample(s): "
+                  f"{card['val_objective_before']:.5f} before, {card['val_objective_after']:.5f} after "
+                  f"{card['steps']} steps ({seconds:.1f} s)")
         if args.export is not None:
             from evlatcorr.adapters.checkpoint import card_sha256, save_weights
 

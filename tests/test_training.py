@@ -141,13 +141,3 @@ def test_curve_trains_on_a_recording(recording_without_ground_truth, tmp_path):
     start = PolynomialLatency(saved["order"], saved["eps"], saved["scale_us"]).coefficients
     assert not torch.allclose(saved["coefficients"], start)  # the objective moved the polynomial
 
-
-def test_train_data_freezes_the_network_and_refuses_bad_paths(recording_without_ground_truth, tmp_path):
-    from evlatcorr.train import main as train_main
-
-    card = train_main(["--model", "efnet", "--data", str(recording_without_ground_truth), "--crop", "16", "24",
-                       "--max-steps", "1", "--out", str(tmp_path / "ft"), "--accelerator", "cpu"])
-    assert card["network"] == "frozen" and (tmp_path / "ft" / "curve.pt").is_file()
-    with pytest.raises(SystemExit) as exit_info:
-        train_main(["--model", "efnet", "--data", str(tmp_path / "missing.aedat4"), "--out", str(tmp_path / "x")])
-    assert exit_info.value.code == 2
