@@ -208,7 +208,21 @@ class _Samples(Dataset):
         return crop_frames(frames, top, left, ch, cw, hflip=bool(torch.randint(2, ()).item()))
 
 
-class SimulatedRestorationData(L.LightningDataModule):
+class _RestorationLoaders(L.LightningDataModule):
+    """The data loaders both restoration data modules share (they fill ``train_set`` / ``val_set`` in setup)."""
+
+    def train_dataloader(self) -> DataLoader:
+        assert self.train_set is not None, "call setup() first"
+        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers,
+                          collate_fn=collate_frames, persistent_workers=self.num_workers > 0)
+
+    def val_dataloader(self) -> DataLoader:
+        assert self.val_set is not None, "call setup() first"
+        return DataLoader(self.val_set, batch_size=1, shuffle=False, num_workers=self.num_workers,
+                          collate_fn=collate_frames)
+
+
+class SimulatedRestorationData(_RestorationLoaders):
     """Training and validation samples simulated from the training photographs.
 
     Each photograph is simulated ``sequences`` times (different seeds, so different motions, thresholds
@@ -296,15 +310,6 @@ class SimulatedRestorationData(L.LightningDataModule):
             self.train_set = _Samples(train, self.events, self.crop, self.steps_per_epoch * self.batch_size)
             self.val_set = _Samples(val, self.events, None)
 
-    def train_dataloader(self) -> DataLoader:
-        assert self.train_set is not None, "call setup() first"
-        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers,
-                          collate_fn=collate_frames, persistent_workers=self.num_workers > 0)
-
-    def val_dataloader(self) -> DataLoader:
-        assert self.val_set is not None, "call setup() first"
-        return DataLoader(self.val_set, batch_size=1, shuffle=False, num_workers=self.num_workers,
-                          collate_fn=collate_frames)
 
 
 def has_truth(frames: EventFrames, task: str) -> bool:
@@ -345,7 +350,7 @@ class _RecordingSamples(Dataset):
         return out
 
 
-class RecordingRestorationData(L.LightningDataModule):
+class RecordingRestorationData(_RestorationLoaders):
     """Training and validation samples from a recording (any format :func:`evlatcorr.io.open_recording` reads).
 
     Each frame (``"deblur"``) or pair of consecutive frames of one segment (``"interpolation"``; the first
@@ -501,15 +506,6 @@ class RecordingRestorationData(L.LightningDataModule):
             self.train_set = _RecordingSamples(self.train_samples, self.crop, self.steps_per_epoch * self.batch_size)
             self.val_set = _ListSamples(self.val_samples)
 
-    def train_dataloader(self) -> DataLoader:
-        assert self.train_set is not None, "call setup() first"
-        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, num_workers=self.num_workers,
-                          collate_fn=collate_frames, persistent_workers=self.num_workers > 0)
-
-    def val_dataloader(self) -> DataLoader:
-        assert self.val_set is not None, "call setup() first"
-        return DataLoader(self.val_set, batch_size=1, shuffle=False, num_workers=self.num_workers,
-                          collate_fn=collate_frames)
 
 
 class _ListSamples(Dataset):
