@@ -181,9 +181,9 @@ def bench_device(device: torch.device, args: argparse.Namespace) -> None:
     blurry, ev, start, end = make_frame(args.height, args.width, args.exposure_us, 4000.0, device)
     print(f"[{device.type}] {len(ev)} events in the frame's window")
 
-    def one_pass(refine: bool = False, score: str = RATIO_SCORE):
+    def one_pass(refine: bool = False, score: str = RATIO_SCORE, method: str = "continuous"):
         return search_constant_latency(blurry, ev, start, end, 0.2, args.bins, None, args.candidates, refine=refine,
-                                       score=score)
+                                       score=score, method=method)
 
     one_pass()  # warm-up (allocator, kernels)
     fast = [timed(one_pass, device) for _ in range(args.repeats)]
@@ -202,9 +202,15 @@ def bench_device(device: torch.device, args: argparse.Namespace) -> None:
           f"(estimate {float(refined[-1][1].latency[0]):.0f} us)")
     print(f"[{device.type}] naive loop:      median {t_slow * 1000:.1f} ms over {args.naive_repeats}")
     default = [timed(lambda: one_pass(True, DEFAULT_SCORE), device) for _ in range(args.repeats)]
-    print(f"[{device.type}] default score ({DEFAULT_SCORE}), refined: median "
-          f"{statistics.median(t for t, _ in default) * 1000:.1f} ms (estimate "
+    t_default = statistics.median(t for t, _ in default)
+    print(f"[{device.type}] default score ({DEFAULT_SCORE}), refined: median {t_default * 1000:.1f} ms (estimate "
           f"{float(default[-1][1].latency[0]):.0f} us)")
+    # the previous method (binned prefix-sum table, trapezoidal rule), the same calls, in this run
+    binned = [timed(lambda: one_pass(True, DEFAULT_SCORE, "binned"), device) for _ in range(args.repeats)]
+    t_binned = statistics.median(t for t, _ in binned)
+    print(f"[{device.type}] binned table (previous method), default score, refined: median {t_binned * 1000:.1f} ms "
+          f"(estimate {float(binned[-1][1].latency[0]):.0f} us); continuous/binned speed-up: "
+          f"{t_binned / t_default:.2f}x")
     print(f"[{device.type}] same argmin: {abs(fast_latency - slow_latency) < 1e-6} "
           f"({fast_latency:.1f} us vs {slow_latency:.1f} us)")
     print(f"[{device.type}] ratio: {t_slow / t_fast:.1f}")

@@ -229,10 +229,10 @@ class Events:
         """The events of one sample, as a batch of size 1."""
         if not 0 <= index < self.batch_size:
             raise ValueError(f"sample index must be in [0, {self.batch_size}), got {index}")
-        ev = self.select(self.batch == index)
-        ev.batch = torch.zeros_like(ev.batch)
-        ev.batch_size = 1
-        return ev
+        # events are sorted by sample: one contiguous slice (a mask would copy through all samples' events)
+        lo, hi = torch.searchsorted(self.batch, torch.tensor([index, index + 1], device=self.device)).tolist()
+        return Events._trusted(self.x[lo:hi], self.y[lo:hi], self.t[lo:hi], self.p[lo:hi],
+                               torch.zeros_like(self.batch[lo:hi]), self.sensor_size, 1)
 
     def counts(self) -> Tensor:
         """Number of events per sample :math:`(B,)`."""

@@ -8,6 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import evlatcorr.checks
+import evlatcorr.search
+from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.edi import edi_deblur
 from evlatcorr.search import search_constant_latency, sharpness_score
 from tests.conftest import random_events
@@ -21,19 +23,22 @@ def grey_frame(seed: int, size: tuple[int, int] = (8, 9)) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("score", ["etf", "sparsity"])
-def test_one_pass_equals_naive_edi_per_candidate(score):
-    # the prefix-sum table must give exactly the score of re-running EDI at each candidate
+@pytest.mark.parametrize("method, naive_bins, tolerance", [("binned", 50, 1e-5), ("continuous", 20_000, 1e-3)])
+def test_one_pass_equals_naive_edi_per_candidate(score, method, naive_bins, tolerance):
+    # the binned table must give exactly the score of re-running the 50-bin EDI at each candidate; the
+    # continuous integral, the score of an EDI with so many bins that it is continuous in all but name
     ev = random_events(3000, (8, 9), (0.0, 220.0), seed=5)
     blurry = grey_frame(5)
     res = search_constant_latency(blurry, ev, START, END, 0.2, num_bins=50, num_candidates=11, refine=False,
-                                  score=score)
+                                  score=score, method=method)
     assert res.candidates.shape == (1, 11) and res.etf.shape == (1, 11)
     naive = torch.cat([
-        sharpness_score(edi_deblur(blurry, ev.shift(float(l)), START, END, 0.2, num_bins=50), l.view(1).float(),
-                        None, score, 20.0, 7, 1000.0)
+        sharpness_score(edi_deblur(blurry, ev.shift(float(l)), START, END, 0.2, num_bins=naive_bins),
+                        l.view(1).float(), None, score, 20.0, 7, 1000.0)
         for l in res.candidates[0]
     ])
-    torch.testing.assert_close(res.etf[0].float(), naive, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(res.etf[0].float(), naive, rtol=tolerance, atol=tolerance)
+    assert torch.argmin(res.etf[0]) == torch.argmin(naive)
     assert res.candidates[0, 0].item() == 0.0 and res.candidates[0, -1].item() == pytest.approx(100.0)
 
 
@@ -140,13 +145,26 @@ def long_exposure():
 
 
 def test_latency_is_clamped_into_a_range_that_does_not_start_on_a_candidate(long_exposure):
-    # candidates 4000, 4400, ...: the best one, 4000 us, lies below the range (returned before clamping)
+    # binned: candidates 4000, 4400, ...: the best one, 4000 us, lies below the range (returned before clamping)
     ev, blurry = long_exposure
     res = search_constant_latency(blurry, ev, START, LONG_END, num_bins=50, search_range=(4300.0, 5800.0),
-                                  num_candidates=11)
+                                  num_candidates=11, method="binned")
     assert res.candidates[0, 0].item() == 4000.0
     assert res.fallback.tolist() == [False]
     assert res.latency.item() == 4300.0
+
+
+def test_continuous_candidates_span_the_range_exactly(long_exposure):
+    # continuous: the first and last candidates are the range's ends, spaced by a whole fraction of
+    # half the exposure (10 ms / 67 = 149.25 us <= 1500 us / 10)
+    ev, blurry = long_exposure
+    res = search_constant_latency(blurry, ev, START, LONG_END, num_bins=50, search_range=(4300.0, 5800.0),
+                                  num_candidates=11)
+    candidates = res.candidates[0]
+    assert candidates[0].item() == 4300.0 and candidates[-1].item() == 5800.0
+    torch.testing.assert_close(torch.diff(candidates)[:-1], torch.full((len(candidates) - 2,), 10000.0 / 67),
+                               rtol=0, atol=1e-4, check_dtype=False)
+    assert 4300.0 <= res.latency.item() <= 5800.0
 
 
 @pytest.mark.parametrize("search_range", [(100.0, 101.0), (0.0, 1.0), (399.5, 400.5)])
@@ -172,7 +190,8 @@ def test_table_over_the_budget_is_streamed_with_the_same_result(long_exposure, i
     # the table (50 + 50 sub-intervals: 102 grid points x 72 pixels x 20 bytes = 147 kB) is over a 100 kB
     # budget: it is rebuilt a row (59 kB while built) at a time for every batch of candidates, with the same numbers
     ev, blurry = long_exposure
-    kw = dict(num_bins=50, search_range=(0.0, 20000.0), num_candidates=11, integral=integral, score=score)
+    kw = dict(num_bins=50, search_range=(0.0, 20000.0), num_candidates=11, integral=integral, score=score,
+              method="binned")
     whole = search_constant_latency(blurry, ev, START, LONG_END, **kw)
     strips = search_constant_latency(blurry, ev, START, LONG_END, memory_budget=100_000, **kw)
     assert torch.equal(whole.latency, strips.latency)
@@ -180,13 +199,35 @@ def test_table_over_the_budget_is_streamed_with_the_same_result(long_exposure, i
     assert all(torch.equal(a, b) for a, b in zip(whole.fine_etf, strips.fine_etf))
 
 
+def test_continuous_integral_reads_fewer_candidates_at_once_when_they_do_not_fit(long_exposure, monkeypatch):
+    # 4000 events keep 128 kB; a 145 280-byte cap per read leaves room for 3 candidates (72 px x 80 bytes each)
+    ev, blurry = long_exposure
+    kw = dict(num_bins=50, search_range=(0.0, 20000.0), num_candidates=11)
+    whole = search_constant_latency(blurry, ev, START, LONG_END, **kw)
+    monkeypatch.setattr(evlatcorr.search, "_KEEP_TABLE_BYTES", 145_280)
+    calls = []
+    original = ContinuousIntegral.log_ratio
+    monkeypatch.setattr(ContinuousIntegral, "log_ratio",
+                        lambda self, *a, **k: calls.append(len(a[2])) or original(self, *a, **k))
+    chunked = search_constant_latency(blurry, ev, START, LONG_END, **kw)
+    assert max(calls) == 3
+    torch.testing.assert_close(whole.etf, chunked.etf, rtol=1e-9, atol=0)
+    assert chunked.latency.item() == pytest.approx(whole.latency.item(), abs=1e-6)
+
+
 def test_table_whose_row_is_over_the_budget_is_refused_before_allocating(monkeypatch):
     # events over 1e9 us and a range to 1e9 us: 25 million sub-intervals of 40 us, 2 GB per row of 4 pixels
     ev = random_events(2000, (4, 4), (0.0, 1e9), seed=3)
     with pytest.raises(ValueError, match="latency search table .* over the memory budget of 2.0 GiB: .*narrow "
                                          "search_range"):
-        search_constant_latency(grey_frame(3, (4, 4)), ev, START, torch.tensor([20000.0]), search_range=(0.0, 1e9))
+        search_constant_latency(grey_frame(3, (4, 4)), ev, START, torch.tensor([20000.0]), search_range=(0.0, 1e9),
+                                method="binned")
+    # the continuous integral reads only the candidates' windows: the same range is searched in a few MB
+    res = search_constant_latency(grey_frame(3, (4, 4)), ev, START, torch.tensor([20000.0]), search_range=(0.0, 1e9))
+    assert 0.0 <= res.latency.item() <= 1e9
     # the budget is the module constant, read at call time
     monkeypatch.setattr(evlatcorr.checks, "MEMORY_BUDGET_BYTES", 1000)
-    with pytest.raises(ValueError, match="over the memory budget of 1000 bytes"):
-        search_constant_latency(grey_frame(3, (4, 4)), ev, START, END, num_bins=20, num_candidates=5)
+    for method in ("binned", "continuous"):
+        with pytest.raises(ValueError, match="over the memory budget of 1000 bytes"):
+            search_constant_latency(grey_frame(3, (4, 4)), ev, START, END, num_bins=20, num_candidates=5,
+                                    method=method)

@@ -1,0 +1,94 @@
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from evlatcorr.continuous import ContinuousIntegral
+from evlatcorr.edi import edi_deblur
+from evlatcorr.events import Events
+from evlatcorr.simulate import simulate
+
+
+def one_pixel_events(times: list[float] | torch.Tensor, polarity: list[int] | torch.Tensor, sensor=(1, 2)) -> Events:
+    """Events at pixel (0, 0) of a sensor whose other pixels have none."""
+    t = torch.as_tensor(times, dtype=torch.float64)
+    return Events(torch.zeros(len(t), dtype=torch.long), torch.zeros(len(t), dtype=torch.long), t,
+                  torch.as_tensor(polarity), sensor_size=sensor)
+
+
+def test_single_event_known_answer():
+    # window [0, 10] us read at 5 us; one +1 event at 2.5 us: level 1 over 7.5 us, 0 over 2.5 us, 1 at the reference
+    theta = 0.3
+    ci = ContinuousIntegral(one_pixel_events([2.5], [1]), theta)
+    log_r = ci.log_ratio(0.0, 10.0, torch.tensor([0.0]))
+    expected = math.log((2.5 * math.exp(-theta) + 7.5) / 10.0)
+    assert log_r.shape == (1, 1, 1, 2)
+    assert log_r[0, 0, 0, 0].item() == pytest.approx(expected, rel=1e-12)
+    assert log_r[0, 0, 0, 1].item() == 0.0  # a pixel with no events: R = 1
+
+
+def test_latency_reads_the_window_later():
+    # the same event seen with a latency of 4 us: window [4, 14] read at 9: level 0 over [4, 6.5), 1 over the rest
+    ci = ContinuousIntegral(one_pixel_events([6.5], [1]), 0.3)
+    log_r = ci.log_ratio(0.0, 10.0, torch.tensor([4.0, 20.0]))
+    assert log_r[0, 0, 0, 0].item() == pytest.approx(math.log((2.5 * math.exp(-0.3) + 7.5) / 10.0), rel=1e-12)
+    assert log_r[1, 0, 0, 0].item() == pytest.approx(0.0, abs=1e-15)  # [20, 30]: after the event, level constant
+
+
+def test_thousands_of_events_geometric_series():
+    # 3000 +1 events every 2 us from t = 1 us: over [0, 6000] the level is k·θ on [2k - 1, 2k + 1) (k >= 1) and 0 on
+    # [0, 1); read at the end (6000 us, after all 3000 events): R = Σ_k exp(θ(C_k − 3000)) dt_k / 6000
+    n, theta = 3000, 0.01
+    times = 1.0 + 2.0 * torch.arange(n, dtype=torch.float64)
+    ci = ContinuousIntegral(one_pixel_events(times, torch.ones(n, dtype=torch.long)), theta)
+    log_r = ci.log_ratio(0.0, 6000.0, torch.tensor([0.0]), reference=1.0)[0, 0, 0, 0].item()
+    q = math.exp(theta)
+    # level 0 for 1 us, levels 1..n-1 for 2 us each, level n for the last 1 us
+    total = 1.0 + 2.0 * (q**n - q) / (q - 1) + q**n
+    assert log_r == pytest.approx(math.log(total / 6000.0) - n * theta, rel=1e-10)
+
+
+def test_equals_binned_edi_in_the_limit_of_many_bins():
+    frames = simulate("camera", num_frames=1, latency="constant", latency_us=2000.0, seed=0, height=24, width=32,
+                      exposure_us=10_000.0).frames("delayed")
+    start, end = float(frames.exposure_start), float(frames.exposure_end)
+    latencies = torch.tensor([0.0, 1234.5, 2000.0])
+    log_r = ContinuousIntegral(frames.events, 0.2).log_ratio(start, end, latencies)
+    pixel = frames.events.pixel_index()
+    for k, latency in enumerate(latencies.tolist()):
+        exact = frames.blurry.double() * torch.exp(-log_r[k:k + 1])
+        errors = []
+        for bins in (500, 5000, 50_000):
+            # a pixel with an event within two bins of a window end or the reference is read differently by the
+            # binned EDI (it interpolates C between grid points): compare the others
+            near = torch.zeros(24 * 32, dtype=torch.bool)
+            for time in (start + latency, end + latency, (start + end) / 2 + latency):
+                near[pixel[(frames.events.t - time).abs() < 2 * (end - start) / bins]] = True
+            binned = edi_deblur(frames.blurry.double(), frames.events, frames.exposure_start, frames.exposure_end,
+                                threshold=0.2, latency=latency, num_bins=bins)
+            errors.append(float((exact - binned).abs().amax(1).flatten()[~near].max()))
+        assert errors[0] > errors[1] > errors[2]
+        assert errors[2] < 2e-5
+
+
+def test_times_evaluated_together_or_apart_agree():
+    frames = simulate("camera", num_frames=1, latency="constant", latency_us=1000.0, seed=1, height=12, width=16,
+                      exposure_us=5000.0).frames("delayed")
+    ci = ContinuousIntegral(frames.events, 0.2)
+    start, end = float(frames.exposure_start), float(frames.exposure_end)
+    together = ci.log_ratio(start, end, torch.linspace(0.0, 3000.0, 7))
+    apart = torch.cat([ci.log_ratio(start, end, torch.tensor([v])) for v in torch.linspace(0.0, 3000.0, 7).tolist()])
+    torch.testing.assert_close(together, apart, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(threshold=0.0), "threshold must be positive"),
+    (dict(batch_size=2), "one sample"),
+])
+def test_bad_arguments(kwargs, match):
+    ev = Events(torch.zeros(2, dtype=torch.long), torch.zeros(2, dtype=torch.long), torch.tensor([1.0, 2.0]),
+                torch.ones(2), batch=torch.tensor([0, kwargs.get("batch_size", 1) - 1]), sensor_size=(1, 1))
+    with pytest.raises(ValueError, match=match):
+        ContinuousIntegral(ev, kwargs.get("threshold", 0.2))
