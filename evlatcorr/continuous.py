@@ -80,6 +80,7 @@ class ContinuousIntegral:
         level_after = self.theta * level_after.to(torch.float64)
         self.level_after = level_after
         self.level_before = level_after - self.theta * polarity.to(torch.float64)
+        self._work = torch.empty(0, dtype=torch.float64, device=self.device)
 
     def at(self, times: Tensor) -> tuple[Tensor, Tensor]:
         """``S`` and ``exp(θC − peak)`` of every pixel at sorted times.
@@ -92,8 +93,15 @@ class ContinuousIntegral:
             (0 at ``g_0``) and ``exp(θC(g_j) − peak)`` with ``C(g)`` counting the events before ``g``; ``peak``
             is each pixel's highest ``θC`` over ``[g_0, g_{G−1}]``, so the levels are at most 1.
         """
+        s_total, level = self._tables(times)
+        return s_total.clone(), level.clone()
+
+    def _tables(self, times: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`at` in a work buffer that the next call overwrites (fresh GB-sized arrays cost page faults)."""
         g = times.to(self.device, torch.float64)
         num, p = len(g), self.num_pixels
+        if self._work.numel() < 2 * num * p:
+            self._work = torch.empty(2 * num * p, dtype=torch.float64, device=self.device)
         # the events are in time order: those before the grid, then those inside it (slices, not masks)
         first, last = torch.searchsorted(self.t, g[[0, -1]]).tolist()
         t, pixel, after = self.t[first:last], self.pixel[first:last], self.level_after[first:last]
@@ -106,9 +114,8 @@ class ContinuousIntegral:
         # before g_j, and its integral from g_0 is (g_j − g_0)·level(g_j) − Σ rise·(t − g_0) over those events
         rise = torch.exp(after - peak[pixel]) - torch.exp(self.level_before[first:last] - peak[pixel])
         flat = slot * p + pixel
-        level = torch.zeros(num * p, dtype=torch.float64, device=self.device).index_add_(0, flat, rise)
-        held = torch.zeros(num * p, dtype=torch.float64, device=self.device).index_add_(
-            0, flat, rise * (t - g[0]))
+        level = self._work[:num * p].zero_().index_add_(0, flat, rise)
+        held = self._work[num * p:2 * num * p].zero_().index_add_(0, flat, rise * (t - g[0]))
         level = torch.cumsum(level.view(num, p), 0, out=level.view(num, p)).add_(torch.exp(start_level - peak))
         held = torch.cumsum(held.view(num, p), 0, out=held.view(num, p))
         s_total = held.neg_().addcmul_(level, (g - g[0])[:, None])
@@ -132,7 +139,7 @@ class ContinuousIntegral:
         # on a 1/1024 µs lattice, so window ends that meet other windows' starts (or references) are one point
         points = torch.round(points * _LATTICE) / _LATTICE
         times, index = torch.unique(points.reshape(-1), sorted=True, return_inverse=True)
-        s_total, level = self.at(times)
+        s_total, level = self._tables(times)
         a, b, r = index.view(3, -1)
         mean = (s_total[b] - s_total[a]).clamp_min_(1e-300).div_(level[r]).div_(end - start)
         return torch.log_(mean)[:, None]

@@ -32,6 +32,7 @@ from evlatcorr.checks import (
     check_shape,
     resolve_memory_budget,
 )
+from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
 from evlatcorr.integral import _row_strips, cumulative_event_grid, grid_bytes_per_point, sample_grid
@@ -238,7 +239,9 @@ def edi_log_ratio(
         latency: µs; scalar, :math:`(B,)` or :math:`(B,1,H,W)`. Differentiable.
         num_bins: number of sub-intervals of the exposure (paper: 500).
         time: reference time per sample :math:`(B,)` (default: mid-exposure); may lie outside.
-        integral: ``"step"`` or ``"linear"`` (see :mod:`evlatcorr.integral`).
+        integral: ``"step"`` or ``"linear"`` (see :mod:`evlatcorr.integral`), or ``"continuous"``: the step
+            integral exact in continuous time (:mod:`evlatcorr.continuous`; ``num_bins`` unused, one latency
+            per sample, not differentiable).
         dtype: computation dtype (float64 for gradcheck).
         grid: a prebuilt :func:`event_grid` of these events, exposures and ``num_bins`` covering the
             latencies read (``integral`` is then the grid's); built here when None.
@@ -263,6 +266,8 @@ def edi_log_ratio(
     b = events.batch_size
     device = events.device
     start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
+    if integral == "continuous":
+        return _continuous_log_ratio(events, start, end, ref, threshold, latency, dtype)
     lat = latency_map(latency, b, events.sensor_size, device, dtype)
     theta = check_batch_vector(threshold, b, "threshold").to(device, dtype).view(b, 1, 1, 1)
     if bool((theta <= 0).any()):
@@ -289,6 +294,27 @@ def edi_log_ratio(
         cum = cumulative_event_grid(sub, g0, width_us, m, integral=integral, dtype=dtype, memory_budget=limit)
         out.append(_log_ratio_on_grid(cum, g0, width_us, start, ref, lat[:, :, r0:r1], theta, num_bins))
     return out[0] if len(out) == 1 else torch.cat(out, dim=2)
+
+
+def _continuous_log_ratio(events: Events, start: Tensor, end: Tensor, ref: Tensor, threshold: float | Tensor,
+                          latency: Tensor | float | None, dtype: torch.dtype) -> Tensor:
+    """``log R`` :math:`(B, 1, H, W)` by the exact continuous-time integral (one latency per sample)."""
+    b = events.batch_size
+    if isinstance(latency, Tensor) and latency.numel() not in (1, b):
+        raise ValueError("integral='continuous' takes one latency per sample (a scalar or (B,)), not a latency map; "
+                         "use integral='step' for maps")
+    lat = check_batch_vector(0.0 if latency is None else latency, b, "latency").to(torch.float64).cpu()
+    theta = check_batch_vector(threshold, b, "threshold").to(torch.float64).cpu()
+    if bool((theta <= 0).any()):
+        raise ValueError(f"threshold must be positive, got {theta.min().item()}")
+    start, end, ref = start.cpu(), end.cpu(), ref.cpu()
+    out = []
+    for i in range(b):
+        exposure = float(end[i] - start[i])
+        integral = ContinuousIntegral(events.sample(i), float(theta[i]))
+        out.append(integral.log_ratio(float(start[i]), float(end[i]), lat[i:i + 1],
+                                      reference=float(ref[i] - start[i]) / exposure))
+    return torch.cat(out).to(dtype)
 
 
 def _log_ratio_on_grid(cum: Tensor, g0: Tensor, width_us: Tensor, start: Tensor, ref: Tensor, lat: Tensor,
@@ -361,7 +387,8 @@ def edi_deblur(
         latency: µs; scalar, :math:`(B,)` or a map :math:`(B,1,H,W)`; events are read ``latency`` late.
         num_bins: sub-intervals of the exposure (paper: 500).
         time: time of the latent image per sample :math:`(B,)`, µs; default mid-exposure.
-        integral: ``"step"`` (classic EDI) or ``"linear"`` (Eq. 16-18, smooth in the latency).
+        integral: ``"step"`` (classic EDI), ``"linear"`` (Eq. 16-18, smooth in the latency) or
+            ``"continuous"`` (the step EDI exact in continuous time, no bins; one latency per sample).
         grid: a prebuilt :func:`event_grid` to read instead of building one (e.g. once per
             test-time fit); it must cover the latencies read.
         memory_budget: bytes the EDI may take (see :func:`edi_log_ratio`); default

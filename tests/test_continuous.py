@@ -92,3 +92,18 @@ def test_bad_arguments(kwargs, match):
                 torch.ones(2), batch=torch.tensor([0, kwargs.get("batch_size", 1) - 1]), sensor_size=(1, 1))
     with pytest.raises(ValueError, match=match):
         ContinuousIntegral(ev, kwargs.get("threshold", 0.2))
+
+
+def test_edi_deblur_continuous_integral_matches_many_bins_and_takes_one_latency_per_sample():
+    frames = simulate("camera", num_frames=2, latency="constant", latency_us=2000.0, seed=2, height=12, width=16,
+                      exposure_us=5000.0).frames("delayed")
+    latency = torch.tensor([2000.0, 1500.0])
+    exact = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, 0.2, latency,
+                       integral="continuous")
+    binned = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, 0.2, latency,
+                        num_bins=50_000)
+    assert exact.shape == frames.blurry.shape and exact.dtype == frames.blurry.dtype
+    assert float((exact - binned).abs().median()) < 1e-5
+    with pytest.raises(ValueError, match="one latency per sample"):
+        edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, 0.2,
+                   torch.zeros(2, 1, 12, 16), integral="continuous")
