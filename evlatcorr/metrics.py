@@ -1,16 +1,21 @@
-"""Image-quality metrics as torchmetrics ``Metric`` objects (correct under DDP), LPIPS offline.
+"""Image-quality metrics as torchmetrics ``Metric`` objects (correct under DDP); LPIPS through the ``lpips`` package.
 
-PSNR and SSIM are torchmetrics' own, averaged per image. LPIPS (AlexNet, v0.1) uses
-torchmetrics' LPIPS network with its bundled linear layers; the AlexNet trunk, which torchvision
-would download, is loaded from (in order) the torch hub cache, an explicit path, or the
-``EVLATCORR_LPIPS_BACKBONE`` environment variable. With none, :func:`lpips_backbone_path` says why
-and :class:`ImageQuality` reports LPIPS as NaN instead of crashing.
+PSNR and SSIM are torchmetrics' own, averaged per image. LPIPS is ``lpips.LPIPS(net="alex", version="0.1")`` with
+the linear layers bundled in that package. Its AlexNet trunk comes from (in order) the torch hub cache, an explicit
+path (``--lpips-backbone``), ``$EVLATCORR_LPIPS_BACKBONE``, or a download by torchvision, as ``lpips`` does by
+itself. The download starts only after a short probe reaches the server, so an offline machine gets
+``(None, reason)`` within seconds and :class:`ImageQuality` reports LPIPS as NaN instead of hanging or crashing.
 """
 
 from __future__ import annotations
 
 import os
+import threading
+import urllib.error
+import urllib.request
+import warnings
 from pathlib import Path
+from urllib.parse import urlparse
 
 import torch
 from torch import Tensor, nn
@@ -22,17 +27,29 @@ from evlatcorr.checks import check_image
 __all__ = ["lpips_backbone_path", "load_lpips_network", "LPIPS", "ImageQuality", "LPIPS_ENV"]
 
 LPIPS_ENV = "EVLATCORR_LPIPS_BACKBONE"
-_HUB_FILE = "alexnet-owt-7be5be79.pth"
-# conv index in torchvision's alexnet.features -> LPIPS slice
+_PROBE_TIMEOUT_S = 3.0  # a reachable server answers a HEAD in well under a second
+# conv index in torchvision's alexnet.features -> lpips.pretrained_networks.alexnet.slice<N>
 _SLICE_OF_CONV = {0: 1, 3: 2, 6: 3, 8: 4, 10: 5}
 
 
+def _weights_url() -> str:
+    """The AlexNet weights ``lpips`` asks torchvision for (``alexnet(pretrained=True)`` = IMAGENET1K_V1)."""
+    from torchvision.models import AlexNet_Weights
+
+    return AlexNet_Weights.IMAGENET1K_V1.url
+
+
+def _hub_file() -> Path:
+    """Where torchvision keeps (or would download) those weights."""
+    return Path(torch.hub.get_dir()) / "checkpoints" / os.path.basename(urlparse(_weights_url()).path)
+
+
 def lpips_backbone_path(path: str | os.PathLike | None = None) -> tuple[Path | None, str]:
-    """Where the AlexNet trunk for LPIPS comes from: ``(path or None, reason)``.
+    """Where the AlexNet trunk for LPIPS is on disk: ``(path or None, reason)``.
 
     Order: the torch hub cache (torchvision's own file), ``path``, ``$EVLATCORR_LPIPS_BACKBONE``.
     """
-    hub = Path(torch.hub.get_dir()) / "checkpoints" / _HUB_FILE
+    hub = _hub_file()
     if hub.is_file():
         return hub, f"torch hub cache {hub}"
     for candidate, origin in ((path, "--lpips-backbone"), (os.environ.get(LPIPS_ENV), f"${LPIPS_ENV}")):
@@ -45,22 +62,70 @@ def lpips_backbone_path(path: str | os.PathLike | None = None) -> tuple[Path | N
                   f"${LPIPS_ENV} is set")
 
 
-def load_lpips_network(path: str | os.PathLike | None = None) -> tuple[nn.Module | None, str]:
-    """The LPIPS (alex, v0.1) network with an offline AlexNet trunk, or ``(None, reason)``."""
-    from torchmetrics.functional.image.lpips import _LPIPS
+def _probe(url: str, timeout: float) -> str | None:
+    """None when ``url``'s server answers within ``timeout`` seconds, else why not.
 
+    torch.hub downloads with no timeout, so an unreachable server would hang it; the probe runs in a daemon
+    thread because name resolution ignores socket timeouts.
+    """
+    host = urlparse(url).hostname
+    outcome: list[str | None] = []
+
+    def ask() -> None:
+        try:
+            urllib.request.urlopen(urllib.request.Request(url, method="HEAD"), timeout=timeout).close()
+            outcome.append(None)
+        except urllib.error.HTTPError:
+            outcome.append(None)  # the server answered; the download reports its own error
+        except (OSError, ValueError) as exc:
+            outcome.append(f"cannot reach {host} ({getattr(exc, 'reason', exc)})")
+
+    asker = threading.Thread(target=ask, name="lpips-weights-probe", daemon=True)
+    asker.start()
+    asker.join(timeout)
+    return outcome[0] if outcome else f"cannot reach {host} (no answer within {timeout:g} s)"
+
+
+def _alex_lpips(trunk: dict[str, Tensor] | None) -> nn.Module:
+    """``lpips.LPIPS`` (alex, v0.1) with the given ``features`` state dict, or torchvision's weights if None."""
+    import lpips
+
+    with warnings.catch_warnings():  # lpips passes torchvision's deprecated `pretrained=`
+        warnings.filterwarnings("ignore", message=r".*(pretrained|weight enum)", category=UserWarning)
+        net = lpips.LPIPS(net="alex", version="0.1", pnet_rand=trunk is not None, verbose=False)
+    if trunk is not None:
+        for s in range(1, 6):
+            part = {k: v for k, v in trunk.items() if _SLICE_OF_CONV.get(int(k.split(".")[0])) == s}
+            getattr(net.net, f"slice{s}").load_state_dict(part, strict=True)
+    return net.eval().requires_grad_(False)
+
+
+def load_lpips_network(path: str | os.PathLike | None = None, *, download: bool = True,
+                       timeout: float = _PROBE_TIMEOUT_S) -> tuple[nn.Module | None, str]:
+    """The LPIPS (alex, v0.1) network, or ``(None, reason)`` when its AlexNet trunk cannot be had.
+
+    Args:
+        path: AlexNet weights: ``alexnet().features`` or a whole torchvision AlexNet state dict.
+        download: with no weights on disk (and no ``path`` or ``$EVLATCORR_LPIPS_BACKBONE`` given), let
+            torchvision download them into the hub cache, as ``lpips`` does.
+        timeout: seconds the server has to answer the probe before the download is given up.
+    """
     source, reason = lpips_backbone_path(path)
     if source is None:
-        return None, reason
+        if not download or path or os.environ.get(LPIPS_ENV):  # a path given but wrong is the user's to fix
+            return None, reason
+        url = _weights_url()
+        unreachable = _probe(url, timeout)
+        if unreachable is not None:
+            return None, f"{reason}; no download: {unreachable}"
+        try:
+            return _alex_lpips(None), f"{url} downloaded by torchvision to {_hub_file()}"
+        except (OSError, RuntimeError) as exc:  # URLError, timeouts, torch.hub's hash check
+            return None, f"{reason}; download of {url} failed: {exc}"
     state = torch.load(source, map_location="cpu", weights_only=True)
     if "features.0.weight" in state:  # a whole torchvision AlexNet state_dict
         state = {k[len("features."):]: v for k, v in state.items() if k.startswith("features.")}
-    net = _LPIPS(pretrained=True, net="alex", pnet_rand=True)  # trunk random here, filled below
-    for s in range(1, 6):
-        part = {k: v for k, v in state.items() if _SLICE_OF_CONV.get(int(k.split(".")[0])) == s}
-        getattr(net.net, f"slice{s}").load_state_dict(part, strict=True)
-    net.eval().requires_grad_(False)
-    return net, reason
+    return _alex_lpips(state), reason
 
 
 class LPIPS(Metric):
