@@ -59,6 +59,9 @@ _STRIP_ELEMENTS = 4_000_000
 _TABLE_BYTES = 4 + 8
 # The largest search table kept between reads (larger ones are rebuilt per read, in strips).
 _KEEP_TABLE_BYTES = 512 * 2**20
+# The most one read of the continuous integral may take (events kept and the candidates read at once): at
+# DAVIS346 size with 2 M events, 26 candidates per read (more per read was no faster here, and cost memory).
+_CONTINUOUS_READ_BYTES = 256 * 2**20
 # Candidates scored at once (their latent images and score work arrays).
 _SCORE_CHUNK = 16
 # Peak bytes per grid point and pixel while one strip of the table is built (the integral's work
@@ -351,7 +354,7 @@ def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: f
                      f"{len(events)} events", "pass only the events of the exposure and the latencies searched, or a "
                      "smaller sensor crop", limit)
         # candidates read at once: a few reads of the events for 100 candidates, a few hundred MB at DAVIS346 size
-        chunk = max(1, (min(limit, _KEEP_TABLE_BYTES) - len(events) * continuous.BYTES_PER_EVENT_KEPT)
+        chunk = max(1, (min(limit, _CONTINUOUS_READ_BYTES) - len(events) * continuous.BYTES_PER_EVENT_KEPT)
                     // candidate_bytes)
         integral_ = ContinuousIntegral(events, theta) if top >= low else None
 

@@ -204,7 +204,7 @@ def test_continuous_integral_reads_fewer_candidates_at_once_when_they_do_not_fit
     ev, blurry = long_exposure
     kw = dict(num_bins=50, search_range=(0.0, 20000.0), num_candidates=11)
     whole = search_constant_latency(blurry, ev, START, LONG_END, **kw)
-    monkeypatch.setattr(evlatcorr.search, "_KEEP_TABLE_BYTES", 145_280)
+    monkeypatch.setattr(evlatcorr.search, "_CONTINUOUS_READ_BYTES", 145_280)
     calls = []
     original = ContinuousIntegral.log_ratio
     monkeypatch.setattr(ContinuousIntegral, "log_ratio",
