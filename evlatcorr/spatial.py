@@ -42,6 +42,7 @@ from evlatcorr.checks import check_has_events, check_search_range, resolve_memor
 from evlatcorr.edi import EventGrid, edi_deblur, event_grid, event_grid_bytes
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
 from evlatcorr.frames import EventFrames
+from evlatcorr.latency_table import LatencyTable
 from evlatcorr.search import search_constant_latency
 
 __all__ = ["PolynomialLatency", "LossWeights", "spatial_objective", "fit_spatial_latency",
@@ -128,6 +129,7 @@ def spatial_objective(
     window: int = DEFAULT_WINDOW,
     sigma_us: float = DEFAULT_SIGMA_US,
     grid: EventGrid | None = None,
+    table: LatencyTable | None = None,
 ) -> dict[str, Tensor]:
     """The terms of Eq. (19)-(21) and their weighted sum ``"total"`` for one batch.
 
@@ -139,14 +141,20 @@ def spatial_objective(
         etf_const: ETF at ``l_const`` :math:`(B,)`, the normaliser of ``L_ETF``.
         grid: the batch's linear :func:`~evlatcorr.edi.event_grid` for ``num_bins`` over latencies
             ``[0, l_max]``, when it is read more than once (test-time fitting); built here when None.
+        table: a :class:`~evlatcorr.latency_table.LatencyTable` of the batch over ``[0, l_max]``: the EDI
+            is read from it (exact step integral, linear in the latency between its entries) instead of
+            the linear integral; for test-time fitting, where it is built once and read at every step.
     """
     w = weights or LossWeights()
     latency = model(frames.blurry)  # (B, 1, H, W) µs
     b = latency.shape[0]
     l_max_map = l_max.to(latency).view(b, 1, 1, 1)
     clipped = torch.minimum(latency.clamp_min(0.0), l_max_map)
-    latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, threshold,
-                        clipped, num_bins, integral="linear", grid=grid)
+    if table is not None:
+        latent = frames.blurry * torch.exp(-table.read(clipped)).to(frames.blurry.dtype)
+    else:
+        latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, threshold,
+                            clipped, num_bins, integral="linear", grid=grid)
     mean_latency = clipped.mean(dim=(1, 2, 3))
     etf = etf_loss(latent, mean_latency, l_const.to(latency), epsilon, window, sigma_us)
     # latencies as fractions of each frame's exposure time: dimensionless, so the paper's weights hold
@@ -163,15 +171,19 @@ def spatial_objective(
 
 def constant_reference(frames: EventFrames, threshold: float, num_bins: int, search_range: tuple[float, float] | None,
                        num_candidates: int, epsilon: float, window: int, sigma_us: float,
-                       grid: EventGrid | None = None) -> tuple[Tensor, Tensor]:
-    """``l_const`` per frame and the ETF (linear integral) of its latent image."""
+                       grid: EventGrid | None = None, table: LatencyTable | None = None) -> tuple[Tensor, Tensor]:
+    """``l_const`` per frame and the ETF of its latent image (read from ``table`` when given, else the linear
+    integral)."""
     res = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
                                   threshold, num_bins, search_range, num_candidates, True, None, epsilon, window,
                                   sigma_us)
     l_const = res.latency.to(frames.device)
     with torch.no_grad():
-        latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, threshold,
-                            l_const, num_bins, integral="linear", grid=grid)
+        if table is not None:
+            latent = frames.blurry * torch.exp(-table.read(l_const.to(frames.blurry).view(-1, 1, 1, 1)))
+        else:
+            latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, threshold,
+                                l_const, num_bins, integral="linear", grid=grid)
         etf = etf_loss(latent, l_const.float(), l_const.float(), epsilon, window, sigma_us)
     return l_const, etf
 
@@ -191,6 +203,7 @@ def fit_spatial_latency(
     sigma_us: float = DEFAULT_SIGMA_US,
     progress: bool = False,
     start_from_constant: bool = False,
+    objective_edi: str = "table",
 ) -> tuple[PolynomialLatency, list[float]]:
     """Test-time optimisation: fit ψ on the given batch by Adam (a bounded number of steps).
 
@@ -198,10 +211,12 @@ def fit_spatial_latency(
     zero (the paper's zero start is for training over a dataset; a few test-time steps from zero
     cannot travel milliseconds).
 
-    The event grid over latencies ``[0, l_max]`` is built once and read at every step; when it would
-    exceed :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`, each step builds (in strips of rows) the grid
-    its EDI reads, which is slower and moves the loss slightly (the linear ramp of a pixel's first
-    event starts at the start of the grid read).
+    ``objective_edi="table"`` (default): every pixel's EDI is tabulated once at ``num_bins + 1`` latencies
+    over ``[0, l_max]`` (:class:`~evlatcorr.latency_table.LatencyTable`, exact in continuous time) and each
+    step reads it by linear interpolation: a step costs a few gathers per pixel. ``"linear"``: each step
+    reads the linear integral (Eq. 16-18) from an event grid built once; when that grid would exceed
+    :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`, each step builds (in strips of rows) the grid its EDI
+    reads, which is slower and moves the loss slightly.
 
     Returns:
         the fitted model and the total loss per step.
@@ -212,6 +227,8 @@ def fit_spatial_latency(
     """
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
+    if objective_edi not in ("table", "linear"):
+        raise ValueError(f"objective_edi must be 'table' or 'linear', got {objective_edi!r}")
     search_range = check_search_range(search_range)
     check_has_events(frames)
     model = model if model is not None else PolynomialLatency()
@@ -220,11 +237,14 @@ def fit_spatial_latency(
     # every step reads the same events at other latencies in [0, l_max] (and l_const): integrate them once
     l_min = 0.0 if search_range is None else min(0.0, search_range[0])
     args = (frames.events, frames.exposure_start, frames.exposure_end, num_bins, (l_min, l_max))
-    grid = None  # over the memory budget: every step's EDI builds (in strips) the grid it reads
-    if event_grid_bytes(*args, integral="linear", dtype=frames.blurry.dtype) <= resolve_memory_budget():
+    grid = table = None  # no grid over the memory budget: every step's EDI builds (in strips) the grid it reads
+    if objective_edi == "table":
+        table = LatencyTable.build(frames.events, frames.exposure_start, frames.exposure_end, threshold, l_min,
+                                   float(l_max.max()), num_bins + 1)
+    elif event_grid_bytes(*args, integral="linear", dtype=frames.blurry.dtype) <= resolve_memory_budget():
         grid = event_grid(*args, integral="linear", dtype=frames.blurry.dtype)
     l_const, etf_const = constant_reference(frames, threshold, num_bins, search_range, num_candidates, epsilon,
-                                            window, sigma_us, grid)
+                                            window, sigma_us, grid, table)
     if start_from_constant:
         with torch.no_grad():  # ψ ≡ mean l_const: the fit only has to learn the variation around it
             model.coefficients.zero_()
@@ -239,7 +259,7 @@ def fit_spatial_latency(
     for _ in iterator:
         optimiser.zero_grad()
         terms = spatial_objective(model, frames, l_const, l_max, etf_const, threshold, num_bins, weights, epsilon,
-                                  window, sigma_us, grid)
+                                  window, sigma_us, grid, table)
         terms["total"].backward()
         optimiser.step()
         history.append(float(terms["total"].detach()))
@@ -300,7 +320,7 @@ class SpatialLatencyCorrector(nn.Module):
     def __init__(self, curve: str | Path | None = None, threshold: float | str = 0.2, num_bins: int = 500,
                  search_range: tuple[float, float] | None = None, num_candidates: int = 100,
                  epsilon: float = DEFAULT_EPSILON, window: int = DEFAULT_WINDOW, sigma_us: float = DEFAULT_SIGMA_US,
-                 steps: int = 60, lr: float = 0.05, train_bins: int = 100, order: int = 5,
+                 steps: int = 30, lr: float = 0.05, train_bins: int = 100, order: int = 5,
                  weights: LossWeights | None = None, progress: bool | None = None) -> None:
         super().__init__()
         if isinstance(threshold, str):
