@@ -312,11 +312,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     t0 = time.perf_counter()
     warnings.filterwarnings("ignore", module="lightning")
+    stages: dict[str, float] = {}
     files = prepare_data(args)
+    stages["scenes (simulate, or read the cache)"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
     methods, missing = build_methods(args)
     for title, why in missing.items():
         print(f"{title}: {why}; its rows are n/a", flush=True)
     lpips_net, lpips_why = load_lpips_network(args.lpips_backbone)
+    stages["models and LPIPS (load)"] = time.perf_counter() - t1
     if lpips_net is None:
         print(f"LPIPS: n/a ({lpips_why})", flush=True)
     correctors = {CONST: EventLatencyCorrector(num_bins=args.num_bins),
@@ -344,7 +348,11 @@ def main(argv: list[str] | None = None) -> int:
     if trainer.is_global_zero:
         print(f"scoring {len(files)} scenes: {', '.join(m.name for m in methods)} x {', '.join(module.inputs)} "
               "(one progress step per scene)", flush=True)
+    t2 = time.perf_counter()
     trainer.test(module, SceneDataModule(load, len(files)))
+    loop = time.perf_counter() - t2
+    stages.update({f"test loop: {k}": v for k, v in module.stage_seconds.items()})
+    stages["test loop: other (reading scenes, Lightning)"] = loop - sum(module.stage_seconds.values())
     results = module.results()  # on every rank: computing the metrics syncs them across processes
     if not trainer.is_global_zero:
         return 0
@@ -376,7 +384,10 @@ def main(argv: list[str] | None = None) -> int:
     header = f"{data}; EDI {args.num_bins} bins; LPIPS {'AlexNet' if lpips_net is not None else 'n/a: ' + lpips_why}"
     notes = "".join(f"\n- {k}: n/a, {v}" for k, v in results["failures"].items())
     notes += "".join(f"\n- skipped {k}: {v}" for k, v in unreadable.items())
-    md = f"{header}\n\n{table}\n\n{chr(10).join(latency_lines)}\n{notes}\n\nwall time {wall:.0f} s\n"
+    stage_lines = ["| stage | seconds | share |", "| --- | --- | --- |"] + [
+        f"| {k} | {v:.1f} | {100 * v / wall:.0f} % |" for k, v in stages.items()]
+    md = (f"{header}\n\n{table}\n\n{chr(10).join(latency_lines)}\n{notes}\n\n"
+          f"wall time {wall:.0f} s (before writing the figures), by stage:\n\n{chr(10).join(stage_lines)}\n")
     (args.out / "results.md").write_text(md)
     with open(args.out / "results.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=["method", "input", "psnr", "ssim", "lpips"])
@@ -386,7 +397,8 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "results.json").write_text(json.dumps({
         **results, "config": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
         "data": [f.name if isinstance(f, BenchmarkScene) else f"{f[0]}:{f[1]}" for f in files],
-        "unreadable": unreadable, "seed": args.seed, "wall_time_s": wall, "figures": figures_written,
+        "unreadable": unreadable, "seed": args.seed, "wall_time_s": wall, "stage_seconds": stages,
+        "figures": figures_written,
         "versions": {"evlatcorr": evlatcorr.__version__, "torch": torch.__version__, "lightning": L.__version__,
                      "python": platform.python_version()},
     }, indent=2, default=lambda v: None if isinstance(v, float) and math.isnan(v) else str(v)))

@@ -11,7 +11,9 @@ same table on one CPU or on many GPUs with DDP.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -125,6 +127,18 @@ class BenchmarkModule(L.LightningModule):
         self.latency_max = nn.ModuleDict({_key("latency", i): MaxMetric() for i in self.inputs[2:]})
         self.on_scene = on_scene
         self.failures: dict[str, str] = {}
+        # wall seconds per stage of the test loop (correctors, each method's forward pass, metrics, figures)
+        self.stage_seconds: dict[str, float] = {}
+
+    @contextmanager
+    def _stage(self, name: str) -> Iterator[None]:
+        if self.device.type == "cuda":  # the work queued before the stage is not its time
+            torch.cuda.synchronize(self.device)
+        start = time.perf_counter()
+        yield
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        self.stage_seconds[name] = self.stage_seconds.get(name, 0.0) + time.perf_counter() - start
 
     def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
         return batch.to(device) if isinstance(batch, BenchmarkScene) else batch
@@ -136,7 +150,8 @@ class BenchmarkModule(L.LightningModule):
         frames = {GT: scene.frames_ideal, NO_CORR: scene.frames_delayed}
         pairs = {GT: scene.pairs_ideal, NO_CORR: scene.pairs_delayed}
         for name in self.inputs[2:]:
-            corrected = self.correctors[_key('corrector', name)](scene.frames_delayed)
+            with self._stage(f"corrector: {name}"):
+                corrected = self.correctors[_key('corrector', name)](scene.frames_delayed)
             frames[name] = corrected
             latency = corrected.latency
             outputs["latency"][name] = latency
@@ -156,16 +171,19 @@ class BenchmarkModule(L.LightningModule):
                     self.failures[method.name] = f"scene {scene.name} has no ground truth between exposures"
                     continue
                 try:
-                    restored, target = _run(method, batch)
+                    with self._stage(f"{method.name} forward"):
+                        restored, target = _run(method, batch)
                 except torch.cuda.OutOfMemoryError as exc:  # keep the other rows
                     self.failures[method.name] = f"out of GPU memory ({exc})"
                     torch.cuda.empty_cache()
                     continue
-                self.quality[key].update(restored, target)
+                with self._stage("metrics (PSNR, SSIM, LPIPS)"):
+                    self.quality[key].update(restored, target)
                 outputs["restored"][(method.name, name)] = restored
                 outputs.setdefault("target", {})[method.name] = target
         if self.on_scene is not None:
-            self.on_scene(scene, outputs)
+            with self._stage("figures"):
+                self.on_scene(scene, outputs)
 
     def results(self) -> dict[str, Any]:
         """Every metric after the test loop: ``table`` rows and latency errors."""
