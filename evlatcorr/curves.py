@@ -105,13 +105,12 @@ def read_pairs_csv(path: str | Path) -> tuple[Tensor, Tensor]:
 
 def plot_latency_curve(curve: LatencyCurve, illuminance: Tensor, latency_us: Tensor, path: str | Path) -> None:
     """Measured points and the fitted curve, log illuminance axis, to a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # a Figure of its own (not pyplot): no global backend switch, nothing left open in the caller's session
+    from matplotlib.figure import Figure
 
     grid = torch.logspace(curve.log_min / math.log(10), curve.log_max / math.log(10), 200, dtype=torch.float64)
-    fig, ax = plt.subplots(figsize=(5, 3.5))
+    fig = Figure(figsize=(5, 3.5))
+    ax = fig.subplots()
     ax.semilogx(illuminance.numpy(), latency_us.numpy() / 1000, "o", label="measured")
     ax.semilogx(grid.numpy(), curve(grid).numpy() / 1000, "-", label=f"K={len(curve.coefficients) - 1} fit")
     ax.set_xlabel("illuminance")
@@ -119,7 +118,6 @@ def plot_latency_curve(curve: LatencyCurve, illuminance: Tensor, latency_us: Ten
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def light_off_latency(events: Events, switch_off_us: float | Sequence[float] | Tensor, fraction: float = 0.01,
