@@ -50,7 +50,8 @@ from evlatcorr.io.base import (
     to_microseconds,
     to_unit_image,
 )
-from evlatcorr.io.h5 import _bisect, _open, atomic_path
+from evlatcorr.io.h5 import atomic_path
+from evlatcorr.io.hdf5_access import bisect_sorted, open_h5
 
 __all__ = ["EventUtilsRecording", "is_event_utils_h5", "write_event_utils"]
 
@@ -122,10 +123,10 @@ class EventUtilsRecording(Recording):
             raise ValueError(f"chunk_events must be >= 1, got {chunk_events}")
         self.exposure_us, self.timestamp_is, self.chunk_events = exposure_us, timestamp_is, int(chunk_events)
         if not is_event_utils_h5(self.path):
-            with _open(self.path):  # a RecordingError for files that are not HDF5 at all
+            with open_h5(self.path):  # a RecordingError for files that are not HDF5 at all
                 pass
             raise RecordingError(f"{self.path}: no /events/xs, ys, ts, ps: not an event_utils HDF5 file")
-        with _open(self.path) as f:
+        with open_h5(self.path) as f:
             ts = f["events/ts"]
             self._check_columns(f["events"])
             self.time_unit = self._detect_unit(f, ts) if time_unit == "auto" else time_unit
@@ -193,7 +194,7 @@ class EventUtilsRecording(Recording):
         return f["images"]
 
     def _read_frame_times(self) -> list[tuple[float, float, int]]:
-        with _open(self.path) as f:
+        with open_h5(self.path) as f:
             g = self._images_group(f)
             return [(*self._exposure(g[n], i, n), 0) for i, n in enumerate(_image_names(g))]
 
@@ -207,7 +208,7 @@ class EventUtilsRecording(Recording):
         return FrameInfo(index, start, end, image, sharp=sharp, meta={"image": name})
 
     def frames(self) -> Iterator[FrameInfo]:
-        with _open(self.path) as f:
+        with open_h5(self.path) as f:
             for i, name in enumerate(_image_names(self._images_group(f))):
                 yield self._frame_info(f, i, name)
 
@@ -220,7 +221,7 @@ class EventUtilsRecording(Recording):
                                  where=f"{self.path}: /events (events {i}..{j - 1})")
 
     def _segmented_chunks(self) -> Iterator[np.ndarray | SegmentEnd]:
-        with _open(self.path) as f:
+        with open_h5(self.path) as f:
             g = f["events"]
             n = g["ts"].shape[0]
             for i in range(0, n, self.chunk_events):
@@ -230,8 +231,8 @@ class EventUtilsRecording(Recording):
         g = f["events"]
         # search a hair wider in file units (the unit conversion rounds), then cut exactly in µs
         a, b = t0 / self.scale, t1 / self.scale
-        i = _bisect(g["ts"], a - abs(a) * 1e-12 - 1e-300)
-        j = _bisect(g["ts"], b + abs(b) * 1e-12 + 1e-300, lo=i)
+        i = bisect_sorted(g["ts"], a - abs(a) * 1e-12 - 1e-300)
+        j = bisect_sorted(g["ts"], b + abs(b) * 1e-12 + 1e-300, lo=i)
         ev = self._columns(g, i, j) if j > i else np.zeros(0, dtype=EVENT_DTYPE)
         # the unit conversion can move a boundary event across t0/t1 by rounding: filter in µs
         return ev[(ev["t"] >= t0) & (ev["t"] < t1)]
@@ -241,11 +242,11 @@ class EventUtilsRecording(Recording):
         if not t1 >= t0:
             raise ValueError(f"events_between needs t1 >= t0, got [{t0}, {t1})")
         self._resolve_segment(segment)
-        with _open(self.path) as f:
+        with open_h5(self.path) as f:
             return Events.from_numpy(self._slice(f, t0, t1), sensor_size=self.sensor_size)
 
     def _frame_random_access(self, index: int) -> EventFrames:
-        with _open(self.path) as f:
+        with open_h5(self.path) as f:
             name = _image_names(self._images_group(f))[index]
             info = self._frame_info(f, index, name)
             lo, hi = self.window(info.exposure_start, info.exposure_end)
@@ -308,7 +309,7 @@ def write_event_utils(path: str | Path, events: Events | Iterable[Events | np.nd
             t_last, n = float(chunk["t"][-1]), m
         num_imgs = 0
         if isinstance(like, EventUtilsRecording):
-            with _open(like.path) as src:
+            with open_h5(like.path) as src:
                 for group in ("images", "sharp_images"):
                     if group in src:
                         src.copy(src[group], f, group)
@@ -329,7 +330,7 @@ def write_event_utils(path: str | Path, events: Events | Iterable[Events | np.nd
             for name in _image_names(f["images"]):
                 stamp = f["images"][name].attrs.get("timestamp")
                 if stamp is not None:
-                    f["images"][name].attrs["event_idx"] = max(0, _bisect(ts, float(stamp)) - 1) if n else 0
+                    f["images"][name].attrs["event_idx"] = max(0, bisect_sorted(ts, float(stamp)) - 1) if n else 0
         f.attrs.update({"num_events": n, "num_pos": pos, "num_neg": n - pos, "num_imgs": num_imgs, "num_flow": 0,
                         "t0": (t_first or 0.0) / scale, "tk": (t_last or 0.0) / scale,
                         "duration": ((t_last or 0.0) - (t_first or 0.0)) / scale,

@@ -63,6 +63,7 @@ from evlatcorr.io.base import (
     iter_events_as_chunks,
     structured_events,
 )
+from evlatcorr.io.hdf5_access import bisect_sorted, load_plugins, open_h5
 from evlatcorr.io.outputs import default_file_mode
 
 __all__ = [
@@ -79,7 +80,7 @@ __all__ = [
 ]
 
 FORMAT, VERSION = "evlatcorr", 1
-_CHUNK = 65536
+_CHUNK = 65536  # elements per HDF5 chunk of an event column
 _PLUGIN_FILTERS = ("zstd", "blosc", "lz4")
 
 
@@ -89,15 +90,6 @@ def _creator() -> str:
     except ImportError:  # pragma: no cover
         __version__ = "?"
     return f"evlatcorr {__version__}"
-
-
-def _load_plugins() -> bool:
-    """Register the optional hdf5plugin filters (for files compressed with zstd/blosc/lz4)."""
-    try:
-        import hdf5plugin  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
 @contextmanager
@@ -130,7 +122,7 @@ def _compression(compression: str | None) -> dict[str, Any]:
     if compression == "gzip":
         return {"compression": "gzip", "compression_opts": 4}
     if compression in _PLUGIN_FILTERS:
-        if not _load_plugins():
+        if not load_plugins():
             raise ValueError(f"compression={compression!r} needs the optional package hdf5plugin "
                              "(pip install hdf5plugin); use 'lzf' or 'gzip' without it")
         import hdf5plugin
@@ -149,14 +141,6 @@ def is_evlatcorr_h5(path: str | Path) -> bool:
             return f.attrs.get("format") == FORMAT
     except OSError:
         return False
-
-
-def _open(path: str | Path) -> h5py.File:
-    _load_plugins()
-    try:
-        return h5py.File(path, "r")
-    except OSError as exc:
-        raise RecordingError(f"{path}: cannot read as HDF5 (truncated or corrupt?): {exc}") from exc
 
 
 class EventWriter:
@@ -508,7 +492,7 @@ def is_sequence_file(path: str | Path) -> bool:
 
 def num_sequences(path: str | Path) -> int:
     """Number of sequences in one of our files (1 for a single-sequence file)."""
-    with _open(path) as f:
+    with open_h5(path) as f:
         return len(_sequence_groups(f, path))
 
 
@@ -562,7 +546,7 @@ def read_sequence(path: str | Path, index: int = 0) -> Any:
         path: the file.
         index: which sequence of a dataset file (0 for a single-sequence file).
     """
-    with _open(path) as f:
+    with open_h5(path) as f:
         groups = _sequence_groups(f, path)
         if not -len(groups) <= index < len(groups):
             raise IndexError(f"{path}: sequence {index} out of range ({len(groups)} sequences)")
@@ -573,18 +557,6 @@ def read_sequences(path: str | Path) -> Iterator[Any]:
     """Every sequence of a file, one at a time (``SimulatedSequence`` objects)."""
     for i in range(num_sequences(path)):
         yield read_sequence(path, i)
-
-
-def _bisect(ds: h5py.Dataset, value: float, lo: int = 0, hi: int | None = None) -> int:
-    """First index with ``ds[i] >= value`` in a sorted 1-D dataset, reading O(log N) chunks."""
-    hi = ds.shape[0] if hi is None else hi
-    while hi - lo > _CHUNK:
-        mid = (lo + hi) // 2
-        if ds[mid] < value:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo + int(np.searchsorted(ds[lo:hi], value, side="left"))
 
 
 class H5Recording(Recording):
@@ -615,7 +587,7 @@ class H5Recording(Recording):
         if chunk_events < 1:
             raise ValueError(f"chunk_events must be >= 1, got {chunk_events}")
         self.chunk_events, self.event_group = int(chunk_events), group
-        with _open(self.path) as f:
+        with open_h5(self.path) as f:
             groups = _sequence_groups(f, self.path)
             if sequence is not None:
                 if not -len(groups) <= sequence < len(groups):
@@ -638,7 +610,7 @@ class H5Recording(Recording):
 
     def _read_frame_times(self) -> list[tuple[float, float, int]]:
         times = []
-        with _open(self.path) as f:
+        with open_h5(self.path) as f:
             for seg, name in enumerate(self.groups):
                 start, end = f[name]["frames/exposure_start"][:], f[name]["frames/exposure_end"][:]
                 times.extend((float(a), float(b), seg) for a, b in zip(start, end))
@@ -662,7 +634,7 @@ class H5Recording(Recording):
         return FrameInfo(index, start, end, image, sharp=sharp, segment=seg, meta=meta)
 
     def frames(self) -> Iterator[FrameInfo]:
-        with _open(self.path) as f:
+        with open_h5(self.path) as f:
             index = 0
             for seg, name in enumerate(self.groups):
                 for local in range(f[name]["frames/exposure_start"].shape[0]):
@@ -670,7 +642,7 @@ class H5Recording(Recording):
                     index += 1
 
     def _segmented_chunks(self) -> Iterator[np.ndarray | SegmentEnd]:
-        with _open(self.path) as f:
+        with open_h5(self.path) as f:
             for seg, name in enumerate(self.groups):
                 if seg:
                     yield SegmentEnd()
@@ -683,8 +655,8 @@ class H5Recording(Recording):
 
     def _slice(self, f: h5py.File, seg: int, t0: float, t1: float) -> np.ndarray:
         g = f[self.groups[seg]][self.event_group]
-        i = _bisect(g["t"], t0)
-        j = _bisect(g["t"], t1, lo=i)
+        i = bisect_sorted(g["t"], t0)
+        j = bisect_sorted(g["t"], t1, lo=i)
         if j == i:
             return np.zeros(0, dtype=EVENT_DTYPE)
         where = f"{self.path}: {_dataset_name(self.groups[seg], self.event_group)}"
@@ -695,12 +667,12 @@ class H5Recording(Recording):
         if not t1 >= t0:
             raise ValueError(f"events_between needs t1 >= t0, got [{t0}, {t1})")
         seg = self._resolve_segment(segment)
-        with _open(self.path) as f:
+        with open_h5(self.path) as f:
             return Events.from_numpy(self._slice(f, seg, t0, t1), sensor_size=self.sensor_size)
 
     def _frame_random_access(self, index: int) -> EventFrames:
         seg, local = self._locate(index)
-        with _open(self.path) as f:
+        with open_h5(self.path) as f:
             info = self._frame_info(f, seg, local, index)
             lo, hi = self.window(info.exposure_start, info.exposure_end)
             events = self._slice(f, seg, lo, hi)
