@@ -1,16 +1,18 @@
 """Speed of the one-pass constant-latency search against a naive per-candidate loop.
 
-The naive loop is what one would write first: for every candidate latency, shift the events,
-re-bin them, re-run EDI and score the latent image (one sparsity score). The one-pass search bins the
-events once and reads every candidate from one prefix-sum table (see ``evlatcorr/search.py``).
-Both find the argmin over the same candidates; this script checks they agree, and prints the
-median time of each over repeats, their ratio (``ratio: <number>`` per device) and, for the
+The one-pass search reads every candidate's window from the exact continuous-time integral
+(``evlatcorr/continuous.py``); the previous method, a binned prefix-sum table (``method="binned"``), is
+timed in the same run (``continuous/binned speed-up``). The naive loop is what one would write first:
+for every candidate latency, shift the events, re-bin them, re-run EDI and score the latent image (one
+sparsity score). Both find the argmin over the same candidates; this script checks they agree, and
+prints the median time of each over repeats, their ratio (``ratio: <number>`` per device) and, for the
 one-pass search, frames per second.
 
-    python benchmarks/speed.py                  # DAVIS346 frame, 500 bins, 20 ms, ~1 M events, 100 candidates
+    python benchmarks/speed.py                  # DAVIS346 frame, 500 bins, 20 ms, ~2 M events, 100 candidates
     python benchmarks/speed.py --repeats 3 --naive-repeats 1 --height 130 --width 173
     python benchmarks/speed.py --part adapters --device cuda   # corrector vs EFNet/GEM/REFID forward
     python benchmarks/speed.py --part memory --events 3000000  # peak memory of one constant correction
+    python benchmarks/speed.py --part batch                    # 4 frames in one call against one frame
 
 ``--part adapters`` times, at the benchmark's resolution (256x336, 20 ms exposure), the constant
 corrector (``EventLatencyCorrector()``: search, shift, EDI latent) against each adapter's forward pass
@@ -86,7 +88,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="repeats of the one-pass search")
     parser.add_argument("--naive-repeats", type=int, default=3, help="repeats of the naive loop")
     parser.add_argument("--device", action="append", help="cpu and/or cuda (default: cpu, and cuda if present)")
-    parser.add_argument("--part", choices=("search", "adapters", "memory", "all"), default="all")
+    parser.add_argument("--part", choices=("search", "batch", "adapters", "memory", "all"), default="all")
     parser.add_argument("--events", type=int, default=3_000_000, help="events of --part memory")
     parser.add_argument("--memory-child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--adapter-size", type=int, nargs=2, default=(256, 336), metavar=("H", "W"),
@@ -107,6 +109,29 @@ def main() -> None:
             bench_adapters(torch.device(name), args)
         if args.part in ("memory", "all"):
             bench_memory(name, args)
+        if args.part in ("batch", "all"):
+            bench_batch(torch.device(name), args)
+
+
+def bench_batch(device: torch.device, args: argparse.Namespace, batch: int = 4) -> None:
+    """The default search on ``batch`` frames in one call against one frame: a batch must cost at most
+    ``batch`` times one frame."""
+    seq = simulate("astronaut", num_frames=batch, height=args.height, width=args.width, exposure_us=args.exposure_us,
+                   frame_interval_us=args.exposure_us * 1.25, latency="constant", latency_us=4000.0, seed=0)
+    frames = seq.frames("delayed").to(device)
+    one = frames.replace(blurry=frames.blurry[:1], events=frames.events.sample(0), sharp=None, meta={},
+                         exposure_start=frames.exposure_start[:1], exposure_end=frames.exposure_end[:1])
+
+    def search(f):
+        return search_constant_latency(f.blurry, f.events, f.exposure_start, f.exposure_end, 0.2, args.bins, None,
+                                       args.candidates)
+
+    search(one)  # warm-up
+    t_one = statistics.median(timed(lambda: search(one), device)[0] for _ in range(args.repeats))
+    t_batch = statistics.median(timed(lambda: search(frames), device)[0] for _ in range(args.repeats))
+    print(f"[{device.type}] default search, one frame ({len(one.events)} events): {t_one * 1000:.1f} ms; "
+          f"{batch} frames in one call ({len(frames.events)} events): {t_batch * 1000:.1f} ms = "
+          f"{t_batch / t_one:.2f} x one frame (median of {args.repeats})")
 
 
 def bench_memory(device: str, args: argparse.Namespace) -> None:
