@@ -215,7 +215,10 @@ def make_cases(split: str, num: int | None = None, size: tuple[int, int] = DEFAU
         the cases, in a fixed order.
 
     Example:
-        >>> [c.name for c in make_cases("dev", num=2)]  # doctest: +SKIP
+        >>> len(make_cases("dev")), len(make_cases("test"))
+        (40, 48)
+        >>> [c.name for c in make_cases("dev", num=2)]
+        ['dev-00-cell-b0.06-rot0.2-delay', 'dev-01-retina-b0.66-rot1.1-photo']
     """
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}, got {split!r}")

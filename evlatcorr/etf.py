@@ -67,8 +67,10 @@ def edge_thickness(image: Tensor, epsilon: float = DEFAULT_EPSILON) -> Tensor:
         :math:`(B,)` in [0, 1).
 
     Example:
-        >>> edge_thickness(torch.zeros(2, 1, 8, 8)).tolist()
-        [0.0, 0.0]
+        >>> flat = torch.zeros(1, 1, 8, 8)
+        >>> step = torch.zeros(1, 1, 8, 8); step[..., 4:] = 1.0
+        >>> [round(s, 4) for s in edge_thickness(torch.cat([flat, step])).tolist()]  # edge: 2 of 8 columns
+        [0.0, 0.25]
     """
     if epsilon <= 0:
         raise ValueError(f"epsilon must be positive, got {epsilon}")

@@ -35,9 +35,20 @@ def test_uses_corrected_events():
     torch.testing.assert_close(out, expected.clamp(0, 1))
 
 
-def test_interpolation_shape():
-    out = EDIAdapter("interpolation", num_bins=20)(make_frames(with_next=True)).output
-    assert out.shape == (2, 1, 3, 6, 8) and out.min() >= 0 and out.max() <= 1
+def test_interpolation_blends_the_two_frames_edi():
+    # mid-exposures 50 and 250 us: 150 us weighs both frames' EDI at 150 us equally, 250 us is the second's alone
+    frames = make_frames(with_next=True).replace(target_times=torch.tensor([[150.0], [250.0]]))
+    out = EDIAdapter("interpolation", num_bins=20)(frames).output
+    assert out.shape == (2, 1, 3, 6, 8)
+    time = torch.tensor([150.0, 250.0], dtype=torch.float64)
+    first = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, num_bins=20,
+                       time=time)
+    second = edi_deblur(frames.blurry_next, frames.events, frames.exposure_start_next, frames.exposure_end_next,
+                        num_bins=20, time=time)
+    torch.testing.assert_close(out[0, 0], (0.5 * first[0] + 0.5 * second[0]).clamp(0, 1))
+    torch.testing.assert_close(out[1, 0], second[1].clamp(0, 1))
+    torch.testing.assert_close(out[1, 0], edi_deblur(frames.blurry_next, frames.events, frames.exposure_start_next,
+                                                     frames.exposure_end_next, num_bins=20)[1].clamp(0, 1))
 
 
 def test_exceptions():
@@ -52,4 +63,5 @@ def test_exceptions():
 def test_sequential():
     frames = make_frames()
     out = nn.Sequential(nn.Identity(), EDIAdapter(num_bins=10))(frames)
-    assert out.output.shape == (2, 3, 6, 8)
+    expected = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, num_bins=10)
+    torch.testing.assert_close(out.output, expected.clamp(0, 1))

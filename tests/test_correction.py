@@ -120,14 +120,14 @@ def test_edi_from_ideal_events_reproduces_sharp_frame():
 @pytest.mark.parametrize("latency_us", [1000.0, 4000.0, 8000.0])
 def test_corrector_recovers_injected_constant_latency(latency_us):
     # 20 ms exposure, image speed up to 1.5 px/ms. The ETF resolves the latency to about a pixel of motion
-    # (measured with seed 0: +121, +610, +33 us; seeds 1 and 2 err by up to 1000 and 440 us);
-    # uncorrected, the error is the whole latency.
+    # (measured with seed 0: +11, +610, +807 us; seeds 1 and 2 err by up to 1210 and 604 us): within 1.2 ms and
+    # within half the latency, so that leaving the events uncorrected (an error of the whole latency) fails.
     seq = simulate("astronaut", num_frames=1, latency="constant", latency_us=latency_us, seed=0,
                    height=130, width=173)
     frames = seq.frames("delayed")
     out = EventLatencyCorrector()(frames)
     estimate = float(out.latency.mean())
-    assert abs(estimate - latency_us) < 1000.0
+    assert abs(estimate - latency_us) < min(1200.0, 0.5 * latency_us)
     uncorrected = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end)
     ideal = seq.frames("ideal")
     gt = edi_deblur(ideal.blurry, ideal.events, ideal.exposure_start, ideal.exposure_end)
@@ -161,10 +161,11 @@ def test_suite_case_known_answer_and_ideal_events():
 @pytest.mark.slow
 def test_dark_low_texture_correction_is_not_worse_than_none():
     # dark (8 %) grass, slow random motion, 390 us, events stop 15 ms after the exposure: the paper's ETF
-    # returned 14.5 ms here (EDI 7 dB worse than not correcting); measured now: +391 us, EDI 1.6 dB better
+    # returned 14.5 ms here (EDI 7 dB worse than not correcting); measured now: 768 us (+378 us), EDI 50.34 ->
+    # 51.92 dB, the best constant shift's 51.94 dB. Leaving the events uncorrected gains 0 dB and fails.
     _, row, _ = _evaluate_dev_case("dev-10-grass-b0.08-rnd0.3-const390")
-    assert row["psnr_corrected"] >= row["psnr_uncorrected"]
-    assert abs(row["latency_error_us"]) <= 1000.0
+    assert row["psnr_corrected"] >= row["psnr_uncorrected"] + 1.0
+    assert abs(row["latency_error_us"]) <= 600.0
 
 
 # --- frames without events: the same clear error in every mode -------------------------------------------------

@@ -1,0 +1,118 @@
+from __future__ import annotations
+
+import re
+
+import pytest
+import torch
+
+from evlatcorr import EventFrames, Events
+
+
+def _events(batch_size: int = 1, sensor_size=(2, 3)) -> Events:
+    n = 2 * batch_size
+    return Events(torch.tensor([0, 2] * batch_size), torch.tensor([1, 0] * batch_size),
+                  torch.tensor([5.0, 15.0] * batch_size), torch.tensor([1, 0] * batch_size),
+                  torch.arange(n) // 2, sensor_size=sensor_size, batch_size=batch_size)
+
+
+def _frames(**kwargs) -> EventFrames:
+    fields = dict(blurry=torch.full((2, 1, 2, 3), 0.5), events=_events(2), exposure_start=torch.tensor([0.0, 100.0]),
+                  exposure_end=torch.tensor([10.0, 130.0]))
+    fields.update(kwargs)
+    return EventFrames(**fields)
+
+
+class TestConstruction:
+    def test_properties(self):
+        fr = _frames()
+        assert fr.batch_size == 2 and fr.sensor_size == (2, 3) and fr.device == torch.device("cpu")
+        assert fr.exposure_time.tolist() == [10.0, 30.0]
+        assert fr.latency is fr.corrected is fr.output is None and fr.meta == {}
+
+    def test_exposures_become_float64_vectors(self):
+        fr = _frames(exposure_start=torch.tensor([0, 100]), exposure_end=[10.0, 130.0])
+        assert fr.exposure_start.dtype == fr.exposure_end.dtype == torch.float64
+        assert fr.exposure_start.tolist() == [0.0, 100.0] and fr.exposure_end.tolist() == [10.0, 130.0]
+        scalar = _frames(exposure_start=0.0, exposure_end=torch.tensor(25.0))  # one exposure for every sample
+        assert scalar.exposure_start.tolist() == [0.0, 0.0] and scalar.exposure_time.tolist() == [25.0, 25.0]
+
+    def test_target_times_become_float64_columns(self):
+        fr = _frames(target_times=torch.tensor([3.0, 103.0]))
+        assert fr.target_times.dtype == torch.float64 and fr.target_times.tolist() == [[3.0], [103.0]]
+        fr = _frames(target_times=[[1.0, 2.0], [3.0, 4.0]], target_frames=torch.zeros(2, 2, 3, 2, 3))
+        assert fr.target_times.shape == (2, 2)
+
+    def test_optional_fields_of_the_right_shape_are_kept(self):
+        latency = torch.full((2, 1, 2, 3), 7.0)
+        sharp = torch.rand(2, 3, 2, 3)  # the ground truth may be RGB for a grey blurry frame
+        fr = _frames(latency=latency, sharp=sharp, blurry_next=torch.rand(2, 1, 2, 3), exposure_start_next=[20, 140],
+                     exposure_end_next=[30.0, 170.0], meta={"frame": [0, 1]})
+        assert fr.latency is latency and fr.sharp is sharp and fr.meta == {"frame": [0, 1]}
+        assert fr.exposure_start_next.dtype == torch.float64 and fr.exposure_start_next.tolist() == [20.0, 140.0]
+
+    def test_non_contiguous_blurry(self):
+        blurry = torch.rand(2, 1, 3, 2).transpose(-1, -2)
+        assert not blurry.is_contiguous()
+        fr = _frames(blurry=blurry)
+        assert fr.sensor_size == (2, 3) and torch.equal(fr.blurry, blurry)
+
+
+class TestBadInput:
+    @pytest.mark.parametrize("kwargs, message", [
+        (dict(blurry=torch.rand(2, 2, 3)), "blurry must have shape ('B', 'C', 'H', 'W') (4 dims), got (2, 2, 3)"),
+        (dict(blurry=torch.full((2, 1, 2, 3), 1.5)),
+         "blurry must hold linear intensities in [0, 1], got values in [1.5, 1.5]"),
+        (dict(events=torch.zeros(4, 4)), "events must be evlatcorr.Events, got Tensor"),
+        (dict(events=_events(1)), "events have batch_size 1 but blurry has 2 frames"),
+        (dict(events=_events(2, sensor_size=(3, 3))),
+         "events sensor_size (3, 3) does not match blurry (H, W)=(2, 3)"),
+        (dict(exposure_start=torch.zeros(3)),
+         "exposure_start must have shape (2,) (one value per sample), got (3,)"),
+        (dict(exposure_end=torch.tensor([10.0, 90.0])),
+         "exposure_end must be after exposure_start; sample 1 has start 100.0 us and end 90.0 us"),
+        (dict(latency=torch.zeros(2, 2, 3)), "latency must have shape (2, 1, 2, 3) (4 dims), got (2, 2, 3)"),
+        (dict(latency=torch.zeros(2, 3, 2, 3)), "latency must have shape (2, 1, 2, 3), got (2, 3, 2, 3) (dim 1)"),
+        (dict(sharp=torch.zeros(2, 3, 3, 2)), "sharp must have shape (2, 'C', 2, 3), got (2, 3, 3, 2) (dim 2)"),
+        (dict(blurry_next=torch.rand(2, 1, 2, 3)), "blurry_next needs exposure_start_next and exposure_end_next"),
+        (dict(blurry_next=torch.rand(2, 3, 2, 3), exposure_start_next=20.0, exposure_end_next=30.0),
+         "blurry_next must have shape (2, 1, 2, 3), got (2, 3, 2, 3) (dim 1)"),
+        (dict(blurry_next=torch.rand(2, 1, 2, 3), exposure_start_next=[20.0, 140.0], exposure_end_next=[30.0, 140.0]),
+         "sample 1 has start 140.0 us and end 140.0 us"),
+        (dict(target_times=torch.zeros(3, 1)), "target_times must have shape (2, 'T'), got (3, 1) (dim 0)"),
+        (dict(target_times=torch.zeros(2, 2), target_frames=torch.zeros(2, 3, 1, 2, 3)),
+         "target_frames must have shape (2, 2, 'C', 2, 3), got (2, 3, 1, 2, 3) (dim 1)"),
+    ])
+    def test_message(self, kwargs, message):
+        with pytest.raises(ValueError, match=re.escape(message)):
+            _frames(**kwargs)
+
+
+class TestReplace:
+    def test_copy_with_changes_and_the_original_untouched(self):
+        fr = _frames()
+        latency = torch.ones(2, 1, 2, 3)
+        out = fr.replace(latency=latency, exposure_end=[20.0, 140.0])
+        assert out is not fr and out.latency is latency and out.exposure_end.tolist() == [20.0, 140.0]
+        assert fr.latency is None and fr.exposure_end.tolist() == [10.0, 130.0]
+        assert out.blurry is fr.blurry and out.events is fr.events  # unchanged fields are shared, not copied
+
+    def test_changes_are_validated(self):
+        with pytest.raises(ValueError, match=re.escape("latency must have shape (2, 1, 2, 3)")):
+            _frames().replace(latency=torch.zeros(1, 1, 2, 3))
+        with pytest.raises(TypeError):
+            _frames().replace(no_such_field=1)
+
+
+class TestTo:
+    def test_every_tensor_and_the_events_move(self, device):
+        fr = _frames(latency=torch.ones(2, 1, 2, 3), corrected=_events(2), target_times=torch.tensor([1.0, 2.0]),
+                     meta={"name": "x"})
+        out = fr.to(device)
+        for name in ("blurry", "exposure_start", "exposure_end", "latency", "target_times"):
+            assert getattr(out, name).device.type == device.type, name
+            torch.testing.assert_close(getattr(out, name).cpu(), getattr(fr, name))
+        for events in (out.events, out.corrected):
+            assert events.t.device.type == events.x.device.type == events.batch.device.type == device.type
+        assert out.events.t.cpu().tolist() == fr.events.t.tolist() and out.meta == {"name": "x"}
+        assert out.sharp is None and out.device.type == device.type
+
