@@ -13,6 +13,7 @@ one-pass search, frames per second.
     python benchmarks/speed.py --part adapters --device cuda   # corrector vs EFNet/GEM/REFID forward
     python benchmarks/speed.py --part memory --events 3000000  # peak memory of one constant correction
     python benchmarks/speed.py --part batch                    # 4 frames in one call against one frame
+    python benchmarks/speed.py --part spatial                  # the spatial test-time fit, new and previous
 
 ``--part adapters`` times, at the benchmark's resolution (256x336, 20 ms exposure), the constant
 corrector (``EventLatencyCorrector()``: search, shift, EDI latent) against each adapter's forward pass
@@ -88,7 +89,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="repeats of the one-pass search")
     parser.add_argument("--naive-repeats", type=int, default=3, help="repeats of the naive loop")
     parser.add_argument("--device", action="append", help="cpu and/or cuda (default: cpu, and cuda if present)")
-    parser.add_argument("--part", choices=("search", "batch", "adapters", "memory", "all"), default="all")
+    parser.add_argument("--part", choices=("search", "batch", "spatial", "adapters", "memory", "all"), default="all")
     parser.add_argument("--events", type=int, default=3_000_000, help="events of --part memory")
     parser.add_argument("--memory-child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--adapter-size", type=int, nargs=2, default=(256, 336), metavar=("H", "W"),
@@ -111,6 +112,8 @@ def main() -> None:
             bench_memory(name, args)
         if args.part in ("batch", "all"):
             bench_batch(torch.device(name), args)
+        if args.part in ("spatial", "all"):
+            bench_spatial(torch.device(name), args)
 
 
 def bench_batch(device: torch.device, args: argparse.Namespace, batch: int = 4) -> None:
@@ -132,6 +135,24 @@ def bench_batch(device: torch.device, args: argparse.Namespace, batch: int = 4) 
     print(f"[{device.type}] default search, one frame ({len(one.events)} events): {t_one * 1000:.1f} ms; "
           f"{batch} frames in one call ({len(frames.events)} events): {t_batch * 1000:.1f} ms = "
           f"{t_batch / t_one:.2f} x one frame (median of {args.repeats})")
+
+
+def bench_spatial(device: torch.device, args: argparse.Namespace) -> None:
+    """The spatial test-time fit on one frame: the default (a latency table read at each of 30 steps) against
+    the previous objective (the linear integral re-read at each of 60 steps), in one run."""
+    from evlatcorr.spatial import PolynomialLatency, fit_spatial_latency
+
+    seq = simulate("astronaut", num_frames=1, height=args.height, width=args.width, exposure_us=args.exposure_us,
+                   latency="constant", latency_us=4000.0, seed=0)
+    frames = seq.frames("delayed").to(device)
+    runs = {"table, 30 steps (default)": dict(steps=30, objective_edi="table"),
+            "linear integral, 60 steps (previous)": dict(steps=60, objective_edi="linear")}
+    for label, kw in runs.items():
+        times = [timed(lambda kw=kw: fit_spatial_latency(frames, PolynomialLatency(), num_bins=100,
+                                                         start_from_constant=True, **kw), device)[0]
+                 for _ in range(args.repeats)]
+        print(f"[{device.type}] spatial fit, {label}: median {statistics.median(times):.2f} s per frame "
+              f"({len(frames.events)} events, median of {args.repeats})", flush=True)
 
 
 def bench_memory(device: str, args: argparse.Namespace) -> None:
