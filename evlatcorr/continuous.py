@@ -24,12 +24,16 @@ from evlatcorr.events import Events
 
 __all__ = ["ContinuousIntegral"]
 
-# Peak bytes per candidate latency and pixel of :meth:`ContinuousIntegral.log_ratio`: up to three time points
-# of the integral and level tables (float64 each) and the gathers that combine them.
-BYTES_PER_CANDIDATE = 80
+# Bytes per candidate latency and pixel that :meth:`ContinuousIntegral.log_ratio` returns (float64), plus the
+# float32 latent image its caller makes of it.
+BYTES_PER_CANDIDATE = 12
 # Bytes per event kept between calls (time, pixel, level before and after), and at the peak of a call.
 BYTES_PER_EVENT_KEPT = 32
 BYTES_PER_EVENT = 112
+# Bytes per time point and pixel of the tables one strip of rows is evaluated in (S and the level, float64, and
+# the gathers that read them), and the most one strip may take.
+BYTES_PER_POINT = 40
+STRIP_BYTES = 64 * 2**20
 # Window ends are rounded to 1/_LATTICE µs (exact in binary) so equal times computed two ways coincide.
 _LATTICE = 1024.0
 
@@ -65,22 +69,21 @@ class ContinuousIntegral:
         self.sensor_size = events.sensor_size
         self.theta = float(threshold)
         self.device = events.device
-        self.t = events.t.to(torch.float64)
-        self.pixel = events.pixel_index()
-        polarity = events.p.to(torch.int64)
-        # each event's level C after it at its pixel: a cumulative sum within runs of one pixel (a stable
-        # sort by pixel keeps each pixel's events in time order)
-        order = torch.argsort(self.pixel, stable=True)
-        running = torch.cumsum(polarity[order], 0)
+        # events in pixel order (each pixel's in time order: a stable sort), so a strip of rows is a slice
+        pixel = events.pixel_index()
+        order = torch.argsort(pixel, stable=True)
+        self.pixel, self.t = pixel[order], events.t.to(torch.float64)[order]
+        polarity = events.p.to(torch.int64)[order]
+        # each event's level C after it at its pixel: a cumulative sum within the pixel's run
+        running = torch.cumsum(polarity, 0)
         counts = torch.bincount(self.pixel, minlength=self.num_pixels)
         run_start = torch.cumsum(counts, 0) - counts
         before_run = torch.cat([running.new_zeros(1), running])[run_start]
-        level_after = torch.empty_like(running)
-        level_after[order] = running - before_run[self.pixel[order]]
-        level_after = self.theta * level_after.to(torch.float64)
-        self.level_after = level_after
-        self.level_before = level_after - self.theta * polarity.to(torch.float64)
-        self._work = torch.empty(0, dtype=torch.float64, device=self.device)
+        self.level_after = self.theta * (running - before_run[self.pixel]).to(torch.float64)
+        self.level_before = self.level_after - self.theta * polarity.to(torch.float64)
+        # first event of each row (and the end): strips of rows are contiguous
+        row_starts = torch.arange(height + 1, device=self.device) * width
+        self.row_bounds = torch.searchsorted(self.pixel, row_starts).tolist()
 
     def at(self, times: Tensor) -> tuple[Tensor, Tensor]:
         """``S`` and ``exp(θC − peak)`` of every pixel at sorted times.
@@ -93,34 +96,34 @@ class ContinuousIntegral:
             (0 at ``g_0``) and ``exp(θC(g_j) − peak)`` with ``C(g)`` counting the events before ``g``; ``peak``
             is each pixel's highest ``θC`` over ``[g_0, g_{G−1}]``, so the levels are at most 1.
         """
-        s_total, level = self._tables(times)
-        return s_total.clone(), level.clone()
+        s_total, level = self._tables(times.to(self.device, torch.float64), 0, self.sensor_size[0])
+        return s_total, level
 
-    def _tables(self, times: Tensor) -> tuple[Tensor, Tensor]:
-        """:meth:`at` in a work buffer that the next call overwrites (fresh GB-sized arrays cost page faults)."""
-        g = times.to(self.device, torch.float64)
-        num, p = len(g), self.num_pixels
-        if self._work.numel() < 2 * num * p:
-            self._work = torch.empty(2 * num * p, dtype=torch.float64, device=self.device)
-        # the events are in time order: those before the grid, then those inside it (slices, not masks)
-        first, last = torch.searchsorted(self.t, g[[0, -1]]).tolist()
-        t, pixel, after = self.t[first:last], self.pixel[first:last], self.level_after[first:last]
-        slot = torch.searchsorted(g, t, right=True)  # g[slot - 1] <= t < g[slot]
+    def _tables(self, g: Tensor, r0: int, r1: int) -> tuple[Tensor, Tensor]:
+        """:meth:`at` for the rows ``[r0, r1)``: :math:`(G, r1 − r0, W)` each."""
+        width = self.sensor_size[1]
+        num, p = len(g), (r1 - r0) * width
+        lo, hi = self.row_bounds[r0], self.row_bounds[r1]
+        t, pixel = self.t[lo:hi], self.pixel[lo:hi] - r0 * width
+        after, before = self.level_after[lo:hi], self.level_before[lo:hi]
+        ahead = t < g[0]
+        inside = ~ahead & (t < g[-1])
         # θC at g_0 (the events before the grid) and each pixel's highest level from there to the last point
         start_level = torch.zeros(p, dtype=torch.float64, device=self.device).index_add_(
-            0, self.pixel[:first], self.level_after[:first] - self.level_before[:first])
+            0, pixel[ahead], after[ahead] - before[ahead])
+        t, pixel, after, before = t[inside], pixel[inside], after[inside], before[inside]
         peak = start_level.clone().scatter_reduce_(0, pixel, after, reduce="amax", include_self=True)
+        slot = torch.searchsorted(g, t, right=True)  # g[slot - 1] <= t < g[slot]
         # exp(level) is piecewise constant: its value at g_j is the start value plus the rises of the events
         # before g_j, and its integral from g_0 is (g_j − g_0)·level(g_j) − Σ rise·(t − g_0) over those events
-        rise = torch.exp(after - peak[pixel]) - torch.exp(self.level_before[first:last] - peak[pixel])
+        rise = torch.exp(after - peak[pixel]) - torch.exp(before - peak[pixel])
         flat = slot * p + pixel
-        level = self._work[:num * p].zero_().index_add_(0, flat, rise)
-        held = self._work[num * p:2 * num * p].zero_().index_add_(0, flat, rise * (t - g[0]))
+        level = torch.zeros(num * p, dtype=torch.float64, device=self.device).index_add_(0, flat, rise)
+        held = torch.zeros(num * p, dtype=torch.float64, device=self.device).index_add_(0, flat, rise * (t - g[0]))
         level = torch.cumsum(level.view(num, p), 0, out=level.view(num, p)).add_(torch.exp(start_level - peak))
         held = torch.cumsum(held.view(num, p), 0, out=held.view(num, p))
         s_total = held.neg_().addcmul_(level, (g - g[0])[:, None])
-        h, w = self.sensor_size
-        return s_total.view(num, h, w), level.view(num, h, w)
+        return s_total.view(num, r1 - r0, width), level.view(num, r1 - r0, width)
 
     def log_ratio(self, start: float, end: float, latencies: Tensor, reference: float = 0.5) -> Tensor:
         """``log R`` of the windows ``[start + l, end + l]`` read at ``start + l + reference·(end − start)``.
@@ -139,7 +142,14 @@ class ContinuousIntegral:
         # on a 1/1024 µs lattice, so window ends that meet other windows' starts (or references) are one point
         points = torch.round(points * _LATTICE) / _LATTICE
         times, index = torch.unique(points.reshape(-1), sorted=True, return_inverse=True)
-        s_total, level = self._tables(times)
         a, b, r = index.view(3, -1)
-        mean = (s_total[b] - s_total[a]).clamp_min_(1e-300).div_(level[r]).div_(end - start)
-        return torch.log_(mean)[:, None]
+        height, width = self.sensor_size
+        # a strip of rows at a time: the tables of all the times stay within STRIP_BYTES
+        rows = max(1, min(height, STRIP_BYTES // (len(times) * width * BYTES_PER_POINT)))
+        out = torch.empty((len(lat), 1, height, width), dtype=torch.float64, device=self.device)
+        for r0 in range(0, height, rows):
+            r1 = min(height, r0 + rows)
+            s_total, level = self._tables(times, r0, r1)
+            mean = (s_total[b] - s_total[a]).clamp_min_(1e-300).div_(level[r]).div_(end - start)
+            out[:, 0, r0:r1] = torch.log_(mean)
+        return out

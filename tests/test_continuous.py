@@ -107,3 +107,17 @@ def test_edi_deblur_continuous_integral_matches_many_bins_and_takes_one_latency_
     with pytest.raises(ValueError, match="one latency per sample"):
         edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, 0.2,
                    torch.zeros(2, 1, 12, 16), integral="continuous")
+
+
+def test_strips_of_rows_give_the_same_ratios(monkeypatch):
+    import evlatcorr.continuous
+
+    frames = simulate("camera", num_frames=1, latency="constant", latency_us=1000.0, seed=4, height=12, width=16,
+                      exposure_us=5000.0).frames("delayed")
+    start, end = float(frames.exposure_start), float(frames.exposure_end)
+    latencies = torch.linspace(0.0, 3000.0, 7)
+    whole = ContinuousIntegral(frames.events, 0.2).log_ratio(start, end, latencies)
+    # 1 kB per strip: one row (of 16 pixels) at a time
+    monkeypatch.setattr(evlatcorr.continuous, "STRIP_BYTES", 1000)
+    rows = ContinuousIntegral(frames.events, 0.2).log_ratio(start, end, latencies)
+    torch.testing.assert_close(rows, whole, rtol=1e-12, atol=1e-12)
