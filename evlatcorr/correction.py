@@ -94,9 +94,12 @@ def correct_constant_latency(
     height, width = frames.sensor_size
     latency = result.latency.to(frames.device, torch.float32).view(-1, 1, 1, 1).expand(-1, 1, height, width)
     corrected = frames.events.shift(result.latency)
-    # the latent image exact in continuous time, as the search scored it (no bins)
-    latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, theta,
-                        result.latency, num_bins, integral="continuous")
+    # the latent image exact in continuous time, as the search scored it (no bins), from the search's own integral
+    if result.log_ratio is not None:
+        latent = frames.blurry * torch.exp(-result.log_ratio).to(frames.blurry.dtype)
+    else:
+        latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, theta,
+                            result.latency, num_bins, integral="continuous")
     meta = dict(frames.meta)
     meta["etf_curve"] = (result.candidates, result.etf)
     meta["threshold"] = theta

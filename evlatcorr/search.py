@@ -84,6 +84,9 @@ class ConstantSearchResult:
             of the range searched).
         fallback: :math:`(B,)` bool: the curve had no clear minimum and ``latency`` is the fallback
             (``previous_latency`` when given, else the lower end of the range).
+        log_ratio: :math:`(B, 1, H, W)` float64 EDI ``log R`` at ``latency`` (latent image at mid-exposure
+            ``blurry · exp(−log R)``), exact in continuous time; None with ``method="binned"`` or when a
+            sample had no window to score.
     """
 
     latency: Tensor
@@ -93,6 +96,7 @@ class ConstantSearchResult:
     fine_etf: list[Tensor]
     confidence: Tensor | None = None
     fallback: Tensor | None = None
+    log_ratio: Tensor | None = None
 
 
 def default_search_range(exposure_time: Tensor) -> tuple[Tensor, Tensor]:
@@ -229,6 +233,8 @@ def search_constant_latency(
         fine_etf=[r.fine_scores for r in results],
         confidence=torch.tensor([r.confidence for r in results], dtype=torch.float64, device=blurry.device),
         fallback=torch.tensor([r.fallback for r in results], dtype=torch.bool, device=blurry.device),
+        log_ratio=(torch.cat([r.log_ratio for r in results]).to(blurry.device)
+                   if all(r.log_ratio is not None for r in results) else None),
     )
 
 
@@ -241,6 +247,7 @@ class _OneResult:
     fine_scores: Tensor
     confidence: float
     fallback: bool
+    log_ratio: Tensor | None = None  # (1, 1, H, W) at ``latency``, from the continuous integral
 
 
 def sharpness_score(latent: Tensor, latency: Tensor, previous: Tensor | None, score: str, epsilon: float,
@@ -423,6 +430,12 @@ def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: f
                     out[m, kept_cols[k0:k1]] = torch.where(wanted[m, k0:k1], value, math.inf)
         return [out[m, torch.searchsorted(union.cpu(), cand.cpu())] for m, cand in enumerate(requests)]
 
+    def final_ratio(latency: float) -> Tensor | None:
+        """log R at the chosen latency from the integral already built (the corrector's latent image)."""
+        if method != "continuous":
+            return None
+        return integral_.log_ratio(start, end, torch.tensor([latency], dtype=torch.float64))
+
     coarse_scores = torch.stack(score_requests([coarse] * len(members)))
     fines = [fine_of(float(coarse[int(torch.argmin(coarse_scores[m]))])) for m in range(len(members))]
     fine_scores = score_requests(fines) if refine else [None] * len(members)
@@ -431,11 +444,12 @@ def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: f
     if confidence == 0.0:  # most scores have no interior minimum
         fallback = low if prev is None else min(max(float(prev), low), high)
         return _OneResult(fallback, to_us(coarse).cpu(), coarse_scores[0], to_us(coarse).cpu(), coarse_scores[0],
-                          0.0, True)
+                          0.0, True, final_ratio(fallback))
     chosen = sorted(range(len(members)), key=lambda m: estimates[m][0])[len(members) // 2]  # the median
     best, _, fine, fine_score = estimates[chosen]
     latency = min(max(float(to_us(torch.tensor(best, dtype=torch.float64))), low), high)
-    return _OneResult(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(fine).cpu(), fine_score, confidence, False)
+    return _OneResult(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(fine).cpu(), fine_score, confidence, False,
+                      final_ratio(latency))
 
 
 def _aligned_candidates(low: float, high: float, num: int, exposure: float) -> tuple[Tensor, float]:

@@ -121,3 +121,15 @@ def test_strips_of_rows_give_the_same_ratios(monkeypatch):
     monkeypatch.setattr(evlatcorr.continuous, "STRIP_BYTES", 1000)
     rows = ContinuousIntegral(frames.events, 0.2).log_ratio(start, end, latencies)
     torch.testing.assert_close(rows, whole, rtol=1e-12, atol=1e-12)
+
+
+def test_corrector_latent_is_the_continuous_edi_at_its_latency():
+    from evlatcorr import EventLatencyCorrector
+
+    frames = simulate("camera", num_frames=2, latency="constant", latency_us=2000.0, seed=5, height=16, width=20,
+                      exposure_us=5000.0).frames("delayed")
+    out = EventLatencyCorrector(threshold=0.2)(frames)
+    latency = out.latency[:, 0, 0, 0].double()
+    expected = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, 0.2, latency,
+                          integral="continuous")
+    torch.testing.assert_close(out.latent, expected, rtol=1e-5, atol=1e-6)
