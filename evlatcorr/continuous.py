@@ -106,17 +106,21 @@ class ContinuousIntegral:
         lo, hi = self.row_bounds[r0], self.row_bounds[r1]
         t, pixel = self.t[lo:hi], self.pixel[lo:hi] - r0 * width
         after, before = self.level_after[lo:hi], self.level_before[lo:hi]
+        # events before the grid set the start level, those inside it the steps; masks as weights, not
+        # compaction, so nothing waits on the device for a count
         ahead = t < g[0]
         inside = ~ahead & (t < g[-1])
-        # θC at g_0 (the events before the grid) and each pixel's highest level from there to the last point
+        # θC at g_0 and each pixel's highest level from there to the last point
         start_level = torch.zeros(p, dtype=torch.float64, device=self.device).index_add_(
-            0, pixel[ahead], after[ahead] - before[ahead])
-        t, pixel, after, before = t[inside], pixel[inside], after[inside], before[inside]
-        peak = start_level.clone().scatter_reduce_(0, pixel, after, reduce="amax", include_self=True)
-        slot = torch.searchsorted(g, t, right=True)  # g[slot - 1] <= t < g[slot]
+            0, pixel, torch.where(ahead, after - before, 0.0))
+        peak = start_level.clone().scatter_reduce_(0, pixel, torch.where(inside, after, -torch.inf), reduce="amax",
+                                                   include_self=True)
+        slot = torch.searchsorted(g, t, right=True).clamp_(max=num - 1)  # g[slot - 1] <= t < g[slot] inside
         # exp(level) is piecewise constant: its value at g_j is the start value plus the rises of the events
         # before g_j, and its integral from g_0 is (g_j − g_0)·level(g_j) − Σ rise·(t − g_0) over those events
-        rise = torch.exp(after - peak[pixel]) - torch.exp(before - peak[pixel])
+        top = peak[pixel]
+        rise = torch.where(inside, torch.exp((after - top).clamp_(max=0.0)) - torch.exp((before - top).clamp_(max=0.0)),
+                           0.0)
         flat = slot * p + pixel
         level = torch.zeros(num * p, dtype=torch.float64, device=self.device).index_add_(0, flat, rise)
         held = torch.zeros(num * p, dtype=torch.float64, device=self.device).index_add_(0, flat, rise * (t - g[0]))
