@@ -287,7 +287,11 @@ class Events:
             >>> ev.shift(torch.tensor([[[[15.0, 0.0]]]])).t.tolist()
             [-5.0, 20.0]
         """
-        t = self.t - self.latency_at_events(latency)
+        per_event = self.latency_at_events(latency)
+        t = self.t - per_event
+        latency = torch.as_tensor(latency)
+        if latency.dim() < 4:  # one latency per sample keeps each sample's time order: nothing to sort
+            return Events._trusted(self.x, self.y, t, self.p, self.batch, self.sensor_size, self.batch_size)
         order = _sort_order(self.batch, t)
         return Events._trusted(self.x[order], self.y[order], t[order], self.p[order], self.batch[order],
                                self.sensor_size, self.batch_size)

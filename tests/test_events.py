@@ -76,6 +76,15 @@ class TestEvents:
         assert shifted.t.tolist() == [-15.0, 20.0, 28.0]  # re-sorted within the sample
         assert shifted.x.tolist() == [0, 1, 0]
 
+    def test_shift_per_sample_equals_uniform_map(self):
+        # the per-sample path skips the sort; it must give what the sorting map path gives
+        ev = random_events(300, (4, 5), (0.0, 1000.0), batch_size=3, seed=3)
+        lat = torch.tensor([100.0, -50.0, 2000.0])
+        fast = ev.shift(lat)
+        sorted_ = ev.shift(lat.view(3, 1, 1, 1).expand(3, 1, 4, 5))
+        for name in ("x", "y", "t", "p", "batch"):
+            assert torch.equal(getattr(fast, name), getattr(sorted_, name)), name
+
     def test_shift_bad_map(self):
         ev = random_events(10, (4, 4), (0.0, 10.0))
         with pytest.raises(ValueError, match="latency"):
