@@ -8,13 +8,14 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from evlatcorr.checks import check_has_events, check_search_range
+from evlatcorr.checks import check_has_events
+from evlatcorr.config import DEFAULT_SCORE, SearchConfig
 from evlatcorr.edi import edi_deblur, estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
-from evlatcorr.search import DEFAULT_SCORE, SCORES, search_constant_latency
+from evlatcorr.search import search_constant_latency
 
-__all__ = ["EventLatencyCorrector", "correct_constant_latency"]
+__all__ = ["EventLatencyCorrector", "ConstantLatencyCorrector", "correct_constant_latency", "SearchConfig"]
 
 _MODES = ("constant", "spatial")
 
@@ -22,15 +23,9 @@ _MODES = ("constant", "spatial")
 def correct_constant_latency(
     frames: EventFrames,
     threshold: float | str = 0.2,
-    num_bins: int = 500,
-    search_range: tuple[float, float] | None = None,
-    num_candidates: int = 100,
-    refine: bool = True,
+    config: SearchConfig | None = None,
     previous_latency: Tensor | None = None,
-    epsilon: float = DEFAULT_EPSILON,
-    window: int = DEFAULT_WINDOW,
-    sigma_us: float = DEFAULT_SIGMA_US,
-    score: str = DEFAULT_SCORE,
+    **settings: Any,
 ) -> EventFrames:
     """Estimate one latency per frame and remove it from the events (functional form).
 
@@ -40,17 +35,10 @@ def correct_constant_latency(
             that makes both frames' reconstructions agree
             (:func:`~evlatcorr.consistency.estimate_recording_threshold`), else per frame by
             :func:`~evlatcorr.edi.estimate_threshold`; both at the latency found with θ = 0.2.
-        num_bins: sub-intervals of the exposure for EDI (paper: 500).
-        search_range: ``(low, high)`` µs, finite, ``high > low``; default 0 to the exposure time of each
-            frame. The latency found lies in it.
-        num_candidates: coarse candidates over the range.
-        refine: refine below the candidate spacing.
+        config: the search settings (:class:`~evlatcorr.config.SearchConfig`: bins, range, candidates,
+            refinement, score); default ``SearchConfig()``.
         previous_latency: ``l'`` :math:`(B,)` µs for the temporal prior (e.g. the previous frame's).
-        epsilon: ETF edge amplifier.
-        window: ETF contrast window.
-        sigma_us: σ of the temporal prior, µs.
-        score: sharpness score of the search, one of :data:`~evlatcorr.search.SCORES`
-            (see :func:`~evlatcorr.search.search_constant_latency`).
+        **settings: fields of :class:`~evlatcorr.config.SearchConfig` to change, e.g. ``num_bins=100``.
 
     Returns:
         ``frames`` with ``latency`` :math:`(B, 1, H, W)`, ``corrected`` events, ``latent`` (EDI at
@@ -65,16 +53,15 @@ def correct_constant_latency(
         ValueError: when a sample has no events in ``[exposure_start, exposure_end + exposure time)``
             (nothing to estimate a latency from), or for a bad argument.
     """
-    search_range = check_search_range(search_range)
+    config = (config or SearchConfig()).replace(**settings) if settings else (config or SearchConfig())
     check_has_events(frames)
-    _warn_if_short(frames, search_range)
+    _warn_if_short(frames, config.search_range)
     theta: float | Tensor = threshold
     if isinstance(threshold, str):
         if threshold != "auto":
             raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
         first = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                                        0.2, num_bins, search_range, num_candidates, False, previous_latency,
-                                        epsilon, window, sigma_us, score=score)
+                                        0.2, previous_latency=previous_latency, config=config.replace(refine=False))
         if frames.blurry_next is not None and frames.exposure_start_next is not None:
             # pairs: one θ that makes both frames' reconstructions agree between the exposures
             from evlatcorr.consistency import estimate_recording_threshold
@@ -82,10 +69,9 @@ def correct_constant_latency(
             theta = estimate_recording_threshold(frames, latency=first.latency)
         else:
             theta = estimate_threshold(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                                       latency=first.latency, num_bins=num_bins)
+                                       latency=first.latency, num_bins=config.num_bins)
     result = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                                     theta, num_bins, search_range, num_candidates, refine, previous_latency,
-                                     epsilon, window, sigma_us, score=score)
+                                     theta, previous_latency=previous_latency, config=config)
     if result.fallback is not None and bool(result.fallback.any()):
         which = torch.nonzero(result.fallback).flatten().tolist()
         warnings.warn(f"samples {which}: the sharpness score has no clear minimum inside the latency range the "
@@ -99,21 +85,53 @@ def correct_constant_latency(
         latent = frames.blurry * torch.exp(-result.log_ratio).to(frames.blurry.dtype)
     else:
         latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, theta,
-                            result.latency, num_bins, integral="continuous")
+                            result.latency, config.num_bins, integral="continuous")
     meta = dict(frames.meta)
     meta["etf_curve"] = (result.candidates, result.etf)
     meta["threshold"] = theta
-    meta["score"] = score
+    meta["score"] = config.score
     meta["latency_confidence"] = result.confidence
     meta["latency_fallback"] = result.fallback
     return frames.replace(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
+
+
+class ConstantLatencyCorrector(nn.Module):
+    """One latency per frame, searched and removed (:func:`correct_constant_latency` as a module).
+
+    Args:
+        threshold: contrast threshold θ, or ``"auto"``.
+        config: the search settings; default ``SearchConfig()``.
+
+    ``frames.meta["previous_latency"]`` (:math:`(B,)` µs), when set, is the temporal prior's ``l'``.
+
+    Example:
+        >>> ConstantLatencyCorrector(0.25, SearchConfig(num_candidates=50))
+        ConstantLatencyCorrector(threshold=0.25, num_bins=500, search_range=None, num_candidates=50)
+    """
+
+    def __init__(self, threshold: float | str = 0.2, config: SearchConfig | None = None) -> None:
+        super().__init__()
+        if not (threshold == "auto" or (isinstance(threshold, (int, float)) and threshold > 0)):
+            raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
+        self.threshold = threshold
+        self.config = config or SearchConfig()
+
+    def extra_repr(self) -> str:
+        c = self.config
+        return (f"threshold={self.threshold}, num_bins={c.num_bins}, search_range={c.search_range}, "
+                f"num_candidates={c.num_candidates}")
+
+    def forward(self, frames: EventFrames) -> EventFrames:
+        return correct_constant_latency(frames, self.threshold, self.config, frames.meta.get("previous_latency"))
 
 
 class EventLatencyCorrector(nn.Module):
     """Estimate and remove event latency, in front of any event-guided model.
 
     ``mode="constant"`` finds one latency per frame: the one whose EDI latent image is sharpest
-    by the event-based temporal fidelity (ETF), searched in one pass over the events.
+    (see :func:`~evlatcorr.search.search_constant_latency`), searched in one pass over the events
+    (a :class:`ConstantLatencyCorrector`). ``mode="spatial"`` gives a per-pixel map from a polynomial
+    of intensity (a :class:`~evlatcorr.spatial.SpatialLatencyCorrector`).
 
     The events of each sample must reach past ``exposure_end`` by the largest latency searched
     (late events of an exposure are stamped after it ends): by default the search range is 0 to
@@ -136,6 +154,7 @@ class EventLatencyCorrector(nn.Module):
         curve: ``mode="spatial"`` only: a trained latency curve checkpoint.
         **spatial_kwargs: ``mode="spatial"`` only: options of the spatial corrector.
 
+    The search settings are checked here, once (a :class:`~evlatcorr.config.SearchConfig`, ``.config``).
     Both modes refuse a batch with a frame that has no events in ``[exposure_start, exposure_end +
     exposure time)`` with a :class:`ValueError` naming the sample: there is nothing to estimate its
     latency from.
@@ -143,7 +162,10 @@ class EventLatencyCorrector(nn.Module):
     Example:
         >>> corrector = EventLatencyCorrector()
         >>> corrector
-        EventLatencyCorrector(mode=constant, threshold=0.2, num_bins=500, search_range=None, num_candidates=100)
+        EventLatencyCorrector(
+          mode=constant, threshold=0.2, num_bins=500, search_range=None, num_candidates=100
+          (constant): ConstantLatencyCorrector(threshold=0.2, num_bins=500, search_range=None, num_candidates=100)
+        )
     """
 
     def __init__(
@@ -164,30 +186,31 @@ class EventLatencyCorrector(nn.Module):
         super().__init__()
         if mode not in _MODES:
             raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
-        if not (threshold == "auto" or (isinstance(threshold, (int, float)) and threshold > 0)):
-            raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
-        if num_bins < 2:
-            raise ValueError(f"num_bins must be >= 2, got {num_bins}")
-        if num_candidates < 2:
-            raise ValueError(f"num_candidates must be >= 2, got {num_candidates}")
         if mode == "constant" and (curve is not None or spatial_kwargs):
             raise ValueError("curve and spatial options need mode='spatial'")
-        self.mode = mode
-        self.threshold = threshold
-        self.num_bins = num_bins
-        self.search_range = check_search_range(search_range)
-        self.num_candidates = num_candidates
-        self.refine = refine
-        if score not in SCORES:
-            raise ValueError(f"score must be one of {SCORES}, got {score!r}")
-        self.epsilon, self.window, self.sigma_us, self.score = epsilon, window, sigma_us, score
+        self.mode, self.threshold = mode, threshold
+        self.config = SearchConfig(num_bins=num_bins, search_range=search_range, num_candidates=num_candidates,
+                                   refine=refine, score=score, epsilon=epsilon, window=window, sigma_us=sigma_us)
+        self.constant: ConstantLatencyCorrector | None = None
         self.spatial: nn.Module | None = None
-        if mode == "spatial":
+        if mode == "constant":
+            self.constant = ConstantLatencyCorrector(threshold, self.config)
+        else:
             from evlatcorr.spatial import SpatialLatencyCorrector
 
+            if not (threshold == "auto" or (isinstance(threshold, (int, float)) and threshold > 0)):
+                raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
+            c = self.config
             self.spatial = SpatialLatencyCorrector(
-                curve=curve, threshold=threshold, num_bins=num_bins, search_range=self.search_range,
-                num_candidates=num_candidates, epsilon=epsilon, window=window, sigma_us=sigma_us, **spatial_kwargs)
+                curve=curve, threshold=threshold, num_bins=c.num_bins, search_range=c.search_range,
+                num_candidates=c.num_candidates, epsilon=c.epsilon, window=c.window, sigma_us=c.sigma_us,
+                **spatial_kwargs)
+
+    # the settings, read through the config (one source of truth)
+    num_bins = property(lambda self: self.config.num_bins)
+    search_range = property(lambda self: self.config.search_range)
+    num_candidates = property(lambda self: self.config.num_candidates)
+    score = property(lambda self: self.config.score)
 
     def extra_repr(self) -> str:
         return (f"mode={self.mode}, threshold={self.threshold}, num_bins={self.num_bins}, "
@@ -196,12 +219,7 @@ class EventLatencyCorrector(nn.Module):
     def forward(self, frames: EventFrames) -> EventFrames:
         if not isinstance(frames, EventFrames):
             raise ValueError(f"EventLatencyCorrector takes an EventFrames batch, got {type(frames).__name__}")
-        if self.spatial is not None:
-            return self.spatial(frames)
-        previous = frames.meta.get("previous_latency")
-        return correct_constant_latency(frames, self.threshold, self.num_bins, self.search_range,
-                                        self.num_candidates, self.refine, previous, self.epsilon, self.window,
-                                        self.sigma_us, self.score)
+        return (self.spatial or self.constant)(frames)
 
 
 def _warn_if_short(frames: EventFrames, search_range: tuple[float, float] | None) -> None:

@@ -34,24 +34,18 @@ from evlatcorr.checks import (
     check_exposure,
     check_image,
     check_memory,
-    check_search_range,
     resolve_memory_budget,
 )
+from evlatcorr.config import DEFAULT_SCORE, SCORES, SPARSITY_SCORES, SearchConfig
 from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
 from evlatcorr.events import Events
 from evlatcorr.integral import _row_strips, cumulative_event_grid
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score",
-           "sharpness_scores", "SCORES"]
+           "sharpness_scores", "SCORES", "DEFAULT_SCORE", "SearchConfig"]
 
-# sparsity scores: (c of log(I / mean(I) + c), image scales). c sets how much relatively dark pixels count:
-# 0.25 found the constant latency best on the dev split, 1.0 follows the bright pixels when latency varies
-# with intensity; the coarse scale sees the low-contrast blur remnants of under-correction better.
-_SPARSITY = {"sparsity": (0.25, (1,)), "sparsity_bright": (1.0, (1,)), "sparsity_multiscale": (0.25, (1, 2))}
-# "consensus": the median of the three sparsity scores' estimates (one failing score is outvoted)
-SCORES = ("etf", *_SPARSITY, "consensus")
-DEFAULT_SCORE = "consensus"
+_SPARSITY = SPARSITY_SCORES
 # Memory bound of one strip of the prefix-sum table (float64), in elements.
 _STRIP_ELEMENTS = 4_000_000
 # Bytes per grid point and pixel that the search table keeps: the cumulative event sum (float32) and the
@@ -122,6 +116,7 @@ def search_constant_latency(
     score: str = DEFAULT_SCORE,
     memory_budget: int | None = None,
     method: str | None = None,
+    config: SearchConfig | None = None,
 ) -> ConstantSearchResult:
     """Find the constant latency per sample that minimises the ETF of the EDI latent image.
 
@@ -152,6 +147,9 @@ def search_constant_latency(
             the refinement steps by ``exposure time / num_bins``; ``"binned"`` (default for ``"linear"``, the
             only one for it): candidates are whole sub-intervals of a ``num_bins`` grid read from one
             prefix-sum table (trapezoidal rule), as before the continuous integral; kept for comparison.
+        config: the search settings as one :class:`~evlatcorr.config.SearchConfig` (already validated); when
+            given it replaces ``num_bins``, ``search_range``, ``num_candidates``, ``refine``, ``epsilon``,
+            ``window``, ``sigma_us`` and ``score``.
 
     Candidates whose window ``[exposure_start + l, exposure_end + l]`` runs past a sample's last
     event are never scored. When the curve has no interior minimum (see ``confidence``), the
@@ -177,6 +175,9 @@ def search_constant_latency(
         >>> 1000.0 <= res.latency.item() <= 1100.0  # clamped: the candidates are 200 us apart
         True
     """
+    if config is None:
+        config = SearchConfig(num_bins=num_bins, search_range=search_range, num_candidates=num_candidates,
+                              refine=refine, score=score, epsilon=epsilon, window=window, sigma_us=sigma_us)
     check_image(blurry, "blurry")
     b = blurry.shape[0]
     if events.batch_size != b:
@@ -186,12 +187,6 @@ def search_constant_latency(
     start = check_batch_vector(exposure_start, b, "exposure_start").to(events.device, torch.float64)
     end = check_batch_vector(exposure_end, b, "exposure_end").to(events.device, torch.float64)
     check_exposure(start, end)
-    if num_candidates < 2:
-        raise ValueError(f"num_candidates must be >= 2, got {num_candidates}")
-    if num_bins < 2:
-        raise ValueError(f"num_bins must be >= 2, got {num_bins}")
-    if score not in SCORES:
-        raise ValueError(f"score must be one of {SCORES}, got {score!r}")
     if integral not in ("step", "linear"):
         raise ValueError(f"integral must be 'step' or 'linear', got {integral!r}")
     method = method or ("continuous" if integral == "step" else "binned")
@@ -202,7 +197,7 @@ def search_constant_latency(
     theta = check_batch_vector(threshold, b, "threshold").to(torch.float64)
     if bool((theta <= 0).any()):
         raise ValueError(f"threshold must be positive, got {theta.min().item()}")
-    rng = check_search_range(search_range)
+    rng = config.search_range
     if rng is None:
         lows, highs = default_search_range(end - start)
     else:
@@ -221,9 +216,8 @@ def search_constant_latency(
     for i in range(b):
         ev = events.sample(i)
         results.append(_search_one(
-            grey[i:i + 1], ev, float(start[i]), float(end[i]), float(theta[i]), num_bins,
-            float(lows[i]), float(highs[i]), float(reach[i]), num_candidates, refine,
-            None if prev is None else prev[i:i + 1], epsilon, window, sigma_us, integral, score, budget, method,
+            grey[i:i + 1], ev, _Window(float(start[i]), float(end[i]), float(lows[i]), float(highs[i]), float(reach[i])),
+            float(theta[i]), config, None if prev is None else prev[i:i + 1], integral, budget, method,
         ))
     return ConstantSearchResult(
         latency=torch.tensor([r.latency for r in results], dtype=torch.float64, device=blurry.device),
@@ -333,17 +327,30 @@ def _gradient_sparsity(image: Tensor) -> Tensor:
     return l1 / (l2 * math.sqrt(2 * dx.shape[1]) + 1e-12)
 
 
-def _search_one(grey: Tensor, events: Events, start: float, end: float, theta: float, n: int,
-                low: float, high: float, reach: float, num_candidates: int, refine: bool, prev: Tensor | None,
-                epsilon: float, window: int, sigma_us: float, integral: str, score: str,
-                budget: int | None = None, method: str = "continuous") -> _OneResult:
-    """Search for one sample; ``grey`` is :math:`(1, 1, H, W)`; ``reach`` = last event - exposure end.
+@dataclass(frozen=True)
+class _Window:
+    """One sample's exposure ``[start, end]``, latency range ``[low, high]`` and ``reach`` = last event − end, µs."""
+
+    start: float
+    end: float
+    low: float
+    high: float
+    reach: float
+
+
+def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, config: SearchConfig,
+                prev: Tensor | None, integral: str, budget: int | None = None,
+                method: str = "continuous") -> _OneResult:
+    """Search for one sample; ``grey`` is :math:`(1, 1, H, W)`.
 
     ``"continuous"``: candidates evenly spaced over ``[low, high]``, each window's EDI exact in continuous
     time (:class:`~evlatcorr.continuous.ContinuousIntegral`); the refinement spaces candidates by
     ``exposure / n``. ``"binned"``: candidates are whole sub-intervals ``exposure / n`` of one prefix-sum
     table; the grid may overhang the range by up to one, and the latency is clamped into ``[low, high]``.
     """
+    start, end, low, high, reach = span.start, span.end, span.low, span.high, span.reach
+    n, num_candidates, refine, score = config.num_bins, config.num_candidates, config.refine, config.score
+    epsilon, window, sigma_us = config.epsilon, config.window, config.sigma_us
     members = tuple(_SPARSITY) if score == "consensus" else (score,)
     width_us = (end - start) / n
     if max(abs(low), abs(high)) / width_us >= 2**53:  # beyond float64's whole numbers of sub-intervals
