@@ -17,8 +17,8 @@ from torch import Tensor
 
 from evlatcorr.benchmark import BenchmarkScene
 from evlatcorr.frames import EventFrames
+from evlatcorr.lightning.data import collate_event_frames
 from evlatcorr.simulate import luminance
-from evlatcorr.training import collate_event_frames
 
 __all__ = ["delay_events", "intensity_latency", "scenes_from_recording"]
 

@@ -1,8 +1,14 @@
-"""The batch type that flows through every module: blurry frames, their events, exposures."""
+"""The batch type that flows through every module: blurry frames, their events, exposures.
+
+:class:`EventFrames` also owns the three batch operations every trainer and data loader needs,
+written once here: :meth:`EventFrames.crop`, :meth:`EventFrames.cat` (the collate function) and
+:meth:`EventFrames.split` (one-frame batches).
+"""
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -13,6 +19,11 @@ from evlatcorr.checks import check_batch_vector, check_exposure, check_image, ch
 from evlatcorr.events import Events
 
 __all__ = ["EventFrames"]
+
+#: optional fields holding one image (or a stack of images) per sample, ``(B, ..., H, W)``
+_IMAGE_FIELDS = ("latency", "latent", "sharp", "blurry_next", "target_frames", "output")
+#: optional fields holding one vector entry per sample, ``(B,)`` or ``(B, T)``
+_VECTOR_FIELDS = ("exposure_start_next", "exposure_end_next", "target_times")
 
 
 @dataclass
@@ -130,3 +141,165 @@ class EventFrames:
             if isinstance(v, (Tensor, Events)):
                 changes[f.name] = v.to(device)
         return dataclasses.replace(self, **changes)
+
+    # batch operations --------------------------------------------------------------------------
+    def crop(self, top: int, left: int, height: int, width: int, *, hflip: bool = False) -> EventFrames:
+        """A spatial crop, optionally mirrored left-right, of every image field and of the events.
+
+        Events outside the crop (``events`` and ``corrected``) are dropped; the rest keep their times
+        and polarities. ``meta`` tensors ending in ``(H, W)`` with 3 or more dimensions (per-pixel
+        maps such as ``meta["true_latency"]``) are cropped too; other ``meta`` entries are kept.
+
+        Args:
+            top, left: first row and column of the crop.
+            height, width: size of the crop; it must lie inside the frame.
+            hflip: mirror the crop left-right (images and event columns together).
+
+        Raises:
+            ValueError: when the crop does not fit in the frame.
+
+        Example:
+            >>> ev = Events(torch.tensor([1, 3]), torch.tensor([0, 2]), torch.tensor([1.0, 2.0]), torch.ones(2),
+            ...             sensor_size=(4, 4))
+            >>> fr = EventFrames(torch.arange(16.0).view(1, 1, 4, 4) / 16, ev, torch.tensor([0.0]), torch.tensor([5.0]))
+            >>> out = fr.crop(1, 2, 3, 2, hflip=True)
+            >>> out.sensor_size, out.events.x.tolist(), out.events.y.tolist(), (out.blurry[0, 0, 0] * 16).tolist()
+            ((3, 2), [0], [1], [7.0, 6.0])
+        """
+        h, w = self.sensor_size
+        if not (0 <= top and 0 <= left and height >= 1 and width >= 1 and top + height <= h and left + width <= w):
+            raise ValueError(f"crop ({top}, {left}, {height}, {width}) does not fit in (H, W)=({h}, {w})")
+        box = (top, left, height, width)
+        changes: dict[str, Any] = {name: _crop_image(getattr(self, name), box, hflip)
+                                   for name in ("blurry", *_IMAGE_FIELDS)}
+        changes["events"] = _crop_events(self.events, box, hflip)
+        changes["corrected"] = None if self.corrected is None else _crop_events(self.corrected, box, hflip)
+        changes["meta"] = {k: _crop_image(v, box, hflip) if _is_pixel_map(v, (h, w)) else v
+                           for k, v in self.meta.items()}
+        return self.replace(**changes)
+
+    @classmethod
+    def cat(cls, items: Sequence[EventFrames]) -> EventFrames:
+        """One batch from several batches of one ``(H, W)``: the collate function of the data loaders.
+
+        Every field is kept: tensors are concatenated along the batch dimension and events (``events``,
+        ``corrected``) by :meth:`Events.cat`; an optional field must be set on every item or on none.
+        In ``meta``, a tensor whose first dimension is the item's batch size, or a list as long as
+        it, holds one entry per sample and is concatenated; any other entry describes the whole item
+        and is kept when every item has the same value (else dropped: it has no batched form).
+
+        Raises:
+            ValueError: no items, items of different ``(H, W)``, or a field set on some items only.
+
+        Example:
+            >>> ev = Events(torch.tensor([0]), torch.tensor([1]), torch.tensor([5.0]), torch.ones(1),
+            ...             sensor_size=(2, 2))
+            >>> one = EventFrames(torch.zeros(1, 1, 2, 2), ev, torch.tensor([0.0]), torch.tensor([10.0]),
+            ...                   meta={"frame": [7], "file": "a.h5"})
+            >>> two = EventFrames.cat([one, one])
+            >>> two.batch_size, two.events.batch.tolist(), two.meta
+            (2, [0, 1], {'frame': [7, 7], 'file': 'a.h5'})
+        """
+        if not items:
+            raise ValueError("cannot collate an empty list of EventFrames")
+        sizes = {x.sensor_size for x in items}
+        if len(sizes) != 1:
+            raise ValueError(f"samples must share one (H, W) to be batched, got {sorted(sizes)}; crop them first")
+        fields: dict[str, Any] = {name: _cat_optional(name, [getattr(x, name) for x in items])
+                                  for name in ("blurry", "exposure_start", "exposure_end", *_IMAGE_FIELDS,
+                                               *_VECTOR_FIELDS)}
+        fields["events"] = Events.cat([x.events for x in items])
+        corrected = [x.corrected for x in items]
+        _check_all_or_none("corrected", corrected)
+        fields["corrected"] = None if corrected[0] is None else Events.cat(corrected)
+        fields["meta"] = _cat_meta(items)
+        return cls(**fields)
+
+    def split(self) -> list[EventFrames]:
+        """One single-frame ``EventFrames`` per sample, every field kept: the inverse of :meth:`cat`.
+
+        Tensor fields are views of this batch's tensors. ``meta`` entries holding one entry per
+        sample (see :meth:`cat`) are sliced; the others are copied to every part.
+
+        Example:
+            >>> ev = Events(torch.tensor([0, 1]), torch.tensor([1, 0]), torch.tensor([5.0, 6.0]), torch.ones(2),
+            ...             torch.tensor([0, 1]), sensor_size=(2, 2))
+            >>> fr = EventFrames(torch.zeros(2, 1, 2, 2), ev, torch.tensor([0.0, 20.0]), torch.tensor([10.0, 30.0]),
+            ...                  meta={"frame": [3, 4], "which": "delayed"})
+            >>> [(p.exposure_start.tolist(), p.events.x.tolist(), p.meta) for p in fr.split()]
+            [([0.0], [0], {'frame': [3], 'which': 'delayed'}), ([20.0], [1], {'frame': [4], 'which': 'delayed'})]
+        """
+        b = self.batch_size
+        parts = []
+        for i in range(b):
+            changes: dict[str, Any] = {
+                name: None if getattr(self, name) is None else getattr(self, name)[i:i + 1]
+                for name in ("blurry", "exposure_start", "exposure_end", *_IMAGE_FIELDS, *_VECTOR_FIELDS)}
+            changes["events"] = self.events.sample(i)
+            changes["corrected"] = None if self.corrected is None else self.corrected.sample(i)
+            changes["meta"] = {k: v[i:i + 1] if _per_sample(v, b) else v for k, v in self.meta.items()}
+            parts.append(self.replace(**changes))
+        return parts
+
+
+def _crop_image(image: Tensor | None, box: tuple[int, int, int, int], hflip: bool) -> Tensor | None:
+    if image is None:
+        return None
+    top, left, height, width = box
+    image = image[..., top:top + height, left:left + width]
+    return (image.flip(-1) if hflip else image).contiguous()
+
+
+def _crop_events(events: Events, box: tuple[int, int, int, int], hflip: bool) -> Events:
+    top, left, height, width = box
+    keep = (events.x >= left) & (events.x < left + width) & (events.y >= top) & (events.y < top + height)
+    x = events.x[keep] - left
+    return Events(width - 1 - x if hflip else x, events.y[keep] - top, events.t[keep], events.p[keep],
+                  events.batch[keep], sensor_size=(height, width), batch_size=events.batch_size)
+
+
+def _is_pixel_map(value: Any, size: tuple[int, int]) -> bool:
+    return isinstance(value, Tensor) and value.dim() >= 3 and tuple(value.shape[-2:]) == size
+
+
+def _per_sample(value: Any, batch_size: int) -> bool:
+    """Whether a ``meta`` entry holds one entry per sample (a tensor ``(B, ...)`` or a list of B)."""
+    if isinstance(value, Tensor):
+        return value.dim() >= 1 and value.shape[0] == batch_size
+    return isinstance(value, list) and len(value) == batch_size
+
+
+def _check_all_or_none(name: str, values: Sequence[Any]) -> None:
+    missing = sum(v is None for v in values)
+    if 0 < missing < len(values):
+        raise ValueError(f"cannot batch samples where {name} is set on some and missing on others")
+
+
+def _cat_optional(name: str, values: list[Tensor | None]) -> Tensor | None:
+    _check_all_or_none(name, values)
+    return None if values[0] is None else torch.cat(values)
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, Tensor) or isinstance(b, Tensor):
+        return isinstance(a, Tensor) and isinstance(b, Tensor) and a.device == b.device and torch.equal(a, b)
+    try:
+        return a is b or bool(a == b)
+    except (TypeError, ValueError, RuntimeError):  # e.g. arrays, whose == is element-wise
+        return False
+
+
+def _cat_meta(items: Sequence[EventFrames]) -> dict[str, Any]:
+    meta: dict[str, Any] = {}
+    for key in items[0].meta:
+        if not all(key in x.meta for x in items):
+            continue
+        values = [x.meta[key] for x in items]
+        if all(_per_sample(v, x.batch_size) for v, x in zip(values, items)):
+            tensors = isinstance(values[0], Tensor)
+            if all(isinstance(v, Tensor) == tensors for v in values):
+                meta[key] = torch.cat(values) if tensors else [e for v in values for e in v]
+                continue
+        if all(_same(values[0], v) for v in values[1:]):
+            meta[key] = values[0]
+    return meta

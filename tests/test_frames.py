@@ -116,3 +116,99 @@ class TestTo:
         assert out.events.t.cpu().tolist() == fr.events.t.tolist() and out.meta == {"name": "x"}
         assert out.sharp is None and out.device.type == device.type
 
+
+
+# --- batch operations ------------------------------------------------------------------------------
+def _numbered(batch_size: int = 2, h: int = 3, w: int = 4, **kwargs) -> EventFrames:
+    """Images whose values are their flat pixel index (sample b adds 100 b), so slices are easy to check."""
+    image = (torch.arange(batch_size * h * w, dtype=torch.float32).view(batch_size, 1, h, w) % (h * w)
+             + 100 * torch.arange(batch_size).view(-1, 1, 1, 1)) / 1000
+    ev = Events(torch.tensor([0, 3, 1, 2]), torch.tensor([0, 2, 1, 2]), torch.tensor([1.0, 2.0, 3.0, 4.0]),
+                torch.tensor([1, -1, 1, 1]), torch.tensor([0, 0, 1, 1]), sensor_size=(h, w), batch_size=batch_size)
+    fields = dict(blurry=image, events=ev, exposure_start=torch.tensor([0.0, 100.0]),
+                  exposure_end=torch.tensor([10.0, 130.0]))
+    fields.update(kwargs)
+    return EventFrames(**fields)
+
+
+class TestCrop:
+    def test_known_pixels_and_events(self):
+        fr = _numbered(sharp=torch.zeros(2, 3, 3, 4), latency=torch.ones(2, 1, 3, 4),
+                       meta={"true_latency": torch.arange(24.0).view(2, 1, 3, 4), "which": "delayed"})
+        out = fr.crop(1, 1, 2, 3)  # rows 1-2, columns 1-3
+        assert (out.blurry[0, 0] * 1000).tolist() == [[5.0, 6.0, 7.0], [9.0, 10.0, 11.0]]
+        assert (out.blurry[1, 0] * 1000).tolist() == [[105.0, 106.0, 107.0], [109.0, 110.0, 111.0]]
+        # events (x, y): (0, 0) and (3, 2) of sample 0, (1, 1) and (2, 2) of sample 1: (0, 0) falls outside
+        assert out.events.x.tolist() == [2, 0, 1] and out.events.y.tolist() == [1, 0, 1]
+        assert out.events.t.tolist() == [2.0, 3.0, 4.0] and out.events.batch.tolist() == [0, 1, 1]
+        assert out.events.p.tolist() == [-1, 1, 1] and out.events.sensor_size == (2, 3)
+        assert out.sharp.shape == (2, 3, 2, 3) and out.latency.shape == (2, 1, 2, 3)
+        assert out.meta["true_latency"][0, 0].tolist() == [[5.0, 6.0, 7.0], [9.0, 10.0, 11.0]]
+        assert out.meta["which"] == "delayed" and out.blurry.is_contiguous()
+
+    def test_hflip_mirrors_images_and_events_together(self):
+        out = _numbered().crop(0, 0, 3, 4, hflip=True)
+        assert (out.blurry[0, 0, 0] * 1000).tolist() == [3.0, 2.0, 1.0, 0.0]
+        assert out.events.x.tolist() == [3, 0, 2, 1] and out.events.y.tolist() == [0, 2, 1, 2]
+
+    def test_corrected_events_and_the_pair_fields_are_cropped(self):
+        fr = _numbered(corrected=_numbered().events, blurry_next=torch.rand(2, 1, 3, 4), exposure_start_next=20.0,
+                       exposure_end_next=30.0, target_times=[[5.0], [6.0]], target_frames=torch.rand(2, 1, 1, 3, 4))
+        out = fr.crop(0, 2, 3, 2)
+        assert out.corrected.x.tolist() == [1, 0] and out.blurry_next.shape == (2, 1, 3, 2)
+        assert out.target_frames.shape == (2, 1, 1, 3, 2) and out.target_times.tolist() == [[5.0], [6.0]]
+
+    @pytest.mark.parametrize("box", [(1, 0, 3, 4), (0, 0, 0, 4), (-1, 0, 2, 2), (0, 2, 3, 3)])
+    def test_outside_raises(self, box):
+        with pytest.raises(ValueError, match=re.escape(f"crop {box} does not fit in (H, W)=(3, 4)")):
+            _numbered().crop(*box)
+
+
+class TestCatAndSplit:
+    def test_split_known_parts(self):
+        fr = _numbered(sharp=torch.rand(2, 3, 3, 4), target_times=[1.0, 2.0],
+                       meta={"frame_index": [4, 5], "true_latency": torch.tensor([7.0, 8.0]), "file": "x.h5"})
+        first, second = fr.split()
+        assert first.batch_size == second.batch_size == 1
+        assert second.exposure_start.tolist() == [100.0] and second.target_times.tolist() == [[2.0]]
+        assert torch.equal(second.sharp, fr.sharp[1:]) and torch.equal(second.blurry, fr.blurry[1:])
+        assert second.events.x.tolist() == [1, 2] and second.events.batch.tolist() == [0, 0]
+        assert second.meta["frame_index"] == [5] and second.meta["true_latency"].tolist() == [8.0]
+        assert second.meta["file"] == "x.h5"
+
+    def test_cat_inverts_split_keeping_every_field(self):
+        fr = _numbered(latency=torch.rand(2, 1, 3, 4), latent=torch.rand(2, 1, 3, 4), corrected=_numbered().events,
+                       sharp=torch.rand(2, 3, 3, 4), blurry_next=torch.rand(2, 1, 3, 4),
+                       exposure_start_next=[20.0, 140.0], exposure_end_next=[30.0, 170.0],
+                       target_times=[[25.0, 26.0], [150.0, 151.0]], target_frames=torch.rand(2, 2, 1, 3, 4),
+                       output=torch.rand(2, 1, 3, 4), meta={"frame_index": [4, 5], "which": "ideal",
+                                                            "true_latency": torch.rand(2, 1, 3, 4)})
+        back = EventFrames.cat(fr.split())
+        for f in ("blurry", "exposure_start", "exposure_end", "latency", "latent", "sharp", "blurry_next",
+                  "exposure_start_next", "exposure_end_next", "target_times", "target_frames", "output"):
+            assert torch.equal(getattr(back, f), getattr(fr, f)), f
+        for a, b in ((back.events, fr.events), (back.corrected, fr.corrected)):
+            assert a.batch.tolist() == b.batch.tolist() and a.x.tolist() == b.x.tolist() and a.batch_size == 2
+        assert back.meta["frame_index"] == [4, 5] and back.meta["which"] == "ideal"
+        assert torch.equal(back.meta["true_latency"], fr.meta["true_latency"])
+
+    def test_cat_offsets_the_events_of_multi_sample_items(self):
+        out = EventFrames.cat([_numbered(), _numbered()])
+        assert out.batch_size == 4 and out.events.batch.tolist() == [0, 0, 1, 1, 2, 2, 3, 3]
+        assert out.exposure_end.tolist() == [10.0, 130.0, 10.0, 130.0]
+
+    def test_cat_meta_keeps_shared_values_and_drops_differing_ones(self):
+        a, b = _numbered(meta={"file": "x", "frame": 1, "only_a": 0}), _numbered(meta={"file": "x", "frame": 2})
+        assert EventFrames.cat([a, b]).meta == {"file": "x"}
+
+    @pytest.mark.parametrize("items, message", [
+        ([], "cannot collate an empty list of EventFrames"),
+        ([_numbered(), _numbered(h=4)], "samples must share one (H, W) to be batched, got [(3, 4), (4, 4)]"),
+        ([_numbered(sharp=torch.rand(2, 1, 3, 4)), _numbered()],
+         "cannot batch samples where sharp is set on some and missing on others"),
+        ([_numbered(corrected=_numbered().events), _numbered()],
+         "cannot batch samples where corrected is set on some and missing on others"),
+    ])
+    def test_cat_bad_input(self, items, message):
+        with pytest.raises(ValueError, match=re.escape(message)):
+            EventFrames.cat(items)

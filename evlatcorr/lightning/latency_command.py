@@ -1,0 +1,98 @@
+"""The ``latency`` subcommand: trains the latency polynomial self-supervised, on simulated scenes or a recording."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+
+from evlatcorr.frames import EventFrames
+from evlatcorr.lightning.arguments import exit_bad_input, parse_devices
+from evlatcorr.lightning.data import EventFramesDataModule
+from evlatcorr.lightning.latency import LatencyCorrectionModule
+from evlatcorr.lightning.latency_data import recording_training_frames, simulated_training_frames
+from evlatcorr.spatial import save_curve
+
+__all__ = ["SUMMARY", "DESCRIPTION", "add_arguments", "check", "run"]
+
+SUMMARY = "train the latency polynomial self-supervised (no ground truth)"
+
+DESCRIPTION = """Self-supervised training of the latency polynomial with Lightning (paper Sec. 3.4).
+
+No ground truth is used: each step finds the frame's constant latency ``l_const`` by the one-pass
+search and minimises Eq. (21) through the latency-differentiable EDI. The same command runs on one
+CPU or on many GPUs (``--devices N --strategy ddp``).
+
+Command line (simulated training scenes, a checkpoint and the curve under ``--out``)::
+
+    python -m evlatcorr.lightning latency --epochs 5 --out runs/curve
+    python -m evlatcorr.lightning latency --devices 2 --strategy ddp --accelerator cpu --epochs 1 --size 32 40
+    python -m evlatcorr.lightning latency --data my_camera.aedat4 --crop 96 128 --out runs/my_curve
+
+With ``--data`` the frames of any recording ``evlatcorr.io`` reads are the training data (no ground
+truth needed): frames with events, cut into ``--crop`` tiles, every ``--val-every``-th frame held out
+for validation, and the recording's contrast threshold estimated (``--threshold auto``, two-frame
+consistency) unless given.
+"""
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from evlatcorr.simulate import PHOTOGRAPHS_TRAIN
+
+    p.add_argument("--scenes", nargs="+", default=list(PHOTOGRAPHS_TRAIN))
+    p.add_argument("--size", type=int, nargs=2, default=(96, 128), metavar=("H", "W"))
+    p.add_argument("--epochs", type=int, default=5)
+    p.add_argument("--constant-epochs", type=int, default=2)
+    p.add_argument("--order", type=int, default=5)
+    p.add_argument("--lr", type=float, default=0.02)
+    p.add_argument("--num-bins", type=int, default=100)
+    p.add_argument("--accelerator", default="auto")
+    p.add_argument("--devices", default="1")
+    p.add_argument("--strategy", default="auto")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("runs/latency_curve"))
+    p.add_argument("--data", type=Path, help="train on this recording (any format evlatcorr.io reads) instead of "
+                                             "simulated scenes")
+    p.add_argument("--crop", type=int, nargs=2, metavar=("H", "W"), help="--data: tiles of this size (default: "
+                                                                          "whole frames)")
+    p.add_argument("--threshold", default="auto", help="--data: contrast threshold, or 'auto' (default): one θ "
+                                                       "for the recording")
+    p.add_argument("--val-every", type=int, default=5, help="--data: every N-th frame is held out (0: none)")
+    p.add_argument("--max-steps", type=int, default=-1, help="stop after this many steps (default: --epochs only)")
+
+
+def check(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
+    """Nothing beyond argparse's own checks (kept for the subcommand protocol of :mod:`evlatcorr.lightning.cli`)."""
+
+
+def run(args: argparse.Namespace) -> None:
+    """Train and save ``OUT/last.ckpt`` and ``OUT/curve.pt`` (the curve ``evlatcorr deblur --curve`` loads)."""
+    L.seed_everything(args.seed, workers=True)
+    val: list[EventFrames] = []
+    theta = 0.2
+    if args.data is not None:
+        try:
+            threshold: Any = args.threshold if args.threshold == "auto" else float(args.threshold)
+            frames, val, theta = recording_training_frames(args.data, tuple(args.crop) if args.crop else None,
+                                                           threshold, val_every=args.val_every)
+        except (ValueError, OSError) as exc:  # bad input: one line and exit code 2, as the evlatcorr command
+            exit_bad_input(args.error_label, exc)
+        print(f"{args.data}: {len(frames)} training and {len(val)} validation samples, threshold {theta:.3f}")
+    else:
+        frames = simulated_training_frames(args.scenes, tuple(args.size), args.seed)
+    module = LatencyCorrectionModule(order=args.order, lr=args.lr, num_bins=args.num_bins, threshold=theta,
+                                     constant_epochs=args.constant_epochs,
+                                     decay_epochs=max(0, args.epochs - args.constant_epochs))
+    trainer = L.Trainer(max_epochs=args.epochs, max_steps=args.max_steps, accelerator=args.accelerator,
+                        devices=parse_devices(args.devices), strategy=args.strategy, default_root_dir=args.out,
+                        log_every_n_steps=1, enable_model_summary=False)
+    trainer.fit(module, EventFramesDataModule(frames, val or None, seed=args.seed))
+    args.out.mkdir(parents=True, exist_ok=True)
+    trainer.save_checkpoint(args.out / "last.ckpt")  # every rank: it synchronises
+    if trainer.is_global_zero:
+        save_curve(module.latency_model, args.out / "curve.pt", world_size=trainer.world_size,
+                   scenes=[str(args.data)] if args.data is not None else list(args.scenes), threshold=theta)
+        print(f"world_size={trainer.world_size} coefficients={module.latency_model.coefficients.tolist()} "
+              f"saved {args.out / 'curve.pt'}")

@@ -1,0 +1,103 @@
+"""The shared pieces of evlatcorr.lightning: seeded random crops, loaders, the one CLI and the facades."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from evlatcorr import EventFrames, Events
+from evlatcorr.lightning import RandomCrops, SimulatedRestorationData, frames_loader
+from evlatcorr.lightning.cli import build_parser, main
+
+
+def _frame(h: int = 12, w: int = 12) -> EventFrames:
+    """One frame whose pixel values are their flat index, with an event on every pixel."""
+    ys, xs = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    ev = Events(xs.flatten(), ys.flatten(), torch.linspace(1.0, 9.0, h * w), torch.ones(h * w), sensor_size=(h, w))
+    return EventFrames(torch.arange(h * w, dtype=torch.float32).view(1, 1, h, w) / (h * w), ev, torch.zeros(1),
+                       torch.full((1,), 10.0))
+
+
+def _corners(items) -> list[float]:
+    return [float(x.blurry[0, 0, 0, 0]) for x in items]
+
+
+class TestRandomCrops:
+    def test_the_seed_decides_the_crops(self):
+        def crops(seed):
+            data = RandomCrops([(_frame(),)], (4, 4), length=6, seed=seed)
+            return _corners(data[i] for i in range(6))
+
+        assert crops(0) == crops(0)
+        assert crops(0) != crops(1)
+        assert len(set(crops(0))) > 1  # a new crop per item
+
+    def test_the_global_random_state_is_left_alone(self):
+        state = torch.random.get_rng_state()
+        data = RandomCrops([(_frame(), _frame())], (4, 4), length=8, seed=0)
+        _ = [data[i] for i in range(8)]
+        _ = list(frames_loader(data, 2, True, 0, seed=0))
+        assert torch.equal(torch.random.get_rng_state(), state)
+
+    def test_workers_draw_different_crops_reproducibly(self):
+        def run():
+            data = RandomCrops([(_frame(),)], (4, 4), length=8, seed=0)
+            batches = list(frames_loader(data, 4, False, 2, seed=3))  # batch k comes from worker k
+            return [_corners(b.split()) for b in batches]
+
+        first, again = run(), run()
+        assert first == again and first[0] != first[1]
+
+    def test_require_events_draws_again(self):
+        frame = _frame()
+        one = frame.events.select(frame.events.t == frame.events.t[0])  # only pixel (0, 0) has an event
+        sparse = frame.replace(events=one)
+        data = RandomCrops([(sparse,)], (11, 11), length=20, seed=0, require_events=True, tries=50)
+        assert all(len(data[i].events) == 1 for i in range(20))
+
+    def test_simulated_data_uses_its_seed(self):
+        def first_batch(seed):
+            data = SimulatedRestorationData(photographs=["coins"], size=(24, 32), crop=(8, 8), sequences=1,
+                                            num_frames=2, batch_size=2, steps_per_epoch=2, seed=seed)
+            data.setup()
+            return next(iter(data.train_dataloader())).blurry
+
+        assert torch.equal(first_batch(0), first_batch(0))
+        assert not torch.equal(first_batch(0), first_batch(1))
+
+
+class TestCommandLine:
+    def test_subcommands_share_the_flags_of_the_old_commands(self):
+        args = build_parser().parse_args(["restore", "--model", "gem", "--crop", "16", "16", "--threshold", "0.3"])
+        assert (args.command, args.model, args.crop, args.threshold) == ("restore", "gem", [16, 16], 0.3)
+        args = build_parser().parse_args(["latency", "--size", "24", "32", "--max-steps", "2"])
+        assert (args.command, args.size, args.max_steps) == ("latency", [24, 32], 2)
+
+    @pytest.mark.parametrize("argv, message", [
+        ([], "python -m evlatcorr.lightning: error: the following arguments are required: COMMAND"),
+        (["restore", "--model", "unet"], "python -m evlatcorr.lightning restore: error: argument --model"),
+        (["restore", "--model", "efnet", "--max-steps", "0"], "--max-steps, --batch-size and --val-every"),
+    ])
+    def test_bad_arguments_one_line_exit_2(self, argv, message, capsys):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert exc.value.code == 2 and len(err) == 1 and message in err[0]
+
+    def test_bad_input_names_the_subcommand(self, tmp_path, capsys):
+        with pytest.raises(SystemExit) as exc:
+            main(["latency", "--data", str(tmp_path / "missing.aedat4"), "--out", str(tmp_path)])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert exc.value.code == 2 and err[-1].startswith("evlatcorr.lightning latency: error: ")
+
+
+def test_the_facades_re_export_the_same_objects():
+    import evlatcorr.lightning as new
+    from evlatcorr import train, training
+
+    assert train.RestorationModule is new.RestorationModule
+    assert train.CorrectedRestorationModule is new.CorrectedRestorationModule
+    assert training.LatencyCorrectionModule is new.LatencyCorrectionModule
+    assert training.collate_event_frames is new.collate_event_frames
+    for module in (train, training):
+        assert module.__doc__.splitlines()[0].startswith("Kept for compatibility")
