@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -97,12 +96,9 @@ def test_recording_without_sharp_frames_is_a_clear_error(highrev, tmp_path):
 
 
 def _run_benchmark(*argv: str) -> dict:
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import run
-    finally:
-        sys.path.pop(0)
-    assert run.main(list(argv)) == 0
+    from evlatcorr.benchmark.table1 import main
+
+    assert main(list(argv)) == 0
     out = Path(argv[argv.index("--out") + 1])
     return json.loads((out / "results.json").read_text())
 

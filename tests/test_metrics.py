@@ -8,8 +8,8 @@ import pytest
 import torch
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
-from evlatcorr import metrics
-from evlatcorr.metrics import LPIPS, LPIPS_ENV, ImageQuality, load_lpips_network, lpips_backbone_path
+from evlatcorr.benchmark import metrics
+from evlatcorr.benchmark.metrics import LPIPS, LPIPS_ENV, ImageQuality, load_lpips_network, lpips_backbone_path
 from tests.conftest import shared_data_dir
 
 SHARED_BACKBONE = shared_data_dir() / "lpips" / "alexnet_features.pth"

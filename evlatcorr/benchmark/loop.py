@@ -21,10 +21,9 @@ import lightning as L
 import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset, Subset
-from torchmetrics import MaxMetric, MeanMetric
 
+from evlatcorr.benchmark.metrics import ImageQuality, LatencyError
 from evlatcorr.frames import EventFrames
-from evlatcorr.metrics import ImageQuality
 
 __all__ = [
     "INPUTS",
@@ -32,8 +31,6 @@ __all__ = [
     "Method",
     "BenchmarkModule",
     "SceneDataModule",
-    "diff_percent",
-    "format_table",
     "pair_with_latency",
 ]
 
@@ -123,8 +120,7 @@ class BenchmarkModule(L.LightningModule):
         self.inputs = [GT, NO_CORR] + [name for name in (CONST, SPATIAL) if name in correctors]
         self.quality = nn.ModuleDict({
             _key(m.name, i): ImageQuality(lpips_network) for m in methods for i in self.inputs})
-        self.latency_mae = nn.ModuleDict({_key("latency", i): MeanMetric() for i in self.inputs[2:]})
-        self.latency_max = nn.ModuleDict({_key("latency", i): MaxMetric() for i in self.inputs[2:]})
+        self.latency_error = nn.ModuleDict({_key("latency", i): LatencyError() for i in self.inputs[2:]})
         self.on_scene = on_scene
         self.failures: dict[str, str] = {}
         # wall seconds per stage of the test loop (correctors, each method's forward pass, metrics, figures)
@@ -155,9 +151,7 @@ class BenchmarkModule(L.LightningModule):
             frames[name] = corrected
             latency = corrected.latency
             outputs["latency"][name] = latency
-            err = (latency - scene.true_latency).abs()
-            self.latency_mae[_key("latency", name)].update(err.mean())
-            self.latency_max[_key("latency", name)].update(err.max())
+            self.latency_error[_key("latency", name)].update(latency, scene.true_latency.expand_as(latency))
             if scene.pairs_delayed is not None:
                 pairs[name] = pair_with_latency(scene.pairs_delayed, latency[:-1], latency[1:])
             outputs.setdefault("meta", {})[name] = corrected.meta
@@ -195,8 +189,7 @@ class BenchmarkModule(L.LightningModule):
                 else:
                     row = self.quality[_key(method.name, name)].compute()
                 table.append({"method": method.name, "input": name, **row})
-        latency = {name: {"mae_us": float(self.latency_mae[_key("latency", name)].compute()),
-                          "max_us": float(self.latency_max[_key("latency", name)].compute())}
+        latency = {name: {k: float(v) for k, v in self.latency_error[_key("latency", name)].compute().items()}
                    for name in self.inputs[2:]}
         return {"table": table, "latency_error": latency, "failures": dict(self.failures)}
 
@@ -258,30 +251,3 @@ class SceneDataModule(L.LightningDataModule):
         mine = Subset(self.dataset, list(range(rank, len(self.dataset), world)))
         return DataLoader(mine, batch_size=None, shuffle=False, num_workers=self.num_workers,
                           collate_fn=lambda scene: scene)
-
-
-def diff_percent(gt: float, without: float, corrected: float) -> float:
-    """The paper's "Diff (%)": ``(corrected - uncorrected) / GT input * 100``."""
-    if gt == 0 or any(math.isnan(v) for v in (gt, without, corrected)):
-        return math.nan
-    return (corrected - without) / gt * 100.0
-
-
-def format_table(results: dict[str, Any]) -> str:
-    """The table as markdown, with a Diff (%) row per corrected input."""
-    rows = results["table"]
-    lines = ["| method | input | PSNR ↑ | SSIM ↑ | LPIPS ↓ |", "| --- | --- | --- | --- | --- |"]
-    methods = list(dict.fromkeys(r["method"] for r in rows))
-    fmt = lambda v, d: "n/a" if math.isnan(v) else f"{v:.{d}f}"  # noqa: E731
-    for m in methods:
-        by_input = {r["input"]: r for r in rows if r["method"] == m}
-        for name, r in by_input.items():
-            lines.append(f"| {m} | {name} | {fmt(r['psnr'], 3)} | {fmt(r['ssim'], 3)} | {fmt(r['lpips'], 3)} |")
-        for name in (CONST, SPATIAL):
-            if name in by_input:
-                d = [diff_percent(by_input[GT][k], by_input[NO_CORR][k], by_input[name][k])
-                     for k in ("psnr", "ssim", "lpips")]
-                label = "Diff (%) const." if name == CONST else "Diff (%) spatial"
-                lines.append(f"| {m} | {label} | " + " | ".join(
-                    "n/a" if math.isnan(v) else f"{v:+.2f}" for v in d) + " |")
-    return "\n".join(lines)

@@ -1,4 +1,5 @@
-"""Image-quality metrics as torchmetrics ``Metric`` objects (correct under DDP); LPIPS through the ``lpips`` package.
+"""The benchmark's metrics as torchmetrics objects (correct under DDP): image quality (PSNR, SSIM, LPIPS through
+the ``lpips`` package) and latency error.
 
 PSNR and SSIM are torchmetrics' own, averaged per image. LPIPS is ``lpips.LPIPS(net="alex", version="0.1")`` with
 the linear layers bundled in that package. Its AlexNet trunk comes from (in order) the torch hub cache, an explicit
@@ -19,12 +20,12 @@ from urllib.parse import urlparse
 
 import torch
 from torch import Tensor, nn
-from torchmetrics import Metric
+from torchmetrics import Metric, MetricCollection
 from torchmetrics.image import PeakSignalNoiseRatio, StructuralSimilarityIndexMeasure
 
 from evlatcorr.checks import check_image
 
-__all__ = ["lpips_backbone_path", "load_lpips_network", "LPIPS", "ImageQuality", "LPIPS_ENV"]
+__all__ = ["lpips_backbone_path", "load_lpips_network", "LPIPS", "ImageQuality", "LatencyError", "LPIPS_ENV"]
 
 LPIPS_ENV = "EVLATCORR_LPIPS_BACKBONE"
 _PROBE_TIMEOUT_S = 3.0  # a reachable server answers a HEAD in well under a second
@@ -160,8 +161,11 @@ class LPIPS(Metric):
         return self.total / self.count.clamp_min(1)
 
 
-class ImageQuality(nn.Module):
+class ImageQuality(MetricCollection):
     """PSNR, SSIM and LPIPS of restored frames against ground truth, accumulated over batches.
+
+    A torchmetrics ``MetricCollection`` (every state reduces across DDP processes); :meth:`compute` gives
+    plain floats, with LPIPS NaN when no LPIPS network is given.
 
     Args:
         lpips_network: a network from :func:`load_lpips_network`, or None for LPIPS = NaN.
@@ -174,26 +178,59 @@ class ImageQuality(nn.Module):
     """
 
     def __init__(self, lpips_network: nn.Module | None = None) -> None:
-        super().__init__()
-        self.psnr = PeakSignalNoiseRatio(data_range=1.0, reduction="elementwise_mean", dim=(1, 2, 3))
-        self.ssim = StructuralSimilarityIndexMeasure(data_range=1.0)
-        self.lpips = LPIPS(lpips_network) if lpips_network is not None else None
+        metrics: dict[str, Metric] = {
+            "psnr": PeakSignalNoiseRatio(data_range=1.0, reduction="elementwise_mean", dim=(1, 2, 3)),
+            "ssim": StructuralSimilarityIndexMeasure(data_range=1.0),
+        }
+        if lpips_network is not None:
+            metrics["lpips"] = LPIPS(lpips_network)
+        # no compute groups: the metrics share no states, and grouping would inspect them after each update
+        super().__init__(metrics, compute_groups=False)
 
-    def update(self, preds: Tensor, target: Tensor) -> None:
+    def update(self, preds: Tensor, target: Tensor) -> None:  # type: ignore[override]
         check_image(preds, "preds")
         check_image(target, "target")
         if preds.shape != target.shape:
             raise ValueError(f"preds {tuple(preds.shape)} and target {tuple(target.shape)} must have the same shape")
-        self.psnr.update(preds, target)
-        self.ssim.update(preds, target)
-        if self.lpips is not None:
-            self.lpips.update(preds, target)
+        super().update(preds, target)
 
-    def compute(self) -> dict[str, float]:
-        lpips = float(self.lpips.compute()) if self.lpips is not None else float("nan")
-        return {"psnr": float(self.psnr.compute()), "ssim": float(self.ssim.compute()), "lpips": lpips}
+    def compute(self) -> dict[str, float]:  # type: ignore[override]
+        values = {name: float(value) for name, value in super().compute().items()}
+        values.setdefault("lpips", float("nan"))
+        return values
 
-    def reset(self) -> None:
-        for m in (self.psnr, self.ssim, self.lpips):
-            if m is not None:
-                m.reset()
+
+class LatencyError(Metric):
+    """Mean and largest absolute error of estimated latency maps against the true ones, µs.
+
+    Each :meth:`update` (one scene's frames) counts once in the mean: the mean over updates of their mean
+    pixel error, so a scene with more frames does not weigh more.
+
+    Example:
+        >>> m = LatencyError()
+        >>> m.update(torch.full((2, 1, 4, 4), 3000.0), torch.full((2, 1, 4, 4), 2500.0))
+        >>> m.update(torch.full((1, 1, 4, 4), 1000.0), torch.full((1, 1, 4, 4), 3000.0))
+        >>> {k: round(float(v)) for k, v in m.compute().items()}  # (500 + 2000) / 2
+        {'mae_us': 1250, 'max_us': 2000}
+    """
+
+    higher_is_better = False
+    full_state_update = False
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.add_state("total", default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
+        self.add_state("count", default=torch.tensor(0, dtype=torch.long), dist_reduce_fx="sum")
+        self.add_state("largest", default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="max")
+
+    def update(self, latency: Tensor, true_latency: Tensor) -> None:
+        if latency.shape != true_latency.shape:
+            raise ValueError(f"latency {tuple(latency.shape)} and true_latency {tuple(true_latency.shape)} must "
+                             "have the same shape")
+        err = (latency.double() - true_latency.double()).abs()
+        self.total += err.mean()
+        self.count += 1
+        self.largest = torch.maximum(self.largest, err.max() if err.numel() else self.largest)
+
+    def compute(self) -> dict[str, Tensor]:
+        return {"mae_us": self.total / self.count.clamp_min(1), "max_us": self.largest}
