@@ -1,4 +1,4 @@
-"""Accuracy of latency estimators on the seeded simulated suite (:mod:`evlatcorr.accuracy`).
+"""Accuracy of latency estimators on the seeded simulated suite (:mod:`evlatcorr.benchmark.accuracy`).
 
 One frame per case (20 ms exposure, events up to 15 ms after its end), photographs and procedural
 scenes, translation / random / rotation / zoom / two moving objects, constant, delayed-map and
@@ -39,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from evlatcorr.accuracy import (  # noqa: E402
+from evlatcorr.benchmark.accuracy import (  # noqa: E402
     DEFAULT_SIZE,
     Case,
     corrector_estimator,

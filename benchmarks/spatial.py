@@ -30,23 +30,17 @@ from pathlib import Path
 
 import lightning as L
 import torch
-from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from evlatcorr import EventLatencyCorrector, edi_deblur  # noqa: E402
+from evlatcorr import EventLatencyCorrector  # noqa: E402
+from evlatcorr.benchmark.compare import edi_latent, image_quality  # noqa: E402
 from evlatcorr.simulate import PHOTOGRAPHS_TEST, PHOTOGRAPHS_TRAIN, simulate  # noqa: E402
 from evlatcorr.spatial import PolynomialLatency, save_curve  # noqa: E402
-from evlatcorr.training import EventFramesDataModule, LatencyCorrectionModule, simulated_training_frames  # noqa: E402
+from evlatcorr.lightning import EventFramesDataModule, LatencyCorrectionModule, simulated_training_frames  # noqa: E402
 
 LATENCY_RANGE_US = (500.0, 10_000.0)
 VARYING_RATIO = 3.0  # a scene "varies strongly in brightness" when its true latency spans more than this ratio
-
-
-def quality(latent: torch.Tensor, sharp: torch.Tensor) -> tuple[float, float]:
-    latent = latent.clamp(0, 1)
-    return (float(peak_signal_noise_ratio(latent, sharp, data_range=1.0)),
-            float(structural_similarity_index_measure(latent, sharp, data_range=1.0)))
 
 
 def train_curve(model_name: str, args: argparse.Namespace, size: tuple[int, int]) -> tuple[PolynomialLatency, str]:
@@ -88,12 +82,11 @@ def evaluate(model_name: str, args: argparse.Namespace, size: tuple[int, int]) -
                        latency_range_us=LATENCY_RANGE_US, seed=1000 + args.seed + i)
         batch, truth = seq.frames("delayed"), seq.true_latency
         ideal = seq.frames("ideal")
-        none = edi_deblur(batch.blurry, batch.events, batch.exposure_start, batch.exposure_end)
+        none = edi_latent(batch)
         outputs = {m: corrector(batch) for m, corrector in methods.items()}
         mae = [float(truth.abs().mean())] + [float((o.latency - truth).abs().mean()) for o in outputs.values()]
-        q = [quality(x, batch.sharp) for x in (none, *(o.latent for o in outputs.values()))]
-        q_ideal = quality(edi_deblur(ideal.blurry, ideal.events, ideal.exposure_start, ideal.exposure_end),
-                          batch.sharp)
+        q = [image_quality(x, batch.sharp) for x in (none, *(o.latent for o in outputs.values()))]
+        q_ideal = image_quality(edi_latent(ideal), batch.sharp)
         c, s = names.index("const"), names.index("spatial")
         wins.append(mae[s] < mae[c] and q[s][0] > q[c][0] and q[s][1] > q[c][1])
         varying.append(float(truth.max() / truth.min()) > VARYING_RATIO)

@@ -7,11 +7,10 @@ import math
 import pytest
 import torch
 
-from evlatcorr.accuracy import (
+from evlatcorr.benchmark.accuracy import (
     LATENCY_MODELS,
     MOTION_KINDS,
     Case,
-    _edi_psnr,
     case_reference,
     evaluate_case,
     load_estimator,
@@ -21,6 +20,7 @@ from evlatcorr.accuracy import (
     to_markdown,
     write_results,
 )
+from evlatcorr.benchmark.compare import edi_psnr
 from evlatcorr.scenes import PROCEDURAL_SCENES
 from evlatcorr.simulate import PHOTOGRAPHS_TEST, PHOTOGRAPHS_TRAIN
 
@@ -91,7 +91,7 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="module:function"):
         load_estimator("no_colon")
     with pytest.raises(ValueError, match="not a callable"):
-        load_estimator("evlatcorr.accuracy:nothing_here")
+        load_estimator("evlatcorr.benchmark.accuracy:nothing_here")
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +110,7 @@ def test_simulate_case(tiny):
     assert ref["psnr_ideal"] > ref["psnr_uncorrected"] + 1.0  # a real gap to recover
     # the oracle scans 4000 µs too, so it is at least as close to the sharp frame as the true latency's EDI
     assert ref["best_shift_us"] / 62.5 == round(ref["best_shift_us"] / 62.5)
-    assert ref["psnr_best_shift"] >= _edi_psnr(delayed, case.threshold, 4000.0) - 1e-3
+    assert ref["psnr_best_shift"] >= edi_psnr(delayed, case.threshold, 4000.0) - 1e-3
 
 
 @pytest.mark.parametrize("motion", ["objects", "rotation", "zoom", "random"])
@@ -188,4 +188,4 @@ def test_load_estimator_from_a_file(tmp_path):
     path.write_text("import torch\n\ndef estimate(frames):\n    return torch.zeros(frames.batch_size)\n")
     fn = load_estimator(f"{path}:estimate")
     assert callable(fn) and fn.__name__ == "estimate"
-    assert load_estimator("evlatcorr.accuracy:make_cases") is make_cases
+    assert load_estimator("evlatcorr.benchmark.accuracy:make_cases") is make_cases

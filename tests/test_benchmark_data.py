@@ -10,7 +10,7 @@ import pytest
 import torch
 from PIL import Image
 
-from evlatcorr.benchmark_data import delay_events, intensity_latency, scenes_from_recording
+from evlatcorr.benchmark.recording import delay_events, intensity_latency, scenes_from_recording
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
 from evlatcorr.io import RecordingError, write_sequence

@@ -138,7 +138,7 @@ def test_corrector_recovers_injected_constant_latency(latency_us):
 
 def _evaluate_dev_case(name: str):
     """The default corrector on one dev case of the accuracy suite: (case, its evaluation row, simulation)."""
-    from evlatcorr.accuracy import case_reference, evaluate_case, make_cases, simulate_case
+    from evlatcorr.benchmark.accuracy import case_reference, evaluate_case, make_cases, simulate_case
 
     (case,) = [c for c in make_cases("dev") if c.name == name]
     simulated = simulate_case(case)

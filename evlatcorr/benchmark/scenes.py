@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from evlatcorr.benchmark.loop import BenchmarkScene
-from evlatcorr.benchmark_data import scenes_from_recording
+from evlatcorr.benchmark.recording import scenes_from_recording
 from evlatcorr.io import is_sequence_file, num_sequences, write_sequence
 from evlatcorr.simulate import PHOTOGRAPHS_TEST, simulate
 

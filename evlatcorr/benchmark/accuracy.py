@@ -44,8 +44,9 @@ from typing import Any
 
 import torch
 from torch import Tensor
-from torchmetrics.functional.image import peak_signal_noise_ratio
 
+from evlatcorr.benchmark import compare
+from evlatcorr.benchmark.compare import NO_GAP_DB, edi_psnr, psnr
 from evlatcorr.edi import edi_deblur, event_grid
 from evlatcorr.frames import EventFrames
 from evlatcorr.scenes import PROCEDURAL_SCENES, procedural_scene
@@ -78,7 +79,6 @@ DEFAULT_SIZE = (96, 128)
 EXPOSURE_US = 20_000.0
 AFTER_US = 15_000.0  # the events stop this long after the exposure's end
 BEST_SHIFTS_US = tuple(250.0 * i for i in range(61))  # the oracle's constant latencies, 0..15000 µs
-NO_GAP_DB = 0.1  # recovery is undefined when ideal events beat uncorrected ones by no more than this
 DARK_BRIGHTNESS = 0.1
 DARK_PHOTOGRAPHS = ("hubble_deep_field", "moon")  # photographs with large uniform dark regions
 SCENE_FACTOR = 3  # procedural scenes are this many times the sensor's size
@@ -333,19 +333,9 @@ def simulate_case(case: Case) -> tuple[EventFrames, EventFrames, SimulatedSequen
 
 
 # --- evaluation ------------------------------------------------------------------------------------------------------
-def _psnr(image: Tensor, target: Tensor) -> float:
-    return float(peak_signal_noise_ratio(image.clamp(0, 1), target, data_range=1.0))
-
-
-def _edi_psnr(frames: EventFrames, threshold: float, latency: Tensor | float | None = None) -> float:
-    latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                        threshold=threshold, latency=latency)
-    return _psnr(latent, frames.sharp)
-
-
 def _gain_ratio(value: float, low: float, high: float) -> float:
     """``(value − low) / (high − low)``, NaN when ``high <= low + NO_GAP_DB``."""
-    return (value - low) / (high - low) if high > low + NO_GAP_DB else math.nan
+    return compare.recovery(value, low, high, NO_GAP_DB)
 
 
 def case_reference(case: Case, simulated: tuple[EventFrames, EventFrames, SimulatedSequence] | None = None
@@ -363,7 +353,7 @@ def case_reference(case: Case, simulated: tuple[EventFrames, EventFrames, Simula
     delayed, ideal, _ = simulated if simulated is not None else simulate_case(case)
     true = delayed.meta["true_latency"]
     ref: dict[str, Any] = dict(
-        psnr_ideal=_edi_psnr(ideal, case.threshold), psnr_uncorrected=_edi_psnr(delayed, case.threshold),
+        psnr_ideal=edi_psnr(ideal, case.threshold), psnr_uncorrected=edi_psnr(delayed, case.threshold),
         true_latency_us=float(true.mean()), true_latency_min_us=float(true.min()),
         true_latency_max_us=float(true.max()), num_events=len(delayed.events),
         best_shift_us=math.nan, psnr_best_shift=math.nan)
@@ -380,7 +370,7 @@ def _best_shift(delayed: EventFrames, threshold: float) -> dict[str, float]:
     grid = event_grid(delayed.events, delayed.exposure_start, delayed.exposure_end, 500, (0.0, max(BEST_SHIFTS_US)))
 
     def psnr_at(shift: float) -> float:
-        return _psnr(edi_deblur(delayed.blurry, delayed.events, delayed.exposure_start, delayed.exposure_end,
+        return psnr(edi_deblur(delayed.blurry, delayed.events, delayed.exposure_start, delayed.exposure_end,
                                 threshold=threshold, latency=shift, grid=grid), delayed.sharp)
 
     best = max((psnr_at(shift), shift) for shift in BEST_SHIFTS_US)
@@ -451,7 +441,7 @@ def evaluate_case(case: Case, estimate: Estimator, *,
         abs_error = abs(error)
     else:
         error = abs_error = float((latency - true).abs().mean())
-    psnr_corrected = _edi_psnr(delayed, case.threshold, latency.float())
+    psnr_corrected = edi_psnr(delayed, case.threshold, latency.float())
     recovery = _gain_ratio(psnr_corrected, ref["psnr_uncorrected"], ref["psnr_ideal"])
     share = _gain_ratio(psnr_corrected, ref["psnr_uncorrected"], ref["psnr_best_shift"])
     return {
@@ -494,7 +484,7 @@ def load_estimator(spec: str) -> Estimator:
     """Load ``"module:function"`` or ``"path/to/file.py:function"``: a callable ``f(frames) -> latency map``.
 
     Example:
-        >>> load_estimator("evlatcorr.accuracy:corrector_estimator")  # doctest: +ELLIPSIS
+        >>> load_estimator("evlatcorr.benchmark.accuracy:corrector_estimator")  # doctest: +ELLIPSIS
         <function corrector_estimator at ...>
     """
     if not isinstance(spec, str) or spec.count(":") < 1:

@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from evlatcorr.benchmark import BenchmarkScene
+from evlatcorr.benchmark.loop import BenchmarkScene
 from evlatcorr.frames import EventFrames
 from evlatcorr.lightning.data import collate_event_frames
 from evlatcorr.simulate import luminance
@@ -60,15 +60,13 @@ def delay_events(frames: EventFrames, latency: Tensor | float, after_us: float |
 
 
 def _center_crop(frames: EventFrames, multiple: int) -> EventFrames:
-    from evlatcorr.train import crop_frames
-
     h, w = frames.sensor_size
     ch, cw = h - h % multiple, w - w % multiple
     if ch == 0 or cw == 0:
         raise ValueError(f"frames of (H, W)=({h}, {w}) are smaller than the networks' multiple {multiple}")
     if (ch, cw) == (h, w):
         return frames
-    return crop_frames(frames, (h - ch) // 2, (w - cw) // 2, ch, cw)
+    return frames.crop((h - ch) // 2, (w - cw) // 2, ch, cw)
 
 
 def scenes_from_recording(path: str | Path, *, latency: str = "constant", latency_us: float = 4000.0,
