@@ -1,4 +1,4 @@
-"""The paper's Table 1 as a Lightning test loop.
+"""The benchmark's Lightning test loop: every method on every input of each scene, metrics accumulated.
 
 Each test sample is a :class:`BenchmarkScene`: consecutive blurry frames with their ideal
 events (ground truth timing) and delayed events, plus the frame pairs used for interpolation.

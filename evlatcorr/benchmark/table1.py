@@ -1,4 +1,4 @@
-"""The paper's Table 1 on simulated data, as a Lightning test loop.
+"""The command behind ``python benchmarks/run.py``: the paper's Table 1 on simulated data, as a Lightning test loop.
 
     python benchmarks/run.py                 # 3 unseen test scenes, 256x336, 20 ms exposure, 4 ms latency
     python benchmarks/run.py --scenes 8      # all 8 test photographs (about 20 minutes on 2 CPU cores)
