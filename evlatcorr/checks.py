@@ -2,6 +2,10 @@
 
 Every check raises :class:`ValueError` naming the argument, what was expected and what was
 received, so bad input never reaches deep inside torch.
+
+Validate once, at the public boundary: a public function ``foo`` checks its arguments and calls
+``_foo``, which does the work on inputs taken as checked; inside the package, a caller whose inputs
+are already checked calls ``_foo`` (the value checks read tensor data: on a GPU each is a sync).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ __all__ = [
     "check_search_range",
     "check_memory",
     "check_has_events",
+    "check_threshold",
     "resolve_memory_budget",
 ]
 
@@ -86,6 +91,23 @@ def check_batch_vector(x: object, batch_size: int, name: str) -> Tensor:
         raise ValueError(f"{name} must have shape ({batch_size},) (one value per sample), got {tuple(x.shape)}")
     check_finite(x, name)
     return x
+
+
+def check_threshold(threshold: object, batch_size: int) -> Tensor:
+    """Return the contrast threshold as a tensor :math:`(B,)`, refused unless finite and positive.
+
+    Example:
+        >>> check_threshold(0.2, 2).tolist()
+        [0.2, 0.2]
+        >>> check_threshold(0.0, 1)
+        Traceback (most recent call last):
+        ...
+        ValueError: threshold must be positive, got 0.0
+    """
+    theta = check_batch_vector(threshold, batch_size, "threshold")
+    if bool((theta <= 0).any()):
+        raise ValueError(f"threshold must be positive, got {theta.min().item()}")
+    return theta
 
 
 def check_exposure(start: Tensor, end: Tensor) -> None:

@@ -8,12 +8,12 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from evlatcorr.checks import check_has_events
+from evlatcorr.checks import check_batch_vector, check_has_events, check_threshold
 from evlatcorr.config import DEFAULT_SCORE, SearchConfig
-from evlatcorr.edi import edi_deblur, estimate_threshold
+from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
-from evlatcorr.search import search_constant_latency
+from evlatcorr.search import _search_constant_latency
 
 __all__ = ["EventLatencyCorrector", "ConstantLatencyCorrector", "correct_constant_latency", "SearchConfig"]
 
@@ -54,24 +54,20 @@ def correct_constant_latency(
             (nothing to estimate a latency from), or for a bad argument.
     """
     config = (config or SearchConfig()).replace(**settings) if settings else (config or SearchConfig())
+    # an EventFrames batch was checked when it was made: only what it does not hold is checked here
+    if isinstance(threshold, str) and threshold != "auto":
+        raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
+    b = frames.batch_size
+    theta_vector = None if isinstance(threshold, str) else check_threshold(threshold, b)
+    previous = None if previous_latency is None else check_batch_vector(previous_latency, b, "previous_latency")
     check_has_events(frames)
     _warn_if_short(frames, config.search_range)
     theta: float | Tensor = threshold
-    if isinstance(threshold, str):
-        if threshold != "auto":
-            raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
-        first = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                                        0.2, previous_latency=previous_latency, config=config.replace(refine=False))
-        if frames.blurry_next is not None and frames.exposure_start_next is not None:
-            # pairs: one θ that makes both frames' reconstructions agree between the exposures
-            from evlatcorr.consistency import estimate_recording_threshold
-
-            theta = estimate_recording_threshold(frames, latency=first.latency)
-        else:
-            theta = estimate_threshold(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                                       latency=first.latency, num_bins=config.num_bins)
-    result = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                                     theta, previous_latency=previous_latency, config=config)
+    if theta_vector is None:
+        theta = _auto_threshold(frames, config, previous)
+        theta_vector = _threshold_vector(theta, b)
+    result = _search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                                      theta_vector, config, previous)
     if result.fallback is not None and bool(result.fallback.any()):
         which = torch.nonzero(result.fallback).flatten().tolist()
         warnings.warn(f"samples {which}: the sharpness score has no clear minimum inside the latency range the "
@@ -84,8 +80,9 @@ def correct_constant_latency(
     if result.log_ratio is not None:
         latent = frames.blurry * torch.exp(-result.log_ratio).to(frames.blurry.dtype)
     else:
-        latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, theta,
-                            result.latency, config.num_bins, integral="continuous")
+        mid = (frames.exposure_start + frames.exposure_end) / 2
+        latent = _edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, mid,
+                             theta_vector, result.latency, config.num_bins, integral="continuous")
     meta = dict(frames.meta)
     meta["etf_curve"] = (result.candidates, result.etf)
     meta["threshold"] = theta
@@ -93,6 +90,26 @@ def correct_constant_latency(
     meta["latency_confidence"] = result.confidence
     meta["latency_fallback"] = result.fallback
     return frames.replace(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
+
+
+def _auto_threshold(frames: EventFrames, config: SearchConfig, previous: Tensor | None) -> float | Tensor:
+    """θ for ``threshold="auto"``, estimated at the latency found with θ = 0.2 (inputs already checked)."""
+    first = _search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                                     _threshold_vector(0.2, frames.batch_size), config.replace(refine=False), previous)
+    if frames.blurry_next is not None and frames.exposure_start_next is not None:
+        # pairs: one θ that makes both frames' reconstructions agree between the exposures
+        from evlatcorr.consistency import estimate_recording_threshold
+
+        return estimate_recording_threshold(frames, latency=first.latency)
+    start = frames.exposure_start.to(frames.events.device)
+    end = frames.exposure_end.to(frames.events.device)
+    return _estimate_threshold(frames.blurry, frames.events, start, end, first.latency, config.num_bins)
+
+
+def _threshold_vector(theta: float | Tensor, batch_size: int) -> Tensor:
+    """A threshold the package computed (a float or :math:`(B,)`) as float64 :math:`(B,)`, unchecked."""
+    theta = torch.as_tensor(theta, dtype=torch.float64)
+    return theta.expand(batch_size) if theta.dim() == 0 else theta
 
 
 class ConstantLatencyCorrector(nn.Module):

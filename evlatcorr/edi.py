@@ -30,12 +30,13 @@ from evlatcorr.checks import (
     check_image,
     check_memory,
     check_shape,
+    check_threshold,
     resolve_memory_budget,
 )
 from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
-from evlatcorr.integral import _row_strips, cumulative_event_grid, grid_bytes_per_point, sample_grid
+from evlatcorr.integral import _cumulative_event_grid, _row_strips, grid_bytes_per_point, sample_grid
 
 __all__ = [
     "EventGrid",
@@ -59,6 +60,26 @@ _SAMPLE_CHUNK = 64
 def latency_map(latency: Tensor | float | None, batch_size: int, sensor_size: tuple[int, int],
                 device: torch.device, dtype: torch.dtype = torch.float32) -> Tensor:
     """Broadcast ``None``, a scalar, a :math:`(B,)` vector or a :math:`(B,1,H,W)` map to a map, µs."""
+    _check_latency_map(latency, batch_size, sensor_size, device)
+    return _latency_map(latency, batch_size, sensor_size, device, dtype)
+
+
+def _check_latency_map(latency: Tensor | float | None, batch_size: int, sensor_size: tuple[int, int],
+                       device: torch.device) -> None:
+    if latency is None:
+        return
+    latency = torch.as_tensor(latency, device=device)
+    if latency.dim() == 4:
+        check_shape(latency, [batch_size, 1, *sensor_size], "latency")
+        if latency.is_floating_point() and not bool(torch.isfinite(latency).all()):
+            raise ValueError("latency map has NaN or infinite values")
+    else:
+        check_batch_vector(latency, batch_size, "latency")
+
+
+def _latency_map(latency: Tensor | float | None, batch_size: int, sensor_size: tuple[int, int],
+                 device: torch.device, dtype: torch.dtype) -> Tensor:
+    """:func:`latency_map` of a latency already checked (no data read)."""
     height, width = sensor_size
     if latency is None:
         return torch.zeros(batch_size, 1, height, width, device=device, dtype=dtype)
@@ -66,12 +87,10 @@ def latency_map(latency: Tensor | float | None, batch_size: int, sensor_size: tu
     if not latency.is_floating_point():
         latency = latency.to(dtype)
     if latency.dim() == 4:
-        check_shape(latency, [batch_size, 1, height, width], "latency")
-        if not bool(torch.isfinite(latency).all()):
-            raise ValueError("latency map has NaN or infinite values")
         return latency
-    vec = check_batch_vector(latency, batch_size, "latency")
-    return vec.view(batch_size, 1, 1, 1).expand(batch_size, 1, height, width)
+    if latency.dim() == 0:
+        latency = latency.expand(batch_size)
+    return latency.view(batch_size, 1, 1, 1).expand(batch_size, 1, height, width)
 
 
 def trapezoid_log_weights(num_bins: int, device: torch.device, dtype: torch.dtype) -> Tensor:
@@ -148,6 +167,8 @@ def event_grid(
         >>> grid.start.item(), grid.end.item()
         (-10.0, 150.0)
     """
+    if integral not in ("step", "linear"):
+        raise ValueError(f"integral must be 'step' or 'linear', got {integral!r}")
     b = events.batch_size
     device = events.device
     start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
@@ -155,6 +176,13 @@ def event_grid(
     lat_hi = check_batch_vector(latency_range[1], b, "latency_range[1]").to(device, torch.float64)
     if bool((lat_hi < lat_lo).any()):
         raise ValueError(f"latency_range must be (low, high) with low <= high, got {latency_range}")
+    return _event_grid(events, start, end, ref, lat_lo, lat_hi, num_bins, integral, dtype, memory_budget)
+
+
+def _event_grid(events: Events, start: Tensor, end: Tensor, ref: Tensor, lat_lo: Tensor, lat_hi: Tensor,
+                num_bins: int, integral: str, dtype: torch.dtype, memory_budget: int | None) -> EventGrid:
+    """:func:`event_grid` of checked float64 :math:`(B,)` times and latency bounds on the events' device."""
+    b = events.batch_size
     g0, width_us, m, t_lo, t_hi = _grid_span(start, end, ref, lat_lo, lat_hi, num_bins)
     height, width = events.sensor_size
     limit = resolve_memory_budget(memory_budget)
@@ -162,7 +190,7 @@ def event_grid(
     if need > limit:
         check_memory(need, f"the event grid ({b}, {m + 1}, {height}, {width})",
                      _span_advice(t_lo, t_hi, width_us, "latency_range"), limit)
-    cum = cumulative_event_grid(events, g0, width_us, m, integral=integral, dtype=dtype, memory_budget=limit)
+    cum = _cumulative_event_grid(events, g0, width_us, m, integral, dtype)
     return EventGrid(cum, g0, width_us, num_bins, integral)
 
 
@@ -188,8 +216,14 @@ def event_grid_bytes(
     start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
     lat_lo = check_batch_vector(latency_range[0], b, "latency_range[0]").to(device, torch.float64)
     lat_hi = check_batch_vector(latency_range[1], b, "latency_range[1]").to(device, torch.float64)
+    return _event_grid_bytes(events, start, end, ref, lat_lo, lat_hi, num_bins, integral, dtype)
+
+
+def _event_grid_bytes(events: Events, start: Tensor, end: Tensor, ref: Tensor, lat_lo: Tensor, lat_hi: Tensor,
+                      num_bins: int, integral: str, dtype: torch.dtype) -> int:
+    """:func:`event_grid_bytes` of checked inputs (as :func:`_event_grid`)."""
     m = _grid_span(start, end, ref, lat_lo, lat_hi, num_bins)[2]
-    return _grid_bytes(b, m, events.sensor_size, integral, dtype)
+    return _grid_bytes(events.batch_size, m, events.sensor_size, integral, dtype)
 
 
 def _grid_bytes(batch_size: int, num_bins: int, sensor_size: tuple[int, int], integral: str,
@@ -263,20 +297,28 @@ def edi_log_ratio(
         >>> round(log_r.item(), 3)  # about log(0.5 + 0.5 e^0.2) = 0.105 (the trapezoid rule halves the event's sample)
         0.104
     """
+    start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
+    _check_latency(latency, events, integral)
+    theta = check_threshold(threshold, events.batch_size)
+    _check_grid(grid, events, start, end, ref, latency, num_bins, dtype)
+    return _edi_log_ratio(events, start, end, ref, theta, latency, num_bins, integral, dtype, grid, memory_budget)
+
+
+def _edi_log_ratio(events: Events, start: Tensor, end: Tensor, ref: Tensor, theta: Tensor,
+                   latency: Tensor | float | None, num_bins: int, integral: str, dtype: torch.dtype,
+                   grid: EventGrid | None, memory_budget: int | None) -> Tensor:
+    """:func:`edi_log_ratio` of checked inputs: float64 :math:`(B,)` times on the events' device, a positive
+    :math:`(B,)` threshold, a latency passed by :func:`_check_latency` and a grid by :func:`_check_grid`."""
     b = events.batch_size
     device = events.device
-    start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
     if integral == "continuous":
-        return _continuous_log_ratio(events, start, end, ref, threshold, latency, dtype)
-    lat = latency_map(latency, b, events.sensor_size, device, dtype)
-    theta = check_batch_vector(threshold, b, "threshold").to(device, dtype).view(b, 1, 1, 1)
-    if bool((theta <= 0).any()):
-        raise ValueError(f"threshold must be positive, got {theta.min().item()}")
+        return _continuous_log_ratio(events, start, end, ref, theta, latency, dtype)
+    lat = _latency_map(latency, b, events.sensor_size, device, dtype)
+    theta = theta.to(device, dtype).view(b, 1, 1, 1)
+    if grid is not None:
+        return _log_ratio_on_grid(grid.cum.to(dtype), grid.start, grid.width_us, start, ref, lat, theta, num_bins)
     lat_lo = lat.detach().amin(dim=(1, 2, 3)).to(torch.float64)
     lat_hi = lat.detach().amax(dim=(1, 2, 3)).to(torch.float64)
-    if grid is not None:
-        _check_grid_covers(grid, start, end, ref, lat_lo, lat_hi, num_bins)
-        return _log_ratio_on_grid(grid.cum.to(dtype), grid.start, grid.width_us, start, ref, lat, theta, num_bins)
     g0, width_us, m, t_lo, t_hi = _grid_span(start, end, ref, lat_lo, lat_hi, num_bins)
     height, width = events.sensor_size
     limit = resolve_memory_budget(memory_budget)
@@ -291,22 +333,18 @@ def edi_log_ratio(
     strips = [(0, height, events)] if rows >= height else _row_strips(events, rows)
     out = []
     for r0, r1, sub in strips:  # one strip, the whole sensor, unless over the memory budget
-        cum = cumulative_event_grid(sub, g0, width_us, m, integral=integral, dtype=dtype, memory_budget=limit)
+        cum = _cumulative_event_grid(sub, g0, width_us, m, integral, dtype)  # sized by `rows` above
         out.append(_log_ratio_on_grid(cum, g0, width_us, start, ref, lat[:, :, r0:r1], theta, num_bins))
     return out[0] if len(out) == 1 else torch.cat(out, dim=2)
 
 
-def _continuous_log_ratio(events: Events, start: Tensor, end: Tensor, ref: Tensor, threshold: float | Tensor,
+def _continuous_log_ratio(events: Events, start: Tensor, end: Tensor, ref: Tensor, theta: Tensor,
                           latency: Tensor | float | None, dtype: torch.dtype) -> Tensor:
-    """``log R`` :math:`(B, 1, H, W)` by the exact continuous-time integral (one latency per sample)."""
+    """``log R`` :math:`(B, 1, H, W)` by the exact continuous-time integral (one checked latency per sample)."""
     b = events.batch_size
-    if isinstance(latency, Tensor) and latency.numel() not in (1, b):
-        raise ValueError("integral='continuous' takes one latency per sample (a scalar or (B,)), not a latency map; "
-                         "use integral='step' for maps")
-    lat = check_batch_vector(0.0 if latency is None else latency, b, "latency").to(torch.float64).cpu()
-    theta = check_batch_vector(threshold, b, "threshold").to(torch.float64).cpu()
-    if bool((theta <= 0).any()):
-        raise ValueError(f"threshold must be positive, got {theta.min().item()}")
+    lat = torch.as_tensor(0.0 if latency is None else latency, dtype=torch.float64)
+    lat = (lat.expand(b) if lat.dim() == 0 else lat).cpu()
+    theta = theta.to(torch.float64).cpu()
     start, end, ref = start.cpu(), end.cpu(), ref.cpu()
     out = []
     for i in range(b):
@@ -347,6 +385,31 @@ def _exposure_times(events: Events, exposure_start: Tensor, exposure_end: Tensor
         raise ValueError(f"num_bins must be >= 1, got {num_bins}")
     ref = (start + end) / 2 if time is None else check_batch_vector(time, b, "time").to(device, torch.float64)
     return start, end, ref
+
+
+def _check_latency(latency: Tensor | float | None, events: Events, integral: str) -> None:
+    """A latency the EDI can read: a scalar, :math:`(B,)` or a map (not for ``"continuous"``), finite."""
+    b = events.batch_size
+    if integral not in ("step", "linear", "continuous"):
+        raise ValueError(f"integral must be 'step', 'linear' or 'continuous', got {integral!r}")
+    if integral != "continuous":
+        _check_latency_map(latency, b, events.sensor_size, events.device)
+        return
+    if isinstance(latency, Tensor) and latency.numel() not in (1, b):
+        raise ValueError("integral='continuous' takes one latency per sample (a scalar or (B,)), not a latency map; "
+                         "use integral='step' for maps")
+    check_batch_vector(0.0 if latency is None else latency, b, "latency")
+
+
+def _check_grid(grid: EventGrid | None, events: Events, start: Tensor, end: Tensor, ref: Tensor,
+                latency: Tensor | float | None, num_bins: int, dtype: torch.dtype) -> None:
+    """A prebuilt grid (when given) must cover every time the EDI reads at ``latency``."""
+    if grid is None:
+        return
+    lat = _latency_map(latency, events.batch_size, events.sensor_size, events.device, dtype).detach()
+    lat_lo = lat.amin(dim=(1, 2, 3)).to(torch.float64)
+    lat_hi = lat.amax(dim=(1, 2, 3)).to(torch.float64)
+    _check_grid_covers(grid, start, end, ref, lat_lo, lat_hi, num_bins)
 
 
 def _check_grid_covers(grid: EventGrid, start: Tensor, end: Tensor, ref: Tensor, lat_lo: Tensor, lat_hi: Tensor,
@@ -411,14 +474,28 @@ def edi_deblur(
     """
     check_image(blurry, "blurry")
     _check_events_match(blurry, events)
+    if isinstance(threshold, str) and threshold != "auto":
+        raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
+    start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
+    _check_latency(latency, events, integral)
     if isinstance(threshold, str):
-        if threshold != "auto":
-            raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
-        threshold = estimate_threshold(blurry, events, exposure_start, exposure_end, latency=latency,
-                                       num_bins=num_bins)
-    dtype = blurry.dtype if blurry.dtype in (torch.float32, torch.float64) else torch.float32
-    log_r = edi_log_ratio(events, exposure_start, exposure_end, threshold, latency, num_bins, time, integral, dtype,
-                          grid, memory_budget)
+        theta = _estimate_threshold(blurry, events, start, end, latency, num_bins)
+    else:
+        theta = check_threshold(threshold, events.batch_size)
+    _check_grid(grid, events, start, end, ref, latency, num_bins, _edi_dtype(blurry))
+    return _edi_deblur(blurry, events, start, end, ref, theta, latency, num_bins, integral, grid, memory_budget)
+
+
+def _edi_dtype(blurry: Tensor) -> torch.dtype:
+    return blurry.dtype if blurry.dtype in (torch.float32, torch.float64) else torch.float32
+
+
+def _edi_deblur(blurry: Tensor, events: Events, start: Tensor, end: Tensor, ref: Tensor, theta: Tensor,
+                latency: Tensor | float | None, num_bins: int, integral: str = "step", grid: EventGrid | None = None,
+                memory_budget: int | None = None) -> Tensor:
+    """:func:`edi_deblur` of checked inputs (see :func:`_edi_log_ratio`); ``theta`` is a number, not "auto"."""
+    log_r = _edi_log_ratio(events, start, end, ref, theta, latency, num_bins, integral, _edi_dtype(blurry), grid,
+                           memory_budget)
     return blurry * torch.exp(-log_r).to(blurry.dtype)
 
 
@@ -498,9 +575,17 @@ def estimate_threshold(
     """
     if not 0 < bounds[0] < bounds[1]:
         raise ValueError(f"bounds must satisfy 0 < low < high, got {bounds}")
+    check_image(blurry, "blurry")
+    _check_events_match(blurry, events)
+    start, end, _ = _exposure_times(events, exposure_start, exposure_end, num_bins, None)
+    _check_latency(latency, events, "step")
+    return _estimate_threshold(blurry, events, start, end, latency, num_bins, bounds, iterations)
+
+
+def _estimate_threshold(blurry: Tensor, events: Events, start: Tensor, end: Tensor, latency: Tensor | float | None,
+                        num_bins: int, bounds: tuple[float, float] = (0.02, 1.0), iterations: int = 20) -> Tensor:
+    """:func:`estimate_threshold` of checked inputs: float64 :math:`(B,)` exposure times on the events' device."""
     b = blurry.shape[0]
-    start = check_batch_vector(exposure_start, b, "exposure_start").to(events.device, torch.float64)
-    end = check_batch_vector(exposure_end, b, "exposure_end").to(events.device, torch.float64)
     corrected = events if latency is None else events.shift(
         latency if torch.as_tensor(latency).dim() != 4 else torch.as_tensor(latency).to(torch.float64))
     mid, half = (start + end) / 2, (end - start) / 40
@@ -512,7 +597,7 @@ def estimate_threshold(
     activity = activity - activity.mean(dim=(1, 2, 3), keepdim=True)
 
     def energy(log_theta: Tensor) -> Tensor:
-        latent = edi_deblur(blurry, events, start, end, log_theta.exp(), latency, num_bins)
+        latent = _edi_deblur(blurry, events, start, end, mid, log_theta.exp(), latency, num_bins)
         grey = kornia.color.rgb_to_grayscale(latent) if latent.shape[1] == 3 else latent
         grad = kornia.filters.spatial_gradient(grey.float(), mode="diff").pow(2).sum(2).sqrt()
         grad = grad - grad.mean(dim=(1, 2, 3), keepdim=True)

@@ -84,6 +84,13 @@ def event_histogram(
     itemsize = torch.empty((), dtype=dtype).element_size()
     check_memory(b * num_bins * height * width * itemsize,
                  f"the event histogram ({b}, {num_bins}, {height}, {width})", "use fewer num_bins", memory_budget)
+    return _event_histogram(events, start, end, num_bins, dtype)
+
+
+def _event_histogram(events: Events, start: Tensor, end: Tensor, num_bins: int, dtype: torch.dtype) -> Tensor:
+    """:func:`event_histogram` without its checks: ``start`` < ``end`` float64 :math:`(B,)` on the events' device."""
+    b = events.batch_size
+    height, width = events.sensor_size
     out = torch.zeros(b * num_bins * height * width, dtype=dtype, device=events.device)
     if len(events) == 0:
         return out.view(b, num_bins, height, width)
@@ -144,8 +151,19 @@ def cumulative_event_grid(
     check_memory(b * (num_bins + 1) * height * width * grid_bytes_per_point(integral, dtype),
                  f"the cumulative event grid ({b}, {num_bins + 1}, {height}, {width})",
                  "use fewer num_bins or a shorter time span (num_bins x bin_width)", memory_budget)
+    return _cumulative_event_grid(events, g0, width_us, num_bins, integral, dtype)
+
+
+def _cumulative_event_grid(events: Events, g0: Tensor, width_us: Tensor, num_bins: int, integral: str,
+                           dtype: torch.dtype) -> Tensor:
+    """:func:`cumulative_event_grid` without its checks (nor the memory budget's: the caller sized the grid).
+
+    ``g0`` and ``width_us`` (positive) are float64 :math:`(B,)` on the events' device.
+    """
     if integral == "step":
-        hist = event_histogram(events, g0, g0 + num_bins * width_us, num_bins, dtype=dtype, memory_budget=memory_budget)
+        # the histogram is a third of the grid's bytes: within the budget the grid was checked against
+        hist = _event_histogram(events, g0, g0 + num_bins * width_us, num_bins, dtype)
+        b, _, height, width = hist.shape
         cum = hist.new_zeros((b, num_bins + 1, height, width))
         torch.cumsum(hist, 1, out=cum[:, 1:])  # into its place: two grid-sized arrays at a time, not three
         return cum

@@ -34,6 +34,7 @@ from evlatcorr.checks import (
     check_exposure,
     check_image,
     check_memory,
+    check_threshold,
     resolve_memory_budget,
 )
 from evlatcorr.config import DEFAULT_SCORE, SCORES, SPARSITY_SCORES, SearchConfig
@@ -194,16 +195,28 @@ def search_constant_latency(
         raise ValueError(f"method must be 'continuous' or 'binned', got {method!r}")
     if method == "continuous" and integral != "step":
         raise ValueError("method='continuous' computes the step integral; use method='binned' for integral='linear'")
-    theta = check_batch_vector(threshold, b, "threshold").to(torch.float64)
-    if bool((theta <= 0).any()):
-        raise ValueError(f"threshold must be positive, got {theta.min().item()}")
+    theta = check_threshold(threshold, b)
+    budget = resolve_memory_budget(memory_budget)
+    prev = None if previous_latency is None else check_batch_vector(previous_latency, b, "previous_latency")
+    return _search_constant_latency(blurry, events, start, end, theta, config, prev, integral, method, budget)
+
+
+def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Tensor, exposure_end: Tensor,
+                             threshold: Tensor, config: SearchConfig, previous_latency: Tensor | None = None,
+                             integral: str = "step", method: str = "continuous",
+                             memory_budget: int | None = None) -> ConstantSearchResult:
+    """:func:`search_constant_latency` of checked inputs: an image batch, its events, exposures (float64
+    :math:`(B,)`, end after start), a positive threshold :math:`(B,)` and a finite ``previous_latency`` :math:`(B,)`."""
+    b = blurry.shape[0]
+    start = exposure_start.to(events.device, torch.float64)
+    end = exposure_end.to(events.device, torch.float64)
+    theta = threshold.to(torch.float64)
+    prev, budget = previous_latency, memory_budget
     rng = config.search_range
     if rng is None:
         lows, highs = default_search_range(end - start)
     else:
         lows, highs = torch.full_like(start, rng[0]), torch.full_like(start, rng[1])
-    budget = resolve_memory_budget(memory_budget)
-    prev = None if previous_latency is None else check_batch_vector(previous_latency, b, "previous_latency")
 
     grey = kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
     # a candidate's window [start + l, end + l] must not run past the sample's last event: past it

@@ -38,12 +38,13 @@ import kornia
 import torch
 from torch import Tensor, nn
 
-from evlatcorr.checks import check_has_events, check_search_range, resolve_memory_budget
-from evlatcorr.edi import EventGrid, edi_deblur, event_grid, event_grid_bytes
+from evlatcorr.checks import check_has_events, check_search_range, check_threshold, resolve_memory_budget
+from evlatcorr.config import SearchConfig
+from evlatcorr.edi import EventGrid, _check_grid, _edi_deblur, _event_grid, _event_grid_bytes
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
 from evlatcorr.frames import EventFrames
 from evlatcorr.latency_table import LatencyTable
-from evlatcorr.search import search_constant_latency
+from evlatcorr.search import _search_constant_latency
 
 __all__ = ["PolynomialLatency", "LossWeights", "spatial_objective", "fit_spatial_latency",
            "SpatialLatencyCorrector", "save_curve", "load_curve"]
@@ -145,6 +146,18 @@ def spatial_objective(
             is read from it (exact step integral, linear in the latency between its entries) instead of
             the linear integral; for test-time fitting, where it is built once and read at every step.
     """
+    theta = check_threshold(threshold, frames.batch_size)
+    _check_grid_spans(grid, frames, 0.0, l_max, num_bins)  # the map is clipped into [0, l_max]
+    return _spatial_objective(model, frames, l_const, l_max, etf_const, theta, num_bins, weights, epsilon, window,
+                              sigma_us, grid, table)
+
+
+def _spatial_objective(model: PolynomialLatency, frames: EventFrames, l_const: Tensor, l_max: Tensor,
+                       etf_const: Tensor, theta: Tensor, num_bins: int, weights: LossWeights | None, epsilon: float,
+                       window: int, sigma_us: float, grid: EventGrid | None, table: LatencyTable | None
+                       ) -> dict[str, Tensor]:
+    """:func:`spatial_objective` of checked inputs: a positive threshold :math:`(B,)`, a grid spanning
+    ``[0, l_max]``."""
     w = weights or LossWeights()
     latency = model(frames.blurry)  # (B, 1, H, W) µs
     b = latency.shape[0]
@@ -153,8 +166,8 @@ def spatial_objective(
     if table is not None:
         latent = frames.blurry * torch.exp(-table.read(clipped)).to(frames.blurry.dtype)
     else:
-        latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, threshold,
-                            clipped, num_bins, integral="linear", grid=grid)
+        latent = _edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                             _mid_exposure(frames), theta, clipped, num_bins, integral="linear", grid=grid)
     mean_latency = clipped.mean(dim=(1, 2, 3))
     etf = etf_loss(latent, mean_latency, l_const.to(latency), epsilon, window, sigma_us)
     # latencies as fractions of each frame's exposure time: dimensionless, so the paper's weights hold
@@ -174,16 +187,27 @@ def constant_reference(frames: EventFrames, threshold: float, num_bins: int, sea
                        grid: EventGrid | None = None, table: LatencyTable | None = None) -> tuple[Tensor, Tensor]:
     """``l_const`` per frame and the ETF of its latent image (read from ``table`` when given, else the linear
     integral)."""
-    res = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                                  threshold, num_bins, search_range, num_candidates, True, None, epsilon, window,
-                                  sigma_us)
+    config = SearchConfig(num_bins=num_bins, search_range=search_range, num_candidates=num_candidates,
+                          epsilon=epsilon, window=window, sigma_us=sigma_us)
+    theta = check_threshold(threshold, frames.batch_size)
+    low, high = _latency_bounds(frames, config.search_range)
+    _check_grid_spans(grid, frames, low, high, num_bins)  # l_const lies in [low, high]
+    return _constant_reference(frames, theta, config, grid, table)
+
+
+def _constant_reference(frames: EventFrames, theta: Tensor, config: SearchConfig, grid: EventGrid | None,
+                        table: LatencyTable | None) -> tuple[Tensor, Tensor]:
+    """:func:`constant_reference` of checked inputs (a positive threshold :math:`(B,)`)."""
+    num_bins, epsilon, window, sigma_us = config.num_bins, config.epsilon, config.window, config.sigma_us
+    res = _search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                                   theta, config)
     l_const = res.latency.to(frames.device)
     with torch.no_grad():
         if table is not None:
             latent = frames.blurry * torch.exp(-table.read(l_const.to(frames.blurry).view(-1, 1, 1, 1)))
         else:
-            latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, threshold,
-                                l_const, num_bins, integral="linear", grid=grid)
+            latent = _edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                                 _mid_exposure(frames), theta, l_const, num_bins, integral="linear", grid=grid)
         etf = etf_loss(latent, l_const.float(), l_const.float(), epsilon, window, sigma_us)
     return l_const, etf
 
@@ -230,21 +254,32 @@ def fit_spatial_latency(
     if objective_edi not in ("table", "linear"):
         raise ValueError(f"objective_edi must be 'table' or 'linear', got {objective_edi!r}")
     search_range = check_search_range(search_range)
+    theta = check_threshold(threshold, frames.batch_size)
     check_has_events(frames)
+    return _fit_spatial_latency(frames, model, steps, lr, theta, num_bins, search_range, num_candidates, weights,
+                                epsilon, window, sigma_us, progress, start_from_constant, objective_edi)
+
+
+def _fit_spatial_latency(frames: EventFrames, model: PolynomialLatency | None, steps: int, lr: float,
+                         theta: Tensor, num_bins: int, search_range: tuple[float, float] | None,
+                         num_candidates: int, weights: LossWeights | None, epsilon: float, window: int,
+                         sigma_us: float, progress: bool, start_from_constant: bool,
+                         objective_edi: str) -> tuple[PolynomialLatency, list[float]]:
+    """:func:`fit_spatial_latency` of checked inputs (a positive threshold :math:`(B,)`, a checked range)."""
     model = model if model is not None else PolynomialLatency()
     model = model.to(frames.device)
     l_max = frames.exposure_time if search_range is None else torch.full_like(frames.exposure_time, search_range[1])
     # every step reads the same events at other latencies in [0, l_max] (and l_const): integrate them once
     l_min = 0.0 if search_range is None else min(0.0, search_range[0])
-    args = (frames.events, frames.exposure_start, frames.exposure_end, num_bins, (l_min, l_max))
     grid = table = None  # no grid over the memory budget: every step's EDI builds (in strips) the grid it reads
     if objective_edi == "table":
-        table = LatencyTable.build(frames.events, frames.exposure_start, frames.exposure_end, threshold, l_min,
+        table = LatencyTable.build(frames.events, frames.exposure_start, frames.exposure_end, theta, l_min,
                                    float(l_max.max()), num_bins + 1)
-    elif event_grid_bytes(*args, integral="linear", dtype=frames.blurry.dtype) <= resolve_memory_budget():
-        grid = event_grid(*args, integral="linear", dtype=frames.blurry.dtype)
-    l_const, etf_const = constant_reference(frames, threshold, num_bins, search_range, num_candidates, epsilon,
-                                            window, sigma_us, grid, table)
+    else:
+        grid = _linear_grid_within_budget(frames, l_min, l_max, num_bins)
+    config = SearchConfig(num_bins=num_bins, search_range=search_range, num_candidates=num_candidates,
+                          epsilon=epsilon, window=window, sigma_us=sigma_us)
+    l_const, etf_const = _constant_reference(frames, theta, config, grid, table)
     if start_from_constant:
         with torch.no_grad():  # ψ ≡ mean l_const: the fit only has to learn the variation around it
             model.coefficients.zero_()
@@ -258,12 +293,45 @@ def fit_spatial_latency(
         iterator = tqdm(iterator, desc="fit latency curve", unit="step")
     for _ in iterator:
         optimiser.zero_grad()
-        terms = spatial_objective(model, frames, l_const, l_max, etf_const, threshold, num_bins, weights, epsilon,
-                                  window, sigma_us, grid, table)
+        terms = _spatial_objective(model, frames, l_const, l_max, etf_const, theta, num_bins, weights, epsilon,
+                                   window, sigma_us, grid, table)
         terms["total"].backward()
         optimiser.step()
         history.append(float(terms["total"].detach()))
     return model, history
+
+
+def _mid_exposure(frames: EventFrames) -> Tensor:
+    """The EDI's default reference time (mid-exposure) per frame :math:`(B,)`, µs."""
+    return (frames.exposure_start + frames.exposure_end) / 2
+
+
+def _latency_bounds(frames: EventFrames, search_range: tuple[float, float] | None) -> tuple[Tensor, Tensor]:
+    """The range the constant latency is searched in, per frame :math:`(B,)` float64 µs."""
+    if search_range is None:
+        return torch.zeros_like(frames.exposure_time), frames.exposure_time
+    low, high = search_range
+    return torch.full_like(frames.exposure_time, low), torch.full_like(frames.exposure_time, high)
+
+
+def _check_grid_spans(grid: EventGrid | None, frames: EventFrames, low: Tensor | float, high: Tensor,
+                      num_bins: int) -> None:
+    """A grid passed in must serve every latency in ``[low, high]`` (checked at both ends)."""
+    for latency in (low, high):
+        _check_grid(grid, frames.events, frames.exposure_start, frames.exposure_end, _mid_exposure(frames), latency,
+                    num_bins, frames.blurry.dtype)
+
+
+def _linear_grid_within_budget(frames: EventFrames, l_min: float, l_max: Tensor, num_bins: int) -> EventGrid | None:
+    """The linear event grid over latencies ``[l_min, l_max]``, or None when it is over the memory budget."""
+    events, b = frames.events, frames.batch_size
+    args = (events, frames.exposure_start.to(events.device), frames.exposure_end.to(events.device),
+            _mid_exposure(frames).to(events.device),
+            torch.full((b,), l_min, dtype=torch.float64, device=events.device),
+            l_max.to(events.device, torch.float64), num_bins, "linear", frames.blurry.dtype)
+    if _event_grid_bytes(*args) > resolve_memory_budget():
+        return None
+    return _event_grid(*args, None)
 
 
 def save_curve(model: PolynomialLatency, path: str | Path, **extra: Any) -> None:
@@ -325,6 +393,8 @@ class SpatialLatencyCorrector(nn.Module):
         super().__init__()
         if isinstance(threshold, str):
             raise ValueError("mode='spatial' needs a numeric threshold")
+        if not threshold > 0:
+            raise ValueError(f"threshold must be positive, got {threshold}")
         if steps < 1 or train_bins < 2:
             raise ValueError(f"steps must be >= 1 and train_bins >= 2, got {steps} and {train_bins}")
         if order < 0:
@@ -341,6 +411,8 @@ class SpatialLatencyCorrector(nn.Module):
 
     def forward(self, frames: EventFrames) -> EventFrames:
         check_has_events(frames)  # as the constant mode: no latency without events
+        # the frames were checked when made, the settings in __init__: the work below checks nothing again
+        theta = torch.full((frames.batch_size,), self.threshold, dtype=torch.float64)
         if self.model is not None:
             model = self.model.to(frames.device)
         else:
@@ -348,17 +420,17 @@ class SpatialLatencyCorrector(nn.Module):
             with torch.inference_mode(False), torch.enable_grad():
                 if any(t.is_inference() for t in (frames.blurry, frames.events.t)):
                     frames = _clone_frames(frames)
-                model, _ = fit_spatial_latency(frames, PolynomialLatency(self.order), self.steps, self.lr,
-                                               self.threshold, self.train_bins, self.search_range,
-                                               self.num_candidates, self.weights, self.epsilon, self.window,
-                                               self.sigma_us, progress=self.progress, start_from_constant=True)
+                model, _ = _fit_spatial_latency(frames, PolynomialLatency(self.order), self.steps, self.lr,
+                                                theta, self.train_bins, self.search_range, self.num_candidates,
+                                                self.weights, self.epsilon, self.window, self.sigma_us,
+                                                self.progress, True, "table")
         with torch.no_grad():
             high = frames.exposure_time if self.search_range is None else torch.full_like(
                 frames.exposure_time, self.search_range[1])
             latency = torch.minimum(model(frames.blurry).clamp_min(0.0), high.to(frames.blurry).view(-1, 1, 1, 1))
             corrected = frames.events.shift(latency.double())
-            latent = edi_deblur(frames.blurry, corrected, frames.exposure_start, frames.exposure_end,
-                                self.threshold, None, self.num_bins)
+            latent = _edi_deblur(frames.blurry, corrected, frames.exposure_start, frames.exposure_end,
+                                 _mid_exposure(frames), theta, None, self.num_bins)
         meta = dict(frames.meta)
         meta["latency_curve"] = model.coefficients.detach().cpu()
         return frames.replace(latency=latency.float().contiguous(), corrected=corrected, latent=latent, meta=meta)

@@ -18,6 +18,7 @@ from evlatcorr.checks import (
     check_memory,
     check_search_range,
     check_shape,
+    check_threshold,
     resolve_memory_budget,
 )
 
@@ -166,3 +167,15 @@ def test_check_has_events_names_the_empty_sample_and_its_window():
         check_has_events(frames)
     check_has_events(frames.replace(events=Events(ev.x, ev.y, torch.tensor([50.0, 150.0, 1199.0]), ev.p, ev.batch,
                                                   sensor_size=(2, 2))))
+
+
+def test_check_threshold_broadcasts_and_refuses_non_positive():
+    assert check_threshold(0.2, 3).tolist() == pytest.approx([0.2, 0.2, 0.2])
+    theta = torch.tensor([0.1, 0.3])
+    assert check_threshold(theta, 2) is theta
+    with pytest.raises(ValueError, match="threshold must be positive, got -0.1"):
+        check_threshold(torch.tensor([0.2, -0.1], dtype=torch.float64), 2)
+    with pytest.raises(ValueError, match="threshold has 1 NaN"):
+        check_threshold(float("nan"), 1)
+    with pytest.raises(ValueError, match="one value per sample"):
+        check_threshold(torch.ones(3), 2)

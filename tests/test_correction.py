@@ -199,3 +199,20 @@ def test_frame_without_events_is_refused_in_every_mode(mode, curve_path):
     empty = Events(torch.zeros(0), torch.zeros(0), torch.zeros(0), torch.zeros(0), sensor_size=(6, 8))
     with pytest.raises(ValueError, match="sample 0 has no events"):
         corrector(frames_with(empty))
+
+
+def test_corrector_does_not_check_the_batch_again_inside(monkeypatch):
+    """The batch is checked once (EventFrames, the corrector): the search and the EDI it runs check nothing again."""
+    from evlatcorr import edi, integral, search
+
+    frames = simulate("camera", num_frames=1, height=24, width=32, latency_us=2000.0, seed=0).frames("delayed")
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("an input already checked was checked again")
+
+    for module in (search, edi, integral):
+        for name in ("check_image", "check_batch_vector", "check_exposure", "check_threshold"):
+            if hasattr(module, name):
+                monkeypatch.setattr(module, name, refuse)
+    out = EventLatencyCorrector(num_bins=50, num_candidates=20)(frames)
+    assert out.latency.shape == (1, 1, 24, 32)
