@@ -6,8 +6,9 @@ positional numbers that every layer re-checks.
 
 Example:
     >>> from evlatcorr.config import SearchConfig
-    >>> SearchConfig(num_candidates=50, search_range=(0, 8000))
-    SearchConfig(num_bins=500, search_range=(0.0, 8000.0), num_candidates=50, refine=True, score='consensus', epsilon=20.0, window=7, sigma_us=1000.0)
+    >>> config = SearchConfig(num_candidates=50, search_range=(0, 8000))
+    >>> config.search_range, config.num_candidates, config.score
+    ((0.0, 8000.0), 50, 'consensus')
     >>> SearchConfig(num_bins=1)
     Traceback (most recent call last):
     ...

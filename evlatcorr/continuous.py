@@ -71,7 +71,8 @@ class ContinuousIntegral:
         self.device = events.device
         # events in pixel order (each pixel's in time order: a stable sort), so a strip of rows is a slice
         pixel = events.pixel_index()
-        order = torch.argsort(pixel, stable=True)
+        # int32 keys sort twice as fast as int64 (the same stable order)
+        order = torch.argsort(pixel.to(torch.int32) if self.num_pixels < 2**31 else pixel, stable=True)
         self.pixel, self.t = pixel[order], events.t.to(torch.float64)[order]
         polarity = events.p.to(torch.int64)[order]
         # each event's level C after it at its pixel: a cumulative sum within the pixel's run

@@ -89,7 +89,7 @@ def correct_constant_latency(
     meta["score"] = config.score
     meta["latency_confidence"] = result.confidence
     meta["latency_fallback"] = result.fallback
-    return frames.replace(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
+    return frames.with_outputs(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
 
 
 def _auto_threshold(frames: EventFrames, config: SearchConfig, previous: Tensor | None) -> float | Tensor:

@@ -7,6 +7,7 @@ written once here: :meth:`EventFrames.crop`, :meth:`EventFrames.cat` (the collat
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -132,6 +133,36 @@ class EventFrames:
     def replace(self, **changes: Any) -> EventFrames:
         """A copy with some fields replaced (validated again)."""
         return dataclasses.replace(self, **changes)
+
+    def with_outputs(self, **outputs: Any) -> EventFrames:
+        """A copy with a stage's outputs filled (``latency``, ``latent``, ``corrected``, ``output``, ``meta``).
+
+        Unlike :meth:`replace`, the inputs are not validated again and the outputs' shapes are checked
+        without reading their values, so a corrector or adapter in a GPU pipeline never waits on the device here.
+
+        Example:
+            >>> ev = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([5.0]), torch.tensor([1]),
+            ...             sensor_size=(2, 2))
+            >>> batch = EventFrames(torch.rand(1, 1, 2, 2), ev, torch.tensor([0.0]), torch.tensor([10.0]))
+            >>> batch.with_outputs(latency=torch.zeros(1, 1, 2, 2)).latency.shape
+            torch.Size([1, 1, 2, 2])
+        """
+        unknown = set(outputs) - {"latency", "latent", "corrected", "output", "meta"}
+        if unknown:
+            raise ValueError(f"with_outputs fills latency, latent, corrected, output and meta, not {sorted(unknown)}")
+        b, c, h, w = self.blurry.shape
+        if outputs.get("latency") is not None:
+            check_shape(outputs["latency"], [b, 1, h, w], "latency")
+        if outputs.get("latent") is not None:
+            check_shape(outputs["latent"], [b, c, h, w], "latent")
+        corrected = outputs.get("corrected")
+        if corrected is not None and (not isinstance(corrected, Events) or corrected.batch_size != b
+                                      or corrected.sensor_size != (h, w)):
+            raise ValueError(f"corrected must be Events of batch_size {b} and sensor_size {(h, w)}")
+        filled = copy.copy(self)  # a shallow copy: no __post_init__, so nothing is read from the device
+        for name, value in outputs.items():
+            setattr(filled, name, value)
+        return filled
 
     def to(self, device: torch.device | str) -> EventFrames:
         """Move every tensor (and the events) to ``device``."""

@@ -228,10 +228,10 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
     results = []
     for i in range(b):
         ev = events.sample(i)
+        span = _Window(float(start[i]), float(end[i]), float(lows[i]), float(highs[i]), float(reach[i]))
         results.append(_search_one(
-            grey[i:i + 1], ev, _Window(float(start[i]), float(end[i]), float(lows[i]), float(highs[i]), float(reach[i])),
-            float(theta[i]), config, None if prev is None else prev[i:i + 1], integral, budget, method,
-        ))
+            grey[i:i + 1], ev, span, float(theta[i]), config, None if prev is None else prev[i:i + 1], integral,
+            budget, method))
     return ConstantSearchResult(
         latency=torch.tensor([r.latency for r in results], dtype=torch.float64, device=blurry.device),
         candidates=torch.stack([r.candidates for r in results]).to(blurry.device),

@@ -433,7 +433,7 @@ class SpatialLatencyCorrector(nn.Module):
                                  _mid_exposure(frames), theta, None, self.num_bins)
         meta = dict(frames.meta)
         meta["latency_curve"] = model.coefficients.detach().cpu()
-        return frames.replace(latency=latency.float().contiguous(), corrected=corrected, latent=latent, meta=meta)
+        return frames.with_outputs(latency=latency.float().contiguous(), corrected=corrected, latent=latent, meta=meta)
 
 
 def _clone_frames(frames: EventFrames) -> EventFrames:
