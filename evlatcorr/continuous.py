@@ -27,8 +27,8 @@ __all__ = ["ContinuousIntegral"]
 # Bytes per candidate latency and pixel that :meth:`ContinuousIntegral.log_ratio` returns (float64), plus the
 # float32 latent image its caller makes of it.
 BYTES_PER_CANDIDATE = 12
-# Bytes per event kept between calls (time, pixel, level before and after), and at the peak of a call.
-BYTES_PER_EVENT_KEPT = 32
+# Bytes per event kept between calls (time, pixel, level before and after, rise), and at the peak of a call.
+BYTES_PER_EVENT_KEPT = 40
 BYTES_PER_EVENT = 112
 # Bytes per time point and pixel of the tables one strip of rows is evaluated in (S and the level, float64, and
 # the gathers that read them), and the most one strip may take.
@@ -82,6 +82,12 @@ class ContinuousIntegral:
         before_run = torch.cat([running.new_zeros(1), running])[run_start]
         self.level_after = self.theta * (running - before_run[self.pixel]).to(torch.float64)
         self.level_before = self.level_after - self.theta * polarity.to(torch.float64)
+        # levels are read relative to each pixel's highest level over the whole stream (0 before its first
+        # event), so each event's rise of exp(θC − peak) is computed once here, not once per read
+        zeros = torch.zeros(self.num_pixels, dtype=torch.float64, device=self.device)
+        self.peak = zeros.scatter_reduce(0, self.pixel, self.level_after, reduce="amax", include_self=True)
+        top = self.peak[self.pixel]
+        self.rise = torch.exp(self.level_after - top) - torch.exp(self.level_before - top)
         # first event of each row (and the end): strips of rows are contiguous
         row_starts = torch.arange(height + 1, device=self.device) * width
         self.row_bounds = torch.searchsorted(self.pixel, row_starts).tolist()
@@ -95,7 +101,7 @@ class ContinuousIntegral:
         Returns:
             ``(S, level)``, each :math:`(G, H, W)` float64: ``S(g_j) = ∫_{g_0}^{g_j} exp(θC − peak)``
             (0 at ``g_0``) and ``exp(θC(g_j) − peak)`` with ``C(g)`` counting the events before ``g``; ``peak``
-            is each pixel's highest ``θC`` over ``[g_0, g_{G−1}]``, so the levels are at most 1.
+            is each pixel's highest ``θC`` over its events (0 before the first), so the levels are at most 1.
         """
         s_total, level = self._tables(times.to(self.device, torch.float64), 0, self.sensor_size[0])
         return s_total, level
@@ -111,17 +117,14 @@ class ContinuousIntegral:
         # compaction, so nothing waits on the device for a count
         ahead = t < g[0]
         inside = ~ahead & (t < g[-1])
-        # θC at g_0 and each pixel's highest level from there to the last point
+        peak = self.peak[r0 * width:r1 * width]
+        # θC at g_0 (exact, in the log domain), relative to the pixel's peak
         start_level = torch.zeros(p, dtype=torch.float64, device=self.device).index_add_(
             0, pixel, torch.where(ahead, after - before, 0.0))
-        peak = start_level.clone().scatter_reduce_(0, pixel, torch.where(inside, after, -torch.inf), reduce="amax",
-                                                   include_self=True)
         slot = torch.searchsorted(g, t, right=True).clamp_(max=num - 1)  # g[slot - 1] <= t < g[slot] inside
         # exp(level) is piecewise constant: its value at g_j is the start value plus the rises of the events
         # before g_j, and its integral from g_0 is (g_j − g_0)·level(g_j) − Σ rise·(t − g_0) over those events
-        top = peak[pixel]
-        rise = torch.where(inside, torch.exp((after - top).clamp_(max=0.0)) - torch.exp((before - top).clamp_(max=0.0)),
-                           0.0)
+        rise = torch.where(inside, self.rise[lo:hi], 0.0)
         flat = slot * p + pixel
         level = torch.zeros(num * p, dtype=torch.float64, device=self.device).index_add_(0, flat, rise)
         held = torch.zeros(num * p, dtype=torch.float64, device=self.device).index_add_(0, flat, rise * (t - g[0]))
