@@ -79,7 +79,7 @@ class ContinuousIntegral:
         running = torch.cumsum(polarity, 0)
         counts = torch.bincount(self.pixel, minlength=self.num_pixels)
         run_start = torch.cumsum(counts, 0) - counts
-        before_run = torch.cat([running.new_zeros(1), running])[run_start]
+        before_run = torch.where(run_start > 0, running[(run_start - 1).clamp_(min=0)], 0)  # no copy of the sums
         self.level_after = self.theta * (running - before_run[self.pixel]).to(torch.float64)
         self.level_before = self.level_after - self.theta * polarity.to(torch.float64)
         # levels are read relative to each pixel's highest level over the whole stream (0 before its first
@@ -133,7 +133,8 @@ class ContinuousIntegral:
         s_total = held.neg_().addcmul_(level, (g - g[0])[:, None])
         return s_total.view(num, r1 - r0, width), level.view(num, r1 - r0, width)
 
-    def log_ratio(self, start: float, end: float, latencies: Tensor, reference: float = 0.5) -> Tensor:
+    def log_ratio(self, start: float, end: float, latencies: Tensor, reference: float = 0.5,
+                  out: Tensor | None = None) -> Tensor:
         """``log R`` of the windows ``[start + l, end + l]`` read at ``start + l + reference·(end − start)``.
 
         Args:
@@ -141,6 +142,7 @@ class ContinuousIntegral:
             end: exposure end, µs (``> start``).
             latencies: :math:`(K,)` µs.
             reference: where in the exposure the latent image is (0.5 = mid-exposure).
+            out: optional float64 :math:`(K, 1, H, W)` to write into (e.g. a slice of a larger batch).
 
         Returns:
             :math:`(K, 1, H, W)` float64; the latent image is ``blurry · exp(−log R)``.
@@ -154,7 +156,10 @@ class ContinuousIntegral:
         height, width = self.sensor_size
         # a strip of rows at a time: the tables of all the times stay within STRIP_BYTES
         rows = max(1, min(height, STRIP_BYTES // (len(times) * width * BYTES_PER_POINT)))
-        out = torch.empty((len(lat), 1, height, width), dtype=torch.float64, device=self.device)
+        if out is None:
+            out = torch.empty((len(lat), 1, height, width), dtype=torch.float64, device=self.device)
+        elif out.shape != (len(lat), 1, height, width) or out.dtype != torch.float64:
+            raise ValueError(f"out must be float64 {(len(lat), 1, height, width)}, got {out.dtype} {tuple(out.shape)}")
         for r0 in range(0, height, rows):
             r1 = min(height, r0 + rows)
             s_total, level = self._tables(times, r0, r1)

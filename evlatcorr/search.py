@@ -386,7 +386,10 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
         integral_ = ContinuousIntegral(events, theta) if top >= low else None
 
         def log_ratio(lat: Tensor) -> Tensor:
-            return torch.cat([integral_.log_ratio(start, end, lat[k:k + chunk]) for k in range(0, len(lat), chunk)])
+            out = torch.empty((len(lat), 1, *grey.shape[-2:]), dtype=torch.float64, device=events.device)
+            for k in range(0, len(lat), chunk):  # each read writes its slice: no concatenated copy
+                integral_.log_ratio(start, end, lat[k:k + chunk], out=out[k:k + chunk])
+            return out
 
         def fine_of(best: float) -> Tensor:
             k = torch.arange(-math.floor(step / fine_step), math.floor(step / fine_step) + 1, dtype=torch.float64)
