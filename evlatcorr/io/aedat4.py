@@ -29,7 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from evlatcorr.io.base import FrameInfo, Recording, RecordingError, SegmentEnd, structured_events, to_unit_image
+from evlatcorr.io.base import Recording
+from evlatcorr.io.conversions import structured_events, to_unit_image
+from evlatcorr.io.records import FrameInfo, RecordingError, SegmentEnd
 
 __all__ = ["AedatRecording", "is_aedat4"]
 
@@ -92,6 +94,16 @@ class AedatRecording(Recording):
         except Exception as exc:  # the Rust decoder raises plain exceptions for corrupt headers
             raise RecordingError(f"{self.path}: cannot decode the AEDAT4 header ({exc})") from exc
 
+    def _numbered_packets(self) -> Iterator[tuple[dict[str, Any], int | None]]:
+        """Packets with the index of the frame they carry (``None`` for packets without a frame)."""
+        index = 0
+        for packet in self._packets():
+            if packet.get("frame") is None:
+                yield packet, None
+            else:
+                yield packet, index
+                index += 1
+
     def _packets(self) -> Iterator[dict[str, Any]]:
         decoder = self._decoder()
         index = 0
@@ -135,21 +147,13 @@ class AedatRecording(Recording):
 
     # the Recording interface -------------------------------------------------------------------
     def frames(self) -> Iterator[FrameInfo]:
-        index = 0
-        for packet in self._packets():
-            frame = packet.get("frame")
-            if frame is not None:
-                yield self._frame_info(frame, index)
-                index += 1
+        for packet, index in self._numbered_packets():
+            if index is not None:
+                yield self._frame_info(packet["frame"], index)
 
     def _read_frame_times(self) -> list[tuple[float, float, int]]:
-        times, index = [], 0
-        for packet in self._packets():
-            frame = packet.get("frame")
-            if frame is not None:
-                times.append((*self._exposure(frame, index), 0))
-                index += 1
-        return times
+        return [(*self._exposure(packet["frame"], index), 0) for packet, index in self._numbered_packets()
+                if index is not None]
 
     def _segmented_chunks(self) -> Iterator[np.ndarray | SegmentEnd]:
         for packet in self._packets():
@@ -159,12 +163,9 @@ class AedatRecording(Recording):
 
     def _items(self) -> Iterator[FrameInfo | np.ndarray | SegmentEnd]:
         """One pass over the packets: frames and event chunks in file order."""
-        index = 0
-        for packet in self._packets():
-            frame = packet.get("frame")
-            if frame is not None:
-                yield self._frame_info(frame, index)
-                index += 1
+        for packet, index in self._numbered_packets():
+            if index is not None:
+                yield self._frame_info(packet["frame"], index)
                 continue
             ev = packet.get("events")
             if ev is not None and len(ev):

@@ -37,21 +37,18 @@ import h5py
 import numpy as np
 
 from evlatcorr.events import Events
-from evlatcorr.frames import EventFrames
-from evlatcorr.io.base import (
-    EVENT_DTYPE,
+from evlatcorr.io.base import Recording
+from evlatcorr.io.conversions import (
     TIME_UNITS,
-    FrameInfo,
-    Recording,
-    RecordingError,
-    SegmentEnd,
     iter_events_as_chunks,
     structured_events,
+    time_scale,
     to_microseconds,
     to_unit_image,
 )
 from evlatcorr.io.h5 import atomic_path
-from evlatcorr.io.hdf5_access import bisect_sorted, open_h5
+from evlatcorr.io.hdf5_access import IndexedH5Recording, bisect_sorted, check_columns, is_hdf5_with, open_h5
+from evlatcorr.io.records import EVENT_DTYPE, FrameInfo, RecordingError, SegmentEnd
 
 __all__ = ["EventUtilsRecording", "is_event_utils_h5", "write_event_utils"]
 
@@ -60,14 +57,7 @@ _UNITS = TIME_UNITS
 
 def is_event_utils_h5(path: str | Path) -> bool:
     """Whether ``path`` is an HDF5 file with ``/events/xs``, ``ys``, ``ts``, ``ps``."""
-    path = Path(path)
-    if not path.is_file() or not h5py.is_hdf5(path):
-        return False
-    try:
-        with h5py.File(path, "r") as f:
-            return "events" in f and all(k in f["events"] for k in ("xs", "ys", "ts", "ps"))
-    except OSError:
-        return False
+    return is_hdf5_with(path, lambda f: "events" in f and all(k in f["events"] for k in ("xs", "ys", "ts", "ps")))
 
 
 def _image_names(group: h5py.Group) -> list[str]:
@@ -89,7 +79,7 @@ def _image(ds: h5py.Dataset, where: str) -> np.ndarray:
     return img
 
 
-class EventUtilsRecording(Recording):
+class EventUtilsRecording(IndexedH5Recording):
     """Reader of event_utils-style HDF5 files (see the module docstring for conventions).
 
     Args:
@@ -107,7 +97,6 @@ class EventUtilsRecording(Recording):
     """
 
     format_name = "event_utils-h5"
-    random_access = True
 
     def __init__(self, path: str | Path, before_us: float = 0.0, after_us: float | None = None,
                  exposure_us: float | None = None, time_unit: str = "auto", chunk_events: int = 1 << 20,
@@ -119,9 +108,8 @@ class EventUtilsRecording(Recording):
             raise ValueError(f"timestamp_is must be 'middle', 'start' or 'end', got {timestamp_is!r}")
         if exposure_us is not None and not exposure_us > 0:
             raise ValueError(f"exposure_us must be positive, got {exposure_us}")
-        if chunk_events < 1:
-            raise ValueError(f"chunk_events must be >= 1, got {chunk_events}")
-        self.exposure_us, self.timestamp_is, self.chunk_events = exposure_us, timestamp_is, int(chunk_events)
+        self._set_chunk_events(chunk_events)
+        self.exposure_us, self.timestamp_is = exposure_us, timestamp_is
         if not is_event_utils_h5(self.path):
             with open_h5(self.path):  # a RecordingError for files that are not HDF5 at all
                 pass
@@ -135,15 +123,7 @@ class EventUtilsRecording(Recording):
 
     def _check_columns(self, g: h5py.Group) -> None:
         """``/events/xs, ys, ts, ps`` must be columns of one length (checked from their shapes)."""
-        lengths = {}
-        for c in ("xs", "ys", "ts", "ps"):
-            shape = g[c].shape
-            if len(shape) not in (1, 2) or (len(shape) == 2 and shape[1] != 1):
-                raise RecordingError(f"{self.path}: /events/{c} must be a column (N,), got shape {shape}")
-            lengths[c] = shape[0]
-        if len(set(lengths.values())) > 1:
-            raise RecordingError(f"{self.path}: /events/xs, ys, ts, ps differ in length: "
-                                 + ", ".join(f"{c} {n}" for c, n in lengths.items()))
+        check_columns(g, ("xs", "ys", "ts", "ps"), f"{self.path}: /events")
 
     def _detect_unit(self, f: h5py.File, ts: h5py.Dataset) -> str:
         unit = f.attrs.get("time_unit")
@@ -224,10 +204,10 @@ class EventUtilsRecording(Recording):
         with open_h5(self.path) as f:
             g = f["events"]
             n = g["ts"].shape[0]
-            for i in range(0, n, self.chunk_events):
-                yield self._columns(g, i, min(n, i + self.chunk_events))
+            for i, j in self._chunk_ranges(n):
+                yield self._columns(g, i, j)
 
-    def _slice(self, f: h5py.File, t0: float, t1: float) -> np.ndarray:
+    def _slice(self, f: h5py.File, segment: int, t0: float, t1: float) -> np.ndarray:
         g = f["events"]
         # search a hair wider in file units (the unit conversion rounds), then cut exactly in µs
         a, b = t0 / self.scale, t1 / self.scale
@@ -237,26 +217,13 @@ class EventUtilsRecording(Recording):
         # the unit conversion can move a boundary event across t0/t1 by rounding: filter in µs
         return ev[(ev["t"] >= t0) & (ev["t"] < t1)]
 
-    def events_between(self, t0: float, t1: float, segment: int | None = None) -> Events:
-        """Events with ``t0 <= t < t1`` (µs) by binary search on ``ts``."""
-        if not t1 >= t0:
-            raise ValueError(f"events_between needs t1 >= t0, got [{t0}, {t1})")
-        self._resolve_segment(segment)
-        with open_h5(self.path) as f:
-            return Events.from_numpy(self._slice(f, t0, t1), sensor_size=self.sensor_size)
-
-    def _frame_random_access(self, index: int) -> EventFrames:
+    def _read_frame_window(self, index: int) -> tuple[FrameInfo, np.ndarray, tuple[float | None, float]]:
         with open_h5(self.path) as f:
             name = _image_names(self._images_group(f))[index]
             info = self._frame_info(f, index, name)
-            lo, hi = self.window(info.exposure_start, info.exposure_end)
-            events = self._slice(f, lo, hi)
+            events = self._slice(f, 0, *self.window(info.exposure_start, info.exposure_end))
             ts = f["events/ts"]
-            first, last = (float(self._us(ts[0])), float(self._us(ts[-1]))) if ts.shape[0] else (None, -np.inf)
-        if len(events):  # what streaming checks chunk by chunk: sorted, finite, on the sensor
-            self._check_chunk(events, -np.inf, 0)
-        self._warn_coverage(info, lo, hi, events, first, last, exhausted=last < hi)
-        return self._batch(info, events, lo, hi)
+            return info, events, ((float(self._us(ts[0])), float(self._us(ts[-1]))) if ts.shape[0] else (None, -np.inf))
 
 
 def write_event_utils(path: str | Path, events: Events | Iterable[Events | np.ndarray],
@@ -280,9 +247,7 @@ def write_event_utils(path: str | Path, events: Events | Iterable[Events | np.nd
     """
     if time_unit is None:
         time_unit = like.time_unit if isinstance(like, EventUtilsRecording) else "s"
-    if time_unit not in _UNITS:
-        raise ValueError(f"time_unit must be one of {sorted(_UNITS)}, got {time_unit!r}")
-    scale = _UNITS[time_unit]
+    scale = time_scale(time_unit)
     if sensor_size is None:
         sensor_size = like.sensor_size if like is not None else getattr(events, "sensor_size", None)
         if sensor_size is None:

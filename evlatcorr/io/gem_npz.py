@@ -36,21 +36,14 @@ from typing import Any
 
 import numpy as np
 
-from evlatcorr.io.base import (
-    TIME_UNITS,
-    FrameInfo,
-    Recording,
-    RecordingError,
-    SegmentEnd,
-    structured_events,
-    to_microseconds,
-    to_unit_image,
-)
+from evlatcorr.io.base import Recording
+from evlatcorr.io.conversions import sorted_by_time, structured_events, time_scale, to_microseconds, to_unit_image
+from evlatcorr.io.npz_access import open_npz
+from evlatcorr.io.records import FrameInfo, RecordingError, SegmentEnd
 
 __all__ = ["GemNpzRecording", "is_gem_npz"]
 
 _KEYS = {"blur1", "blur2", "exp_start1", "exp_end1", "exp_start2", "exp_end2", "events"}
-_UNITS = TIME_UNITS
 
 
 def _files(path: Path) -> list[Path]:
@@ -92,9 +85,7 @@ class GemNpzRecording(Recording):
     def __init__(self, path: str | Path, before_us: float = 0.0, after_us: float | None = None,
                  time_unit: str = "us", downsample_frames: bool = False) -> None:
         super().__init__(path, before_us, after_us)
-        if time_unit not in _UNITS:
-            raise ValueError(f"time_unit must be one of {sorted(_UNITS)}, got {time_unit!r}")
-        self.scale, self.downsample_frames = _UNITS[time_unit], downsample_frames
+        self.scale, self.downsample_frames = time_scale(time_unit), downsample_frames
         self.files = _files(self.path)
         if not self.files:
             raise RecordingError(f"{self.path}: no .npz files")
@@ -107,16 +98,8 @@ class GemNpzRecording(Recording):
     def _load(self, file: Path) -> dict[str, Any]:
         if self._cache is not None and self._cache[0] == file:
             return self._cache[1]
-        try:
-            with np.load(file, allow_pickle=True) as z:
-                missing = _KEYS - set(z.files)
-                if missing:
-                    raise RecordingError(f"{file}: not a GEM npz pair, missing keys {sorted(missing)}")
-                data = {k: z[k] for k in z.files}
-        except RecordingError:
-            raise
-        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
-            raise RecordingError(f"{file}: cannot read npz (truncated or corrupt?): {exc}") from exc
+        with open_npz(file, _KEYS, "a GEM npz pair", allow_pickle=True) as z:
+            data = {k: z[k] for k in z.files}
         data["scale_factor"] = int(np.asarray(data.get("scale_factor", 1)))
         if data["scale_factor"] < 1:
             raise RecordingError(f"{file}: scale_factor must be >= 1, got {data['scale_factor']}")
@@ -200,7 +183,6 @@ class GemNpzRecording(Recording):
             ev = self._load(file)["events"]
             chunk = structured_events(np.asarray(ev["x"]), np.asarray(ev["y"]), to_microseconds(ev["t"], self.scale),
                                       np.asarray(ev["p"]), where=f"{file}: events")
-            if len(chunk) > 1 and np.any(chunk["t"][1:] < chunk["t"][:-1]):
-                chunk = chunk[np.argsort(chunk["t"], kind="stable")]
+            chunk = sorted_by_time(chunk)
             if len(chunk):
                 yield chunk

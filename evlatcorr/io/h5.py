@@ -54,17 +54,18 @@ import torch
 
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
-from evlatcorr.io.base import (
-    EVENT_DTYPE,
-    FrameInfo,
-    Recording,
-    RecordingError,
-    SegmentEnd,
-    iter_events_as_chunks,
-    structured_events,
+from evlatcorr.io.base import Recording
+from evlatcorr.io.conversions import iter_events_as_chunks, structured_events
+from evlatcorr.io.hdf5_access import (
+    IndexedH5Recording,
+    bisect_sorted,
+    check_columns,
+    is_hdf5_with,
+    load_plugins,
+    open_h5,
 )
-from evlatcorr.io.hdf5_access import bisect_sorted, load_plugins, open_h5
 from evlatcorr.io.outputs import default_file_mode
+from evlatcorr.io.records import EVENT_DTYPE, FrameInfo, RecordingError, SegmentEnd
 
 __all__ = [
     "EventWriter",
@@ -76,6 +77,7 @@ __all__ = [
     "read_sequences",
     "write_dataset",
     "write_h5_events",
+    "write_header",
     "write_sequence",
 ]
 
@@ -133,14 +135,7 @@ def _compression(compression: str | None) -> dict[str, Any]:
 
 def is_evlatcorr_h5(path: str | Path) -> bool:
     """Whether ``path`` is an HDF5 file with ``format="evlatcorr"``."""
-    path = Path(path)
-    if not path.is_file() or not h5py.is_hdf5(path):
-        return False
-    try:
-        with h5py.File(path, "r") as f:
-            return f.attrs.get("format") == FORMAT
-    except OSError:
-        return False
+    return is_hdf5_with(path, lambda f: f.attrs.get("format") == FORMAT)
 
 
 class EventWriter:
@@ -187,7 +182,7 @@ class EventWriter:
             self.append(chunk["x"], chunk["y"], chunk["t"], chunk["p"])
 
 
-def _write_header(f: h5py.File, sensor_size: tuple[int, int], **attrs: Any) -> None:
+def write_header(f: h5py.File, sensor_size: tuple[int, int], **attrs: Any) -> None:
     """Root attributes of our format (``sensor_size`` as (H, W))."""
     f.attrs["format"], f.attrs["version"] = FORMAT, VERSION
     f.attrs["sensor_size"] = [int(v) for v in sensor_size]
@@ -318,7 +313,7 @@ def write_sequence(path_or_group: str | Path | h5py.Group, seq: Any, compression
         return
     with atomic_path(path_or_group) as tmp, h5py.File(tmp, "w") as f:
         _write_sequence_group(f, seq, compression, frames_dtype)
-        _write_header(f, tuple(f.attrs["sensor_size"]))
+        write_header(f, tuple(f.attrs["sensor_size"]))
 
 
 def _frames_as_sequences(frames: EventFrames) -> Iterator[SimpleNamespace]:
@@ -367,7 +362,7 @@ def write_dataset(path: str | Path, items: Any, compression: str | None = "lzf",
                 count += 1
         if count == 0:
             raise ValueError("write_dataset needs at least one sequence")
-        _write_header(f, size, num_sequences=count, **attrs)
+        write_header(f, size, num_sequences=count, **attrs)
     return count
 
 
@@ -393,7 +388,7 @@ def write_h5_events(path: str | Path, events: Events | Iterable[Events | np.ndar
         else:
             raise ValueError("write_h5_events needs sensor_size (or like=) when given chunks")
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
-        _write_header(f, sensor_size, **attrs)
+        write_header(f, sensor_size, **attrs)
         writer = EventWriter(f, "events", compression)
         for chunk in iter_events_as_chunks(events):
             writer.append(chunk["x"], chunk["y"], chunk["t"], chunk["p"])
@@ -452,16 +447,7 @@ def _dataset_name(group: str, name: str) -> str:
 
 def _check_event_columns(g: h5py.Group, path: Any, group: str, events: str) -> None:
     """``<events>/x, y, t, p`` must be 1-D (or ``(N, 1)``) columns of one length."""
-    lengths = {}
-    for c in ("x", "y", "t", "p"):
-        shape = g[f"{events}/{c}"].shape
-        if len(shape) not in (1, 2) or (len(shape) == 2 and shape[1] != 1):
-            raise RecordingError(f"{path}: {_dataset_name(group, f'{events}/{c}')} must be a column (N,), got shape "
-                                 f"{shape}")
-        lengths[c] = shape[0]
-    if len(set(lengths.values())) > 1:
-        raise RecordingError(f"{path}: {_dataset_name(group, events)}/x, y, t, p differ in length: "
-                             + ", ".join(f"{c} {n}" for c, n in lengths.items()))
+    check_columns(g[events], ("x", "y", "t", "p"), f"{path}: {_dataset_name(group, events)}")
 
 
 def _check_frame_arrays(g: h5py.Group, path: Any, group: str) -> None:
@@ -559,7 +545,7 @@ def read_sequences(path: str | Path) -> Iterator[Any]:
         yield read_sequence(path, i)
 
 
-class H5Recording(Recording):
+class H5Recording(IndexedH5Recording):
     """Reader of our HDF5 format (see the module docstring for the layout).
 
     Frames and events are read lazily: a frame's events by binary search on ``t``, so
@@ -579,14 +565,12 @@ class H5Recording(Recording):
     """
 
     format_name = "evlatcorr-h5"
-    random_access = True
 
     def __init__(self, path: str | Path, before_us: float = 0.0, after_us: float | None = None,
                  sequence: int | None = None, chunk_events: int = 1 << 20, group: str = "events") -> None:
         super().__init__(path, before_us, after_us)
-        if chunk_events < 1:
-            raise ValueError(f"chunk_events must be >= 1, got {chunk_events}")
-        self.chunk_events, self.event_group = int(chunk_events), group
+        self._set_chunk_events(chunk_events)
+        self.event_group = group
         with open_h5(self.path) as f:
             groups = _sequence_groups(f, self.path)
             if sequence is not None:
@@ -649,8 +633,7 @@ class H5Recording(Recording):
                 g = f[name][self.event_group]
                 n = g["t"].shape[0]
                 where = f"{self.path}: {_dataset_name(name, self.event_group)}"
-                for i in range(0, n, self.chunk_events):
-                    j = min(n, i + self.chunk_events)
+                for i, j in self._chunk_ranges(n):
                     yield structured_events(g["x"][i:j], g["y"][i:j], g["t"][i:j], g["p"][i:j], where=where)
 
     def _slice(self, f: h5py.File, seg: int, t0: float, t1: float) -> np.ndarray:
@@ -662,23 +645,10 @@ class H5Recording(Recording):
         where = f"{self.path}: {_dataset_name(self.groups[seg], self.event_group)}"
         return structured_events(g["x"][i:j], g["y"][i:j], g["t"][i:j], g["p"][i:j], where=where)
 
-    def events_between(self, t0: float, t1: float, segment: int | None = None) -> Events:
-        """Events with ``t0 <= t < t1`` (µs) by binary search: reads only that slice."""
-        if not t1 >= t0:
-            raise ValueError(f"events_between needs t1 >= t0, got [{t0}, {t1})")
-        seg = self._resolve_segment(segment)
-        with open_h5(self.path) as f:
-            return Events.from_numpy(self._slice(f, seg, t0, t1), sensor_size=self.sensor_size)
-
-    def _frame_random_access(self, index: int) -> EventFrames:
+    def _read_frame_window(self, index: int) -> tuple[FrameInfo, np.ndarray, tuple[float | None, float]]:
         seg, local = self._locate(index)
         with open_h5(self.path) as f:
             info = self._frame_info(f, seg, local, index)
-            lo, hi = self.window(info.exposure_start, info.exposure_end)
-            events = self._slice(f, seg, lo, hi)
+            events = self._slice(f, seg, *self.window(info.exposure_start, info.exposure_end))
             t = f[self.groups[seg]][self.event_group]["t"]
-            first, last = (float(t[0]), float(t[-1])) if t.shape[0] else (None, -np.inf)
-        if len(events):  # what streaming checks chunk by chunk: sorted, finite, on the sensor
-            self._check_chunk(events, -np.inf, seg)
-        self._warn_coverage(info, lo, hi, events, first, last, exhausted=last < hi)
-        return self._batch(info, events, lo, hi)
+            return info, events, ((float(t[0]), float(t[-1])) if t.shape[0] else (None, -np.inf))

@@ -40,27 +40,18 @@ converted once:
 from __future__ import annotations
 
 import re
-import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from evlatcorr.io.base import (
-    TIME_UNITS,
-    FrameInfo,
-    Recording,
-    RecordingError,
-    SegmentEnd,
-    structured_events,
-    to_microseconds,
-    to_unit_image,
-)
+from evlatcorr.io.base import Recording
+from evlatcorr.io.conversions import sorted_by_time, structured_events, time_scale, to_microseconds, to_unit_image
+from evlatcorr.io.npz_access import open_npz
+from evlatcorr.io.records import FrameInfo, RecordingError, SegmentEnd
 
 __all__ = ["HighREVRecording", "is_highrev"]
-
-_UNITS = TIME_UNITS
 
 
 def _event_dir(video: Path) -> Path | None:
@@ -120,10 +111,8 @@ class HighREVRecording(Recording):
         super().__init__(path, before_us, after_us)
         if m < 2 or n < 0:
             raise ValueError(f"need m >= 2 sharp sub-frames per blurry frame and n >= 0, got m={m}, n={n}")
-        if time_unit not in _UNITS:
-            raise ValueError(f"time_unit must be one of {sorted(_UNITS)}, got {time_unit!r}")
+        self.scale = time_scale(time_unit)
         self.m, self.n, self.drop_last, self.swap_xy = m, n, drop_last, swap_xy
-        self.scale = _UNITS[time_unit]
         blur = sorted((self.path / "blur").glob("*.png")) if (self.path / "blur").is_dir() else []
         if not blur:
             raise RecordingError(f"{self.path}: no blur/*.png frames (pass the folder that holds blur/)")
@@ -196,20 +185,10 @@ class HighREVRecording(Recording):
 
     # events -------------------------------------------------------------------------------
     def _load(self, file: Path) -> np.ndarray:
-        try:
-            with np.load(file) as z:
-                missing = {"x", "y", "timestamp", "polarity"} - set(z.files)
-                if missing:
-                    raise RecordingError(f"{file}: not a HighREV event file, missing keys {sorted(missing)}")
-                x, y = (z["y"], z["x"]) if self.swap_xy else (z["x"], z["y"])
-                ev = structured_events(x, y, to_microseconds(z["timestamp"], self.scale), z["polarity"],
-                                       where=str(file))
-        except RecordingError:
-            raise
-        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
-            raise RecordingError(f"{file}: cannot read npz (truncated or corrupt?): {exc}") from exc
-        if len(ev) > 1 and np.any(ev["t"][1:] < ev["t"][:-1]):
-            ev = ev[np.argsort(ev["t"], kind="stable")]
+        with open_npz(file, ("x", "y", "timestamp", "polarity"), "a HighREV event file") as z:
+            x, y = (z["y"], z["x"]) if self.swap_xy else (z["x"], z["y"])
+            ev = sorted_by_time(structured_events(x, y, to_microseconds(z["timestamp"], self.scale), z["polarity"],
+                                                  where=str(file)))
         self._spans[file] = (float(ev["t"][0]), float(ev["t"][-1])) if len(ev) else None
         return ev
 
