@@ -197,7 +197,7 @@ def simulate_light_off(levels: Sequence[float], switch_off_us: float = 2000.0, d
         >>> rec[0].batch_size
         2
     """
-    from evlatcorr.simulate import _EventGenerator
+    from evlatcorr.simulation.generator import EventGenerator as _EventGenerator
 
     if repetitions < 1:
         raise ValueError(f"repetitions must be >= 1, got {repetitions}")
