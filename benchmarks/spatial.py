@@ -35,9 +35,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from evlatcorr import EventLatencyCorrector  # noqa: E402
 from evlatcorr.benchmark.compare import edi_latent, image_quality  # noqa: E402
+from evlatcorr.lightning import EventFramesDataModule, LatencyCorrectionModule, simulated_training_frames  # noqa: E402
 from evlatcorr.simulate import PHOTOGRAPHS_TEST, PHOTOGRAPHS_TRAIN, simulate  # noqa: E402
 from evlatcorr.spatial import PolynomialLatency, save_curve  # noqa: E402
-from evlatcorr.lightning import EventFramesDataModule, LatencyCorrectionModule, simulated_training_frames  # noqa: E402
 
 LATENCY_RANGE_US = (500.0, 10_000.0)
 VARYING_RATIO = 3.0  # a scene "varies strongly in brightness" when its true latency spans more than this ratio
