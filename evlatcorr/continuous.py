@@ -71,22 +71,24 @@ class ContinuousIntegral:
         self.device = events.device
         # events in pixel order (each pixel's in time order: a stable sort), so a strip of rows is a slice
         pixel = events.pixel_index()
-        # int32 keys sort twice as fast as int64 (the same stable order)
-        order = torch.argsort(pixel.to(torch.int32) if self.num_pixels < 2**31 else pixel, stable=True)
-        self.pixel, self.t = pixel[order], events.t.to(torch.float64)[order]
-        polarity = events.p.to(torch.int64)[order]
+        # int32 keys sort twice as fast as int64 (the same stable order); the sort returns the sorted keys, and
+        # index_select gathers about twice as fast as advanced indexing on a CPU
+        keys, order = torch.sort(pixel.to(torch.int32) if self.num_pixels < 2**31 else pixel, stable=True)
+        self.pixel, self.t = keys.to(torch.int64), events.t.to(torch.float64).index_select(0, order)
+        polarity = events.p.index_select(0, order).to(torch.int64)
         # each event's level C after it at its pixel: a cumulative sum within the pixel's run
         running = torch.cumsum(polarity, 0)
         counts = torch.bincount(self.pixel, minlength=self.num_pixels)
         run_start = torch.cumsum(counts, 0) - counts
-        before_run = torch.where(run_start > 0, running[(run_start - 1).clamp_(min=0)], 0)  # no copy of the sums
-        self.level_after = self.theta * (running - before_run[self.pixel]).to(torch.float64)
+        # the running sum before each pixel's run (no copy of the sums)
+        before_run = torch.where(run_start > 0, running.index_select(0, (run_start - 1).clamp_(min=0)), 0)
+        self.level_after = self.theta * (running - before_run.index_select(0, self.pixel)).to(torch.float64)
         self.level_before = self.level_after - self.theta * polarity.to(torch.float64)
         # levels are read relative to each pixel's highest level over the whole stream (0 before its first
         # event), so each event's rise of exp(θC − peak) is computed once here, not once per read
         zeros = torch.zeros(self.num_pixels, dtype=torch.float64, device=self.device)
         self.peak = zeros.scatter_reduce(0, self.pixel, self.level_after, reduce="amax", include_self=True)
-        top = self.peak[self.pixel]
+        top = self.peak.index_select(0, self.pixel)
         self.rise = torch.exp(self.level_after - top) - torch.exp(self.level_before - top)
         # first event of each row (and the end): strips of rows are contiguous
         row_starts = torch.arange(height + 1, device=self.device) * width
@@ -128,8 +130,8 @@ class ContinuousIntegral:
         flat = slot * p + pixel
         level = torch.zeros(num * p, dtype=torch.float64, device=self.device).index_add_(0, flat, rise)
         held = torch.zeros(num * p, dtype=torch.float64, device=self.device).index_add_(0, flat, rise * (t - g[0]))
-        level = torch.cumsum(level.view(num, p), 0, out=level.view(num, p)).add_(torch.exp(start_level - peak))
-        held = torch.cumsum(held.view(num, p), 0, out=held.view(num, p))
+        level = _cumsum_rows_(level.view(num, p)).add_(torch.exp(start_level - peak))
+        held = _cumsum_rows_(held.view(num, p))
         s_total = held.neg_().addcmul_(level, (g - g[0])[:, None])
         return s_total.view(num, r1 - r0, width), level.view(num, r1 - r0, width)
 
@@ -163,6 +165,21 @@ class ContinuousIntegral:
         for r0 in range(0, height, rows):
             r1 = min(height, r0 + rows)
             s_total, level = self._tables(times, r0, r1)
-            mean = (s_total[b] - s_total[a]).clamp_min_(1e-300).div_(level[r]).div_(end - start)
-            out[:, 0, r0:r1] = torch.log_(mean)
+            mean = s_total.index_select(0, b).sub_(s_total.index_select(0, a)).clamp_min_(1e-300)
+            mean.div_(level.index_select(0, r)).div_(end - start)
+            torch.log(mean, out=out[:, 0, r0:r1])
         return out
+
+
+def _cumsum_rows_(table: Tensor) -> Tensor:
+    """Cumulative sum over the rows (dim 0) of a 2-D tensor, in place.
+
+    On a CPU ``torch.cumsum`` over the leading dim walks each column with a stride of a whole row, about 7x
+    slower here than adding each row to the next in turn (the same sums in the same order); the loop runs
+    over time points (a few hundred), not events or pixels. Elsewhere ``torch.cumsum`` is one kernel.
+    """
+    if table.device.type != "cpu":
+        return torch.cumsum(table, 0, out=table)
+    for j in range(1, len(table)):
+        table[j].add_(table[j - 1])
+    return table
