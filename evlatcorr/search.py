@@ -22,6 +22,7 @@ it, then to below that by a parabola through the three best scores.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import kornia
@@ -351,128 +352,156 @@ class _Window:
     reach: float
 
 
+@dataclass
+class _CandidateReader:
+    """How one sample's candidates are laid out and read (``"continuous"`` or ``"binned"``).
+
+    ``coarse`` are the candidates in the reader's own units (µs, or sub-intervals for ``"binned"``),
+    ``step`` their spacing, ``top`` the last one whose window stays inside the events (below ``floor``: none
+    does), ``to_us`` converts to µs, ``log_ratio`` reads log R :math:`(K, 1, H, W)` of candidates,
+    ``fine_of`` gives the refinement's candidates around a best one and ``final_ratio`` the log R of the
+    chosen latency in µs (None where the reader cannot give it).
+    """
+
+    coarse: Tensor
+    top: float
+    floor: float
+    to_us: Callable[[Tensor], Tensor]
+    log_ratio: Callable[[Tensor], Tensor]
+    fine_of: Callable[[float], Tensor]
+    final_ratio: Callable[[float], Tensor | None]
+
+
+def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float, config: SearchConfig,
+                       budget: int | None) -> _CandidateReader:
+    """Candidates evenly spaced over ``[low, high]``, each window's EDI exact in continuous time; the refinement
+    spaces them by ``exposure / n``."""
+    start, end, low, high = span.start, span.end, span.low, span.high
+    coarse, step = _aligned_candidates(low, high, config.num_candidates, end - start)
+    top = span.reach if math.isfinite(span.reach) else -math.inf
+    fine_step = min((end - start) / config.num_bins, step)
+    limit = resolve_memory_budget(budget)
+    candidate_bytes = grey.numel() * continuous.BYTES_PER_CANDIDATE
+    check_memory(len(events) * continuous.BYTES_PER_EVENT + candidate_bytes, f"the continuous integral of "
+                 f"{len(events)} events", "pass only the events of the exposure and the latencies searched, or a "
+                 "smaller sensor crop", limit)
+    # candidates read at once: a few reads of the events for 100 candidates, a few hundred MB at DAVIS346 size
+    chunk = max(1, (min(limit, _CONTINUOUS_READ_BYTES) - len(events) * continuous.BYTES_PER_EVENT_KEPT)
+                // candidate_bytes)
+    integral = ContinuousIntegral(events, theta) if top >= low else None
+
+    def log_ratio(lat: Tensor) -> Tensor:
+        out = torch.empty((len(lat), 1, *grey.shape[-2:]), dtype=torch.float64, device=events.device)
+        for k in range(0, len(lat), chunk):  # each read writes its slice: no concatenated copy
+            integral.log_ratio(start, end, lat[k:k + chunk], out=out[k:k + chunk])
+        return out
+
+    def fine_of(best: float) -> Tensor:
+        k = torch.arange(-math.floor(step / fine_step), math.floor(step / fine_step) + 1, dtype=torch.float64)
+        return torch.unique((best + k * fine_step).clamp(low, min(high, top)))
+
+    def final_ratio(latency: float) -> Tensor:
+        return integral.log_ratio(start, end, torch.tensor([latency], dtype=torch.float64))
+
+    return _CandidateReader(coarse, top, low, lambda v: v, log_ratio, fine_of, final_ratio)
+
+
+def _binned_reader(events: Events, span: _Window, theta: float, config: SearchConfig, integral: str,
+                   budget: int | None) -> _CandidateReader:
+    """Candidates that are whole sub-intervals ``exposure / n`` of one prefix-sum table; the grid may overhang
+    the range by up to one, and the latency is clamped into ``[low, high]``."""
+    start, end, low, high, reach, n = span.start, span.end, span.low, span.high, span.reach, config.num_bins
+    width_us = (end - start) / n
+    step = max(1, round((high - low) / (config.num_candidates - 1) / width_us))  # in sub-intervals
+    first = math.floor(low / width_us)
+    num = max(2, math.ceil((high - low) / (step * width_us) - 1e-9) + 1)
+    span_steps = (num - 1) * step  # shifts 0..span_steps (in sub-intervals, from the first candidate)
+    # shifts whose window stays inside the events (a bin of slack: the last event is in the last bin)
+    top = min(span_steps, math.floor(reach / width_us) + 1 - first) if math.isfinite(reach) else -1
+    table = None
+    if top >= 0:
+        advice = (f"the table spans num_bins={n} sub-intervals of {width_us:.4g} us for the exposure plus "
+                  f"{min(span_steps, top)} for the latencies searched (search_range [{low:.0f}, {high:.0f}] us, "
+                  f"events up to {reach:.0f} us past exposure_end): narrow search_range, use fewer num_bins, or "
+                  "pass only the events up to exposure_end + search_range[1]")
+        table = _ShiftTable(events, start + first * width_us, width_us, n, min(span_steps, top), theta, integral,
+                            budget, advice)
+
+    def fine_of(best: float) -> Tensor:
+        best = int(best)
+        return torch.arange(max(0, best - step), min(span_steps, top, best + step) + 1, device=events.device)
+
+    return _CandidateReader(torch.arange(num, device=events.device) * step, top, 0,
+                            lambda v: (first + v).to(torch.float64) * width_us,
+                            lambda shifts: table.log_ratio(shifts), fine_of, lambda latency: None)
+
+
+def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str, ...], config: SearchConfig,
+                      prev: Tensor | None, requests: list[Tensor]) -> list[Tensor]:
+    """Each member score's values on its own candidates (inf past the last event), from one read of their
+    union."""
+    union = torch.unique(torch.cat(requests))  # sorted
+    valid = union <= reader.top
+    out = torch.full((len(members), len(union)), math.inf, dtype=torch.float64)
+    if bool(valid.any()):
+        kept = union[valid]
+        kept_cols = torch.nonzero(valid.cpu()).flatten()
+        wanted = torch.zeros((len(members), len(kept)), dtype=torch.bool)
+        for m, cand in enumerate(requests):
+            wanted[m, torch.searchsorted(kept.cpu(), cand.cpu()[cand.cpu() <= reader.top])] = True
+        lat = reader.to_us(kept).to(torch.float64)
+        log_r = reader.log_ratio(kept)  # (K, 1, H, W), latent at mid-exposure
+        previous = None if prev is None else prev.expand(len(kept)).float()
+        # a few candidates' latent images at a time: scoring all at once held ~7 (K, H, W) arrays
+        for k0 in range(0, len(kept), _SCORE_CHUNK):
+            k1 = min(k0 + _SCORE_CHUNK, len(kept))
+            needed = [m for m in range(len(members)) if bool(wanted[m, k0:k1].any())]
+            if not needed:
+                continue
+            latent = grey * torch.exp(-log_r[k0:k1].float())
+            values = sharpness_scores(latent, lat[k0:k1].float().to(latent.device), None if previous is None
+                                      else previous[k0:k1], tuple(members[m] for m in needed), config.epsilon,
+                                      config.window, config.sigma_us).double().cpu()
+            for value, m in zip(values, needed):
+                out[m, kept_cols[k0:k1]] = torch.where(wanted[m, k0:k1], value, math.inf)
+    return [out[m, torch.searchsorted(union.cpu(), cand.cpu())] for m, cand in enumerate(requests)]
+
+
 def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, config: SearchConfig,
                 prev: Tensor | None, integral: str, budget: int | None = None,
                 method: str = "continuous") -> _OneResult:
-    """Search for one sample; ``grey`` is :math:`(1, 1, H, W)`.
-
-    ``"continuous"``: candidates evenly spaced over ``[low, high]``, each window's EDI exact in continuous
-    time (:class:`~evlatcorr.continuous.ContinuousIntegral`); the refinement spaces candidates by
-    ``exposure / n``. ``"binned"``: candidates are whole sub-intervals ``exposure / n`` of one prefix-sum
-    table; the grid may overhang the range by up to one, and the latency is clamped into ``[low, high]``.
-    """
-    start, end, low, high, reach = span.start, span.end, span.low, span.high, span.reach
-    n, num_candidates, refine, score = config.num_bins, config.num_candidates, config.refine, config.score
-    epsilon, window, sigma_us = config.epsilon, config.window, config.sigma_us
-    members = tuple(_SPARSITY) if score == "consensus" else (score,)
-    width_us = (end - start) / n
+    """Search for one sample; ``grey`` is :math:`(1, 1, H, W)`. See :func:`_continuous_reader` and
+    :func:`_binned_reader` for how each ``method`` lays out its candidates."""
+    low, high = span.low, span.high
+    width_us = (span.end - span.start) / config.num_bins
     if max(abs(low), abs(high)) / width_us >= 2**53:  # beyond float64's whole numbers of sub-intervals
         raise ValueError(f"search_range [{low:.4g}, {high:.4g}] us reaches {max(abs(low), abs(high)) / width_us:.3g} "
                          f"sub-intervals of {width_us:.4g} us (exposure time / num_bins), more than the search "
                          "can count (2**53): narrow search_range")
-    if method == "continuous":
-        coarse, step = _aligned_candidates(low, high, num_candidates, end - start)
-        top = reach if math.isfinite(reach) else -math.inf
-        to_us = lambda v: v  # noqa: E731
-        fine_step = min(width_us, step)
-        limit = resolve_memory_budget(budget)
-        candidate_bytes = grey.numel() * continuous.BYTES_PER_CANDIDATE
-        check_memory(len(events) * continuous.BYTES_PER_EVENT + candidate_bytes, f"the continuous integral of "
-                     f"{len(events)} events", "pass only the events of the exposure and the latencies searched, or a "
-                     "smaller sensor crop", limit)
-        # candidates read at once: a few reads of the events for 100 candidates, a few hundred MB at DAVIS346 size
-        chunk = max(1, (min(limit, _CONTINUOUS_READ_BYTES) - len(events) * continuous.BYTES_PER_EVENT_KEPT)
-                    // candidate_bytes)
-        integral_ = ContinuousIntegral(events, theta) if top >= low else None
-
-        def log_ratio(lat: Tensor) -> Tensor:
-            out = torch.empty((len(lat), 1, *grey.shape[-2:]), dtype=torch.float64, device=events.device)
-            for k in range(0, len(lat), chunk):  # each read writes its slice: no concatenated copy
-                integral_.log_ratio(start, end, lat[k:k + chunk], out=out[k:k + chunk])
-            return out
-
-        def fine_of(best: float) -> Tensor:
-            k = torch.arange(-math.floor(step / fine_step), math.floor(step / fine_step) + 1, dtype=torch.float64)
-            return torch.unique((best + k * fine_step).clamp(low, min(high, top)))
-    else:
-        shift_step = max(1, round((high - low) / (num_candidates - 1) / width_us))  # in sub-intervals
-        first = math.floor(low / width_us)
-        num = max(2, math.ceil((high - low) / (shift_step * width_us) - 1e-9) + 1)
-        span = (num - 1) * shift_step  # shifts 0..span (in sub-intervals, from the first candidate)
-        # shifts whose window stays inside the events (a bin of slack: the last event is in the last bin)
-        top = min(span, math.floor(reach / width_us) + 1 - first) if math.isfinite(reach) else -1
-        to_us = lambda v: (first + v).to(torch.float64) * width_us  # noqa: E731
-        coarse = torch.arange(num, device=events.device) * shift_step
-        step, fine_step = shift_step, 1
-        table = None
-        if top >= 0:
-            advice = (f"the table spans num_bins={n} sub-intervals of {width_us:.4g} us for the exposure plus "
-                      f"{min(span, top)} for the latencies searched (search_range [{low:.0f}, {high:.0f}] us, events "
-                      f"up to {reach:.0f} us past exposure_end): narrow search_range, use fewer num_bins, or pass only "
-                      "the events up to exposure_end + search_range[1]")
-            table = _ShiftTable(events, start + first * width_us, width_us, n, min(span, top), theta, integral,
-                                budget, advice)
-
-        def log_ratio(shifts: Tensor) -> Tensor:
-            return table.log_ratio(shifts)
-
-        def fine_of(best: float) -> Tensor:
-            best = int(best)
-            return torch.arange(max(0, best - step), min(span, top, best + step) + 1, device=events.device)
-
-    if top < (low if method == "continuous" else 0):  # no candidate window holds events: nothing to score
+    members = tuple(_SPARSITY) if config.score == "consensus" else (config.score,)
+    reader = (_continuous_reader(grey, events, span, theta, config, budget) if method == "continuous"
+              else _binned_reader(events, span, theta, config, integral, budget))
+    coarse, to_us = reader.coarse, reader.to_us
+    fallback = low if prev is None else min(max(float(prev), low), high)
+    if reader.top < reader.floor:  # no candidate window holds events: nothing to score
         nan = torch.full((len(coarse),), math.nan, dtype=torch.float64)
-        fallback = low if prev is None else min(max(float(prev), low), high)
         return _OneResult(fallback, to_us(coarse).cpu(), nan, to_us(coarse).cpu(), nan, 0.0, True)
 
-    def score_requests(requests: list[Tensor]) -> list[Tensor]:
-        """Each member's scores on its own candidates (inf past the last event), from one read."""
-        union = torch.unique(torch.cat(requests))  # sorted
-        valid = union <= top
-        out = torch.full((len(members), len(union)), math.inf, dtype=torch.float64)
-        if bool(valid.any()):
-            kept = union[valid]
-            kept_cols = torch.nonzero(valid.cpu()).flatten()
-            wanted = torch.zeros((len(members), len(kept)), dtype=torch.bool)
-            for m, cand in enumerate(requests):
-                wanted[m, torch.searchsorted(kept.cpu(), cand.cpu()[cand.cpu() <= top])] = True
-            lat = to_us(kept).to(torch.float64)
-            log_r = log_ratio(kept)  # (K, 1, H, W), latent at mid-exposure
-            previous = None if prev is None else prev.expand(len(kept)).float()
-            # a few candidates' latent images at a time: scoring all at once held ~7 (K, H, W) arrays
-            for k0 in range(0, len(kept), _SCORE_CHUNK):
-                k1 = min(k0 + _SCORE_CHUNK, len(kept))
-                needed = [m for m in range(len(members)) if bool(wanted[m, k0:k1].any())]
-                if not needed:
-                    continue
-                latent = grey * torch.exp(-log_r[k0:k1].float())
-                values = sharpness_scores(latent, lat[k0:k1].float().to(latent.device), None if previous is None
-                                          else previous[k0:k1], tuple(members[m] for m in needed), epsilon, window,
-                                          sigma_us).double().cpu()
-                for value, m in zip(values, needed):
-                    out[m, kept_cols[k0:k1]] = torch.where(wanted[m, k0:k1], value, math.inf)
-        return [out[m, torch.searchsorted(union.cpu(), cand.cpu())] for m, cand in enumerate(requests)]
-
-    def final_ratio(latency: float) -> Tensor | None:
-        """log R at the chosen latency from the integral already built (the corrector's latent image)."""
-        if method != "continuous":
-            return None
-        return integral_.log_ratio(start, end, torch.tensor([latency], dtype=torch.float64))
-
-    coarse_scores = torch.stack(score_requests([coarse] * len(members)))
-    fines = [fine_of(float(coarse[int(torch.argmin(coarse_scores[m]))])) for m in range(len(members))]
-    fine_scores = score_requests(fines) if refine else [None] * len(members)
-    estimates = [_refine(coarse, coarse_scores[m], fines[m], fine_scores[m], refine) for m in range(len(members))]
+    coarse_scores = torch.stack(_score_candidates(reader, grey, members, config, prev, [coarse] * len(members)))
+    fines = [reader.fine_of(float(coarse[int(torch.argmin(coarse_scores[m]))])) for m in range(len(members))]
+    fine_scores = (_score_candidates(reader, grey, members, config, prev, fines) if config.refine
+                   else [None] * len(members))
+    estimates = [_refine(coarse, coarse_scores[m], fines[m], fine_scores[m], config.refine)
+                 for m in range(len(members))]
     confidence = sorted(e[1] for e in estimates)[len(estimates) // 2]
     if confidence == 0.0:  # most scores have no interior minimum
-        fallback = low if prev is None else min(max(float(prev), low), high)
         return _OneResult(fallback, to_us(coarse).cpu(), coarse_scores[0], to_us(coarse).cpu(), coarse_scores[0],
-                          0.0, True, final_ratio(fallback))
+                          0.0, True, reader.final_ratio(fallback))
     chosen = sorted(range(len(members)), key=lambda m: estimates[m][0])[len(members) // 2]  # the median
     best, _, fine, fine_score = estimates[chosen]
     latency = min(max(float(to_us(torch.tensor(best, dtype=torch.float64))), low), high)
     return _OneResult(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(fine).cpu(), fine_score, confidence, False,
-                      final_ratio(latency))
+                      reader.final_ratio(latency))
 
 
 def _aligned_candidates(low: float, high: float, num: int, exposure: float) -> tuple[Tensor, float]:
