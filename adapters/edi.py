@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import torch
-from torch import nn
 
+from evlatcorr.adapters.base import NetworkAdapter
 from evlatcorr.edi import edi_deblur, edi_interpolate
 from evlatcorr.frames import EventFrames
 
 __all__ = ["EDIAdapter"]
 
 
-class EDIAdapter(nn.Module):
+class EDIAdapter(NetworkAdapter):
     """The Event-based Double Integral as a restoration model.
 
     Reads ``frames.corrected`` when a corrector filled it, else ``frames.events``, so
@@ -32,6 +32,8 @@ class EDIAdapter(nn.Module):
         EDIAdapter(mode=interpolation, threshold=0.2, num_bins=500)
     """
 
+    model_name = "EDI"
+
     def __init__(self, mode: str = "deblur", threshold: float | str = 0.2, num_bins: int = 500) -> None:
         super().__init__()
         if mode not in ("deblur", "interpolation"):
@@ -44,9 +46,8 @@ class EDIAdapter(nn.Module):
         return f"mode={self.mode}, threshold={self.threshold}, num_bins={self.num_bins}"
 
     def forward(self, frames: EventFrames) -> EventFrames:
-        if not isinstance(frames, EventFrames):
-            raise ValueError(f"EDIAdapter takes an EventFrames batch, got {type(frames).__name__}")
-        events = frames.corrected if frames.corrected is not None else frames.events
+        self.check_frames(frames, image=False)  # edi_deblur / edi_interpolate check the frames themselves
+        events = self.input_events(frames)
         if self.mode == "deblur":
             time = None if frames.target_times is None else frames.target_times[:, 0]
             out = edi_deblur(frames.blurry, events, frames.exposure_start, frames.exposure_end, self.threshold,

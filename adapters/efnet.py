@@ -22,7 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from evlatcorr.checks import check_batch_vector, check_image, check_shape
+from evlatcorr.adapters.base import NetworkAdapter, rgb
+from evlatcorr.checks import check_batch_vector, check_shape
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
 
@@ -410,7 +411,7 @@ class EFNet(nn.Module):
 
 
 # adapter ----------------------------------------------------------------------------------------
-class EFNetAdapter(nn.Module):
+class EFNetAdapter(NetworkAdapter):
     """EFNet as a deblurring model on an :class:`~evlatcorr.frames.EventFrames` batch.
 
     Reads ``frames.corrected`` when a corrector filled it, else ``frames.events``; builds the SCER of
@@ -439,57 +440,33 @@ class EFNetAdapter(nn.Module):
         )
     """
 
+    model_name = "EFNet"
+    mean_before_clamp = True  # the grey mean of the raw output, then the clamp
     num_bins = 6
 
     def __init__(self, checkpoint: str | None = None, use_mask: bool = True, clamp: bool = True,
                  pad: bool = True) -> None:
         super().__init__()
-        from evlatcorr.adapters.checkpoint import load_weights, resolve_checkpoint
-
         self.net = EFNet(wf=64, fuse_before_downsample=True)
         self.use_mask, self.clamp, self.pad = use_mask, clamp, pad
-        path = resolve_checkpoint(checkpoint, "efnet")
-        if path is not None:
-            load_weights(self.net, path, strict=True)
-
-    def __repr__(self) -> str:  # nn.Module's repr would list every layer of the network
-        return f"{type(self).__name__}(\n  {self.extra_repr()}\n  (net): {self.net.__class__.__name__}(" \
-               f"{self.net.extra_repr()})\n)"
+        self.load_checkpoint(checkpoint, "efnet")
 
     def extra_repr(self) -> str:
         return f"use_mask={self.use_mask}, clamp={self.clamp}, pad={self.pad}"
 
     def representation(self, frames: EventFrames) -> tuple[Tensor, Tensor | None]:
         """The network's event input: SCER :math:`(B, 6, H, W)` and mask :math:`(B, 1, H, W)` (or None)."""
-        events = frames.corrected if frames.corrected is not None else frames.events
-        voxel = efnet_scer(events, frames.exposure_start, frames.exposure_end, self.num_bins, normalize=True)
+        voxel = efnet_scer(self.input_events(frames), frames.exposure_start, frames.exposure_end, self.num_bins,
+                           normalize=True)
         mask = efnet_event_mask(voxel) if self.use_mask else None
         return voxel, mask
 
     def forward(self, frames: EventFrames) -> EventFrames:
-        if not isinstance(frames, EventFrames):
-            raise ValueError(f"EFNetAdapter takes an EventFrames batch, got {type(frames).__name__}")
-        check_image(frames.blurry, "frames.blurry")
-        h, w = frames.sensor_size
-        div = self.net.divisor
-        if not self.pad and (h % div or w % div):
-            raise ValueError(f"EFNet needs H and W to be multiples of {div}, got (H, W)=({h}, {w}); "
-                             f"crop the frames or use EFNetAdapter(pad=True)")
+        self.check_frames(frames)
+        padding = self.padding(*frames.sensor_size, self.net.divisor)
         param = next(self.net.parameters())
         voxel, mask = self.representation(frames)
-        image = frames.blurry
-        grey = image.shape[1] == 1
-        x = image.expand(-1, 3, -1, -1) if grey else image
-        x, voxel = x.to(param), voxel.to(param)
+        x, voxel = rgb(frames.blurry).to(param), voxel.to(param)
         mask = mask.to(param) if mask is not None else None
-        ph, pw = (-h) % div, (-w) % div
-        if ph or pw:
-            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
-            voxel = F.pad(voxel, (0, pw, 0, ph))
-            mask = F.pad(mask, (0, pw, 0, ph)) if mask is not None else None
-        out = self.net(x, voxel, mask)[1][..., :h, :w]
-        if grey:
-            out = out.mean(dim=1, keepdim=True)
-        if self.clamp:
-            out = out.clamp(0.0, 1.0)
-        return frames.replace(output=out.to(image.dtype))
+        x, voxel, mask = self.pad_inputs(padding, x, voxel, mask)
+        return frames.replace(output=self.finish(self.net(x, voxel, mask)[1], frames))

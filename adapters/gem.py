@@ -43,7 +43,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torchvision.ops import deform_conv2d
 
-from evlatcorr.checks import check_batch_vector, check_image, check_shape
+from evlatcorr.adapters.base import NetworkAdapter, rgb
+from evlatcorr.checks import check_batch_vector, check_shape
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
 
@@ -402,7 +403,7 @@ SAN = San  # the paper's name
 
 
 # adapter ----------------------------------------------------------------------------------------
-class GEMAdapter(nn.Module):
+class GEMAdapter(NetworkAdapter):
     """GEM as a deblurring model on an :class:`~evlatcorr.frames.EventFrames` batch.
 
     Reads ``frames.corrected`` when a corrector filled it, else ``frames.events``; builds the EGER of the
@@ -438,11 +439,11 @@ class GEMAdapter(nn.Module):
         )
     """
 
+    model_name = "GEM"
+
     def __init__(self, checkpoint: str | None = None, scale_factor: int = 1, num_bins: int = 16,
                  predict_ts: float = 0.5, clamp: bool = True, bgr: bool = True, pad: bool = True) -> None:
         super().__init__()
-        from evlatcorr.adapters.checkpoint import load_weights, resolve_checkpoint
-
         if isinstance(scale_factor, bool) or not isinstance(scale_factor, int) or scale_factor < 1:
             raise ValueError(f"scale_factor must be a positive integer, got {scale_factor!r}")
         if isinstance(num_bins, bool) or not isinstance(num_bins, int) or num_bins < 1:
@@ -452,13 +453,7 @@ class GEMAdapter(nn.Module):
         self.net = San(3, 3, SEGMENTS * 2 * num_bins)
         self.scale_factor, self.num_bins, self.predict_ts = scale_factor, num_bins, float(predict_ts)
         self.clamp, self.bgr, self.pad = clamp, bgr, pad
-        path = resolve_checkpoint(checkpoint, "gem")
-        if path is not None:
-            load_weights(self.net, path, strict=True)
-
-    def __repr__(self) -> str:  # nn.Module's repr would list every layer of the network
-        return (f"{type(self).__name__}(\n  {self.extra_repr()}\n  (net): {type(self.net).__name__}("
-                f"{self.net.extra_repr()})\n)")
+        self.load_checkpoint(checkpoint, "gem")
 
     def extra_repr(self) -> str:
         return (f"scale_factor={self.scale_factor}, num_bins={self.num_bins}, predict_ts={self.predict_ts}, "
@@ -473,45 +468,25 @@ class GEMAdapter(nn.Module):
 
     def representation(self, frames: EventFrames) -> Tensor:
         """The network's event input: EGER :math:`(B, 96, H // s, W // s)` for the target time."""
-        events = frames.corrected if frames.corrected is not None else frames.events
         ts = self.target_time(frames)
-        return gem_eger(events, frames.exposure_start, frames.exposure_end, ts, ts, self.num_bins,
-                        self.scale_factor)
+        return gem_eger(self.input_events(frames), frames.exposure_start, frames.exposure_end, ts, ts,
+                        self.num_bins, self.scale_factor)
 
     def forward(self, frames: EventFrames) -> EventFrames:
-        if not isinstance(frames, EventFrames):
-            raise ValueError(f"GEMAdapter takes an EventFrames batch, got {type(frames).__name__}")
-        check_image(frames.blurry, "frames.blurry")
+        self.check_frames(frames)
         height, width = frames.sensor_size
         s = self.scale_factor
-        if self.pad:
-            div = DIVISOR * s  # so that the padded image and event map keep the exact ratio s
-            hp, wp = height + (-height) % div, width + (-width) % div
-        else:
-            hp, wp = height, width
-            if height % DIVISOR or width % DIVISOR:
-                raise ValueError(f"GEM needs H and W to be multiples of {DIVISOR}, got (H, W)=({height}, "
-                                 f"{width}); crop the frames or use GEMAdapter(pad=True)")
-        if min(hp // s, wp // s) < MIN_EVENT_SIZE:
+        # padding goes to multiples of 16 s, so that the padded image and event map keep the exact ratio s;
+        # without it the network needs multiples of 16
+        ph, pw = self.padding(height, width, DIVISOR * s if self.pad else DIVISOR)
+        if min((height + ph) // s, (width + pw) // s) < MIN_EVENT_SIZE:
             raise ValueError(f"GEM needs the event map to be at least {MIN_EVENT_SIZE}x{MIN_EVENT_SIZE}, got "
-                             f"(H, W)=({height}, {width}) / scale_factor {s} = ({hp // s}, {wp // s}); use a "
-                             f"larger crop or a smaller scale_factor")
+                             f"(H, W)=({height}, {width}) / scale_factor {s} = ({(height + ph) // s}, "
+                             f"{(width + pw) // s}); use a larger crop or a smaller scale_factor")
         param = next(self.net.parameters())
         eger = self.representation(frames).to(param)
-        image = frames.blurry
-        grey = image.shape[1] == 1
-        x = image.expand(-1, 3, -1, -1) if grey else image
-        if self.bgr and not grey:
-            x = x.flip(1)
-        x = x.to(param)
-        if (hp, wp) != (height, width):
-            x = F.pad(x, (0, wp - width, 0, hp - height), mode="replicate")
-            eger = F.pad(eger, (0, wp // s - eger.shape[-1], 0, hp // s - eger.shape[-2]))
-        out = self.net(eger, x)[0][..., :height, :width]
-        if self.clamp:
-            out = out.clamp(0.0, 1.0)
-        if grey:
-            out = out.mean(dim=1, keepdim=True)
-        elif self.bgr:
-            out = out.flip(1)
-        return frames.replace(output=out.to(device=image.device, dtype=image.dtype))
+        colour = frames.blurry.shape[1] == 3
+        x = frames.blurry.flip(1) if self.bgr and colour else rgb(frames.blurry)
+        x, eger = self.pad_inputs((ph, pw), x.to(param), eger, scale=s)
+        out = self.net(eger, x)[0]
+        return frames.replace(output=self.finish(out.flip(1) if self.bgr and colour else out, frames))

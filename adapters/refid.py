@@ -61,6 +61,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from evlatcorr.adapters.base import NetworkAdapter, rgb
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
 
@@ -524,10 +525,6 @@ def refid_output_times(frames: EventFrames, m: int = 11, n: int = 1, mode: str =
     return frames.exposure_start[:, None] + (k[None, :] + float(frame_offset)) * delta[:, None]
 
 
-def _rgb(image: Tensor) -> Tensor:
-    return image.expand(-1, 3, -1, -1) if image.shape[1] == 1 else image
-
-
 def refid_inputs(frames: EventFrames, m: int = 11, n: int = 1, mode: str = "interpolation",
                  frame_offset: float = 0.5, normalize: str = "events") -> tuple[Tensor, Tensor]:
     """Build REFID's network inputs from a batch, in the official layout.
@@ -559,16 +556,16 @@ def refid_inputs(frames: EventFrames, m: int = 11, n: int = 1, mode: str = "inte
         [(1, 26, 8, 8), (1, 23, 2, 8, 8)]
     """
     start, end, _ = refid_window(frames, m, n, mode, frame_offset)
-    events = frames.corrected if frames.corrected is not None else frames.events
+    events = NetworkAdapter.input_events(frames)
     num_bins = (2 * m + n + 1) if mode == "interpolation" else (m + 1)
     voxel = refid_voxel_grid(events, start, end, num_bins, normalize).to(frames.device)
     event = torch.stack((voxel[:, :-1], voxel[:, 1:]), 2)
-    left = _rgb(frames.blurry).to(voxel.dtype)
+    left = rgb(frames.blurry).to(voxel.dtype)
     if mode == "deblur":
         x = torch.cat((left, voxel[:, 1:-1]), 1)
     else:
         assert frames.blurry_next is not None  # checked by refid_window
-        right = _rgb(frames.blurry_next).to(voxel.dtype)
+        right = rgb(frames.blurry_next).to(voxel.dtype)
         x = torch.cat((left, voxel[:, 1:m], right, voxel[:, m + n + 2:]), 1)
     return x, event
 
@@ -625,7 +622,7 @@ def _default_m(checkpoint: str | Path | None, mode: str) -> int:
     return (int(weight.shape[1]) - 4) // 2
 
 
-class REFIDAdapter(nn.Module):
+class REFIDAdapter(NetworkAdapter):
     """REFID on an :class:`~evlatcorr.frames.EventFrames` batch.
 
     Reads ``frames.corrected`` when a corrector filled it, else ``frames.events``, so
@@ -664,12 +661,13 @@ class REFIDAdapter(nn.Module):
         26
     """
 
+    model_name = "REFID"
+    short_repr = False  # REFIDAdapter has always printed its whole network
+
     def __init__(self, checkpoint: str | None = None, mode: str = "interpolation", m: int | None = None, n: int = 1,
                  frame_offset: float = 0.5, normalize: str = "events", pad: bool = True,
                  select: str = "all", clamp: bool = True) -> None:
         super().__init__()
-        from evlatcorr.adapters.checkpoint import load_weights, resolve_checkpoint
-
         if m is None:
             m = _default_m(checkpoint, mode)
         _check_layout(m, n, mode, frame_offset)
@@ -680,14 +678,11 @@ class REFIDAdapter(nn.Module):
         self.mode, self.m, self.n, self.frame_offset = mode, m, n, float(frame_offset)
         self.normalize, self.pad, self.select, self.clamp = normalize, bool(pad), select, bool(clamp)
         self.net = REFIDNet(img_chn=(2 * m + 4) if mode == "interpolation" else (m + 2))
-
         if mode == "deblur":
             name = "refid-deblur"
         else:
             name = "refid" if (m, n) == (11, 1) else f"refid-{m}-{n}"
-        path = resolve_checkpoint(checkpoint, name)
-        if path is not None:
-            load_weights(self.net, path, strict=True)
+        self.load_checkpoint(checkpoint, name)
         self.net.eval()
 
     def extra_repr(self) -> str:
@@ -695,28 +690,15 @@ class REFIDAdapter(nn.Module):
                 f"normalize={self.normalize}, pad={self.pad}, select={self.select}")
 
     def forward(self, frames: EventFrames) -> EventFrames:
-        if not isinstance(frames, EventFrames):
-            raise ValueError(f"REFIDAdapter takes an EventFrames batch, got {type(frames).__name__}")
-        height, width = frames.sensor_size
-        ph, pw = (-height) % 8, (-width) % 8
-        if (ph or pw) and not self.pad:
-            raise ValueError(f"REFID needs H and W multiples of 8, got (H, W)=({height}, {width}); crop the "
-                             "frames or pass pad=True")
+        self.check_frames(frames, image=False)
+        padding = self.padding(*frames.sensor_size, 2 ** self.net.num_encoders)
         if self.select == "nearest" and frames.target_times is None:
             raise ValueError("select='nearest' needs frames.target_times (B, T) in us")
         x, event = refid_inputs(frames, self.m, self.n, self.mode, self.frame_offset, self.normalize)
         times = refid_output_times(frames, self.m, self.n, self.mode, self.frame_offset)
         param = next(self.net.parameters())
-        x, event = x.to(param), event.to(param)
-        if ph or pw:
-            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
-            event = F.pad(event, (0, pw, 0, ph))
-        out = self.net(x, event)[..., :height, :width]
-        if self.clamp:
-            out = out.clamp(0.0, 1.0)
-        if frames.blurry.shape[1] == 1:
-            out = out.mean(2, keepdim=True)
-        out = out.to(frames.blurry.dtype)
+        x, event = self.pad_inputs(padding, x.to(param), event.to(param))
+        out = self.finish(self.net(x, event), frames)
         if self.select == "nearest":
             assert frames.target_times is not None
             out = nearest_frames(out, times, frames.target_times)

@@ -2,7 +2,6 @@ from __future__ import annotations
 
 import pytest
 import torch
-from torch import nn
 
 from evlatcorr import EventFrames
 from evlatcorr.adapters.edi import EDIAdapter
@@ -27,14 +26,6 @@ def test_deblur_matches_edi():
     torch.testing.assert_close(out, expected)
 
 
-def test_uses_corrected_events():
-    frames = make_frames()
-    shifted = frames.events.shift(30.0)
-    out = EDIAdapter(num_bins=20)(frames.replace(corrected=shifted)).output
-    expected = edi_deblur(frames.blurry, shifted, frames.exposure_start, frames.exposure_end, num_bins=20)
-    torch.testing.assert_close(out, expected.clamp(0, 1))
-
-
 def test_interpolation_blends_the_two_frames_edi():
     # mid-exposures 50 and 250 us: 150 us weighs both frames' EDI at 150 us equally, 250 us is the second's alone
     frames = make_frames(with_next=True).replace(target_times=torch.tensor([[150.0], [250.0]]))
@@ -56,12 +47,4 @@ def test_exceptions():
         EDIAdapter("denoise")
     with pytest.raises(ValueError, match="target_times"):
         EDIAdapter("interpolation")(make_frames())
-    with pytest.raises(ValueError, match="EventFrames"):
-        EDIAdapter()(torch.rand(1, 3, 4, 4))
 
-
-def test_sequential():
-    frames = make_frames()
-    out = nn.Sequential(nn.Identity(), EDIAdapter(num_bins=10))(frames)
-    expected = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, num_bins=10)
-    torch.testing.assert_close(out.output, expected.clamp(0, 1))
