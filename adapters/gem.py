@@ -44,7 +44,7 @@ from torch import Tensor, nn
 from torchvision.ops import deform_conv2d
 
 from evlatcorr.adapters.base import NetworkAdapter, rgb
-from evlatcorr.checks import check_batch_vector, check_shape
+from evlatcorr.checks import check_batch_vector, check_int, check_shape
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
 
@@ -101,10 +101,8 @@ def gem_eger(events: Events, exposure_start: Tensor | float, exposure_end: Tenso
     """
     if not isinstance(events, Events):
         raise ValueError(f"events must be evlatcorr.Events, got {type(events).__name__}")
-    if isinstance(num_bins, bool) or not isinstance(num_bins, int) or num_bins < 1:
-        raise ValueError(f"num_bins must be a positive integer, got {num_bins!r}")
-    if isinstance(scale_factor, bool) or not isinstance(scale_factor, int) or scale_factor < 1:
-        raise ValueError(f"scale_factor must be a positive integer, got {scale_factor!r}")
+    check_int(num_bins, "num_bins")
+    check_int(scale_factor, "scale_factor")
     batch_size = events.batch_size
     height, width = events.sensor_size
     h, w = height // scale_factor, width // scale_factor
@@ -444,10 +442,8 @@ class GEMAdapter(NetworkAdapter):
     def __init__(self, checkpoint: str | None = None, scale_factor: int = 1, num_bins: int = 16,
                  predict_ts: float = 0.5, clamp: bool = True, bgr: bool = True, pad: bool = True) -> None:
         super().__init__()
-        if isinstance(scale_factor, bool) or not isinstance(scale_factor, int) or scale_factor < 1:
-            raise ValueError(f"scale_factor must be a positive integer, got {scale_factor!r}")
-        if isinstance(num_bins, bool) or not isinstance(num_bins, int) or num_bins < 1:
-            raise ValueError(f"num_bins must be a positive integer, got {num_bins!r}")
+        check_int(scale_factor, "scale_factor")
+        check_int(num_bins, "num_bins")
         if not 0.0 <= float(predict_ts) <= 1.0:
             raise ValueError(f"predict_ts must be a fraction of the exposure in [0, 1], got {predict_ts}")
         self.net = San(3, 3, SEGMENTS * 2 * num_bins)

@@ -62,6 +62,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from evlatcorr.adapters.base import NetworkAdapter, rgb
+from evlatcorr.checks import check_int
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
 
@@ -415,8 +416,7 @@ def refid_voxel_grid(events: Events, t_start: Tensor | float, t_end: Tensor | fl
     """
     if not isinstance(events, Events):
         raise ValueError(f"events must be evlatcorr.Events, got {type(events).__name__}")
-    if isinstance(num_bins, bool) or not isinstance(num_bins, int) or num_bins < 1:
-        raise ValueError(f"num_bins must be a positive integer, got {num_bins!r}")
+    check_int(num_bins, "num_bins")
     if normalize not in _NORMALIZE:
         raise ValueError(f"normalize must be one of {_NORMALIZE}, got {normalize!r}")
     bsz = events.batch_size
@@ -453,10 +453,8 @@ def refid_voxel_grid(events: Events, t_start: Tensor | float, t_end: Tensor | fl
 def _check_layout(m: int, n: int, mode: str, frame_offset: float) -> None:
     if mode not in _MODES:
         raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
-    if isinstance(m, bool) or not isinstance(m, int) or m < 2:
-        raise ValueError(f"m (sharp frames per blurry frame) must be an integer >= 2, got {m!r}")
-    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-        raise ValueError(f"n (sharp frames between two blurry frames) must be an integer >= 0, got {n!r}")
+    check_int(m, "m (sharp frames per blurry frame)", minimum=2)
+    check_int(n, "n (sharp frames between two blurry frames)", minimum=0)
     if not 0.0 <= float(frame_offset) <= 1.0:
         raise ValueError(f"frame_offset must be in [0, 1] (sharp-frame intervals), got {frame_offset}")
 

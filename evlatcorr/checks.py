@@ -19,6 +19,7 @@ from torch import Tensor
 
 __all__ = [
     "MEMORY_BUDGET_BYTES",
+    "check_int",
     "check_image",
     "check_shape",
     "check_batch_vector",
@@ -57,6 +58,23 @@ def check_shape(x: object, shape: Sequence[str | int], name: str) -> None:
             raise ValueError(f"{name} must have shape {tuple(shape)}, got {tuple(x.shape)} ({want} differs)")
         else:
             seen[want] = got
+
+
+def check_int(value: object, name: str, minimum: int = 1) -> int:
+    """Refuse anything but a Python integer (not a bool) of at least ``minimum``.
+
+    Example:
+        >>> check_int(3, "num_bins")
+        3
+        >>> check_int(True, "num_bins")
+        Traceback (most recent call last):
+        ...
+        ValueError: num_bins must be a positive integer, got True
+    """
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        expected = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+        raise ValueError(f"{name} must be {expected}, got {value!r}")
+    return value
 
 
 def check_finite(x: Tensor, name: str) -> None:

@@ -15,6 +15,7 @@ from evlatcorr.checks import (
     check_finite,
     check_has_events,
     check_image,
+    check_int,
     check_memory,
     check_search_range,
     check_shape,
@@ -179,3 +180,19 @@ def test_check_threshold_broadcasts_and_refuses_non_positive():
         check_threshold(float("nan"), 1)
     with pytest.raises(ValueError, match="one value per sample"):
         check_threshold(torch.ones(3), 2)
+
+
+@pytest.mark.parametrize(("value", "minimum", "match"), [
+    (0, 1, "n must be a positive integer, got 0"),
+    (2.0, 1, "n must be a positive integer, got 2.0"),
+    (False, 0, "n must be an integer >= 0, got False"),
+    (1, 2, "n must be an integer >= 2, got 1"),
+])
+def test_check_int_refuses(value, minimum, match):
+    with pytest.raises(ValueError, match=re.escape(match)):
+        check_int(value, "n", minimum)
+
+
+def test_check_int_accepts():
+    assert check_int(0, "n", minimum=0) == 0
+    assert check_int(7, "n") == 7
