@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import warnings
 
 import h5py
@@ -353,24 +354,21 @@ def test_polarity_outside_the_conventions_is_refused(h5_file):
         list(H5Recording(h5_file))
 
 
-def test_event_columns_of_different_lengths_are_refused_at_open(h5_file):
+@pytest.mark.parametrize(("dataset", "message", "short"), [
+    # columns of different lengths
+    ("events/x", "seq.h5: /events/x, y, t, p differ in length: x 598, y 600, t 600, p 600",
+     "seq.h5: /events/x, y, t, p differ in length"),
+    # a short per-frame array used to give an IndexError traceback when the last frame was read
+    ("frames/exposure_end", "seq.h5: /frames/exposure_end has 2 entries but /frames/blurry has 3 frames",
+     "seq.h5: /frames/exposure_end has 2 entries"),
+])
+def test_inconsistent_lengths_are_refused_at_open(h5_file, dataset, message, short):
     with h5py.File(h5_file, "r+") as f:
-        _set_dataset(f, "events/x", f["events/x"][:-2])
-    with pytest.raises(RecordingError, match="seq.h5: /events/x, y, t, p differ in length: x 598, y 600, t 600, "
-                                             "p 600"):
+        cut = 2 if dataset.startswith("events") else 1
+        _set_dataset(f, dataset, f[dataset][:-cut])
+    with pytest.raises(RecordingError, match=re.escape(message)):
         H5Recording(h5_file)
-    with pytest.raises(RecordingError, match="seq.h5: /events/x, y, t, p differ in length"):
-        read_sequence(h5_file)
-
-
-def test_per_frame_array_shorter_than_the_frames_is_refused_at_open(h5_file):
-    # a short exposure_end used to give an IndexError traceback when the last frame was read
-    with h5py.File(h5_file, "r+") as f:
-        _set_dataset(f, "frames/exposure_end", f["frames/exposure_end"][:-1])
-    with pytest.raises(RecordingError, match="seq.h5: /frames/exposure_end has 2 entries but /frames/blurry has 3 "
-                                             "frames"):
-        H5Recording(h5_file)
-    with pytest.raises(RecordingError, match="seq.h5: /frames/exposure_end has 2 entries"):
+    with pytest.raises(RecordingError, match=re.escape(short)):
         read_sequence(h5_file)
 
 
