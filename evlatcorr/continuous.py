@@ -105,11 +105,14 @@ class ContinuousIntegral:
             (0 at ``g_0``) and ``exp(θC(g_j) − peak)`` with ``C(g)`` counting the events before ``g``; ``peak``
             is each pixel's highest ``θC`` over its events (0 before the first), so the levels are at most 1.
         """
-        s_total, level = self._tables(times.to(self.device, torch.float64), 0, self.sensor_size[0])
-        return s_total, level
+        times = times.to(self.device, torch.float64)
+        height, width = self.sensor_size
+        work = torch.empty(2 * len(times) * height * width, dtype=torch.float64, device=self.device)
+        return self._tables(times, 0, height, work)
 
-    def _tables(self, g: Tensor, r0: int, r1: int) -> tuple[Tensor, Tensor]:
-        """:meth:`at` for the rows ``[r0, r1)``: :math:`(G, r1 − r0, W)` each."""
+    def _tables(self, g: Tensor, r0: int, r1: int, work: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`at` for the rows ``[r0, r1)``: :math:`(G, r1 − r0, W)` each, written into ``work`` (float64, at
+        least ``2·G·(r1 − r0)·W`` elements, overwritten)."""
         width = self.sensor_size[1]
         num, p = len(g), (r1 - r0) * width
         lo, hi = self.row_bounds[r0], self.row_bounds[r1]
@@ -128,8 +131,8 @@ class ContinuousIntegral:
         # before g_j, and its integral from g_0 is (g_j − g_0)·level(g_j) − Σ rise·(t − g_0) over those events
         rise = torch.where(inside, self.rise[lo:hi], 0.0)
         flat = slot * p + pixel
-        level = torch.zeros(num * p, dtype=torch.float64, device=self.device).index_add_(0, flat, rise)
-        held = torch.zeros(num * p, dtype=torch.float64, device=self.device).index_add_(0, flat, rise * (t - g[0]))
+        level = work[:num * p].zero_().index_add_(0, flat, rise)
+        held = work[num * p:2 * num * p].zero_().index_add_(0, flat, rise * (t - g[0]))
         level = _cumsum_rows_(level.view(num, p)).add_(torch.exp(start_level - peak))
         held = _cumsum_rows_(held.view(num, p))
         s_total = held.neg_().addcmul_(level, (g - g[0])[:, None])
@@ -162,9 +165,11 @@ class ContinuousIntegral:
             out = torch.empty((len(lat), 1, height, width), dtype=torch.float64, device=self.device)
         elif out.shape != (len(lat), 1, height, width) or out.dtype != torch.float64:
             raise ValueError(f"out must be float64 {(len(lat), 1, height, width)}, got {out.dtype} {tuple(out.shape)}")
+        # one work buffer for every strip's tables: fresh tables each strip would cost their page faults again
+        work = torch.empty(2 * len(times) * rows * width, dtype=torch.float64, device=self.device)
         for r0 in range(0, height, rows):
             r1 = min(height, r0 + rows)
-            s_total, level = self._tables(times, r0, r1)
+            s_total, level = self._tables(times, r0, r1, work)
             mean = s_total.index_select(0, b).sub_(s_total.index_select(0, a)).clamp_min_(1e-300)
             mean.div_(level.index_select(0, r)).div_(end - start)
             torch.log(mean, out=out[:, 0, r0:r1])
