@@ -169,14 +169,21 @@ def event_grid(
     """
     if integral not in ("step", "linear"):
         raise ValueError(f"integral must be 'step' or 'linear', got {integral!r}")
-    b = events.batch_size
-    device = events.device
+    times = _grid_times(events, exposure_start, exposure_end, num_bins, latency_range, time)
+    return _event_grid(events, *times, num_bins, integral, dtype, memory_budget)
+
+
+def _grid_times(events: Events, exposure_start: Tensor, exposure_end: Tensor, num_bins: int,
+                latency_range: tuple[Tensor | float, Tensor | float], time: Tensor | None
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Checked float64 :math:`(B,)` exposure start, end, reference time and latency bounds on the events' device."""
+    b, device = events.batch_size, events.device
     start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
     lat_lo = check_batch_vector(latency_range[0], b, "latency_range[0]").to(device, torch.float64)
     lat_hi = check_batch_vector(latency_range[1], b, "latency_range[1]").to(device, torch.float64)
     if bool((lat_hi < lat_lo).any()):
         raise ValueError(f"latency_range must be (low, high) with low <= high, got {latency_range}")
-    return _event_grid(events, start, end, ref, lat_lo, lat_hi, num_bins, integral, dtype, memory_budget)
+    return start, end, ref, lat_lo, lat_hi
 
 
 def _event_grid(events: Events, start: Tensor, end: Tensor, ref: Tensor, lat_lo: Tensor, lat_hi: Tensor,
@@ -212,11 +219,8 @@ def event_grid_bytes(
         >>> event_grid_bytes(ev, torch.tensor([0.0]), torch.tensor([100.0]), num_bins=10, latency_range=(0.0, 30.0))
         204
     """
-    b, device = events.batch_size, events.device
-    start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
-    lat_lo = check_batch_vector(latency_range[0], b, "latency_range[0]").to(device, torch.float64)
-    lat_hi = check_batch_vector(latency_range[1], b, "latency_range[1]").to(device, torch.float64)
-    return _event_grid_bytes(events, start, end, ref, lat_lo, lat_hi, num_bins, integral, dtype)
+    times = _grid_times(events, exposure_start, exposure_end, num_bins, latency_range, time)
+    return _event_grid_bytes(events, *times, num_bins, integral, dtype)
 
 
 def _event_grid_bytes(events: Events, start: Tensor, end: Tensor, ref: Tensor, lat_lo: Tensor, lat_hi: Tensor,

@@ -32,17 +32,25 @@ def test_sniffs_by_content_not_extension(tmp_path, ours):
     assert isinstance(open_recording(str(ours)), H5Recording)
 
 
+# a file's name, its bytes, and the start of the message that names what is wrong with it
+BAD_FILES = [
+    ("junk.bin", b"\x00\x01 not a recording", "junk.bin: unknown format \\(supported: AEDAT4"),
+    ("fake.h5", b"not hdf5 at all", "fake.h5: named like HDF5 but has no HDF5 signature"),
+    ("fake.aedat4", b"hello world, not an event file", "fake.aedat4: named like AEDAT but"),
+    ("old.aedat", b"#!AER-DAT2.0\r\n# some header\r\n", "old.aedat: AEDAT 2.0 is not supported"),
+]
+
+
+@pytest.mark.parametrize(("name", "content", "message"), BAD_FILES)
+def test_bad_file_is_named(tmp_path, name, content, message):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(RecordingError, match=message):
+        open_recording(tmp_path / name)
+
+
 def test_unknown_and_missing(tmp_path):
     with pytest.raises(FileNotFoundError, match="nothing.h5: no such file"):
         open_recording(tmp_path / "nothing.h5")
-    junk = tmp_path / "junk.bin"
-    junk.write_bytes(b"\x00\x01 not a recording")
-    with pytest.raises(RecordingError, match="junk.bin: unknown format \\(supported: AEDAT4"):
-        open_recording(junk)
-    fake = tmp_path / "fake.h5"
-    fake.write_bytes(b"not hdf5 at all")
-    with pytest.raises(RecordingError, match="fake.h5: named like HDF5 but has no HDF5 signature"):
-        open_recording(fake)
     with h5py.File(tmp_path / "other.h5", "w") as f:
         f["something"] = [1, 2]
     with pytest.raises(RecordingError, match="other.h5: unknown format: an HDF5 file with top-level \\['something'\\]"):
