@@ -175,6 +175,30 @@ class ContinuousIntegral:
             torch.log(mean, out=out[:, 0, r0:r1])
         return out
 
+    def log_change(self, start: float, end: float, latencies: Tensor) -> Tensor:
+        """``θ (C(end + l) − C(start + l))``: the log-intensity change the events of each window make.
+
+        Args:
+            start: exposure start, µs.
+            end: exposure end, µs.
+            latencies: :math:`(K,)` µs.
+
+        Returns:
+            :math:`(K, 1, H, W)` float32: θ times each pixel's net signed events in ``[start + l, end + l)``.
+        """
+        lat = latencies.to(self.device, torch.float64).reshape(-1)
+        points = torch.round(torch.stack([start + lat, end + lat]) * _LATTICE) / _LATTICE
+        times, index = torch.unique(points.reshape(-1), sorted=True, return_inverse=True)
+        a, b = index.view(2, -1)
+        # C(g) counts the events before g: an event counts from the first time after it on (slot G: never)
+        slot = torch.searchsorted(times, self.t, right=True)
+        p = self.num_pixels
+        table = torch.zeros((len(times) + 1) * p, dtype=torch.float32, device=self.device).index_add_(
+            0, slot * p + self.pixel, (self.level_after - self.level_before).to(torch.float32))
+        table = table.view(len(times) + 1, p)[:len(times)].cumsum(0)
+        change = table.index_select(0, b).sub_(table.index_select(0, a))
+        return change.view(len(lat), 1, *self.sensor_size)
+
 
 def _cumsum_rows_(table: Tensor) -> Tensor:
     """Cumulative sum over the rows (dim 0) of a 2-D tensor, in place.

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from evlatcorr.checks import check_batch_vector, check_has_events, check_threshold
-from evlatcorr.config import DEFAULT_SCORE, SearchConfig
+from evlatcorr.config import DEFAULT_GHOST_CONFIDENCE, DEFAULT_SCORE, SearchConfig
 from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
@@ -48,6 +48,8 @@ def correct_constant_latency(
         ``meta["latency_confidence"]`` :math:`(B,)` how clear each score curve's minimum was and
         ``meta["latency_fallback"]`` :math:`(B,)` which frames had none and got the fallback
         (``previous_latency``, else the range's lower end); a warning names them.
+        ``meta["latency_source"]`` says per frame what set the latency: ``"sharpness"``, ``"ghost"`` (a flat
+        score curve, decided by :mod:`evlatcorr.ghost`'s cue) or ``"fallback"``.
 
     Raises:
         ValueError: when a sample has no events in ``[exposure_start, exposure_end + exposure time)``
@@ -89,6 +91,7 @@ def correct_constant_latency(
     meta["score"] = config.score
     meta["latency_confidence"] = result.confidence
     meta["latency_fallback"] = result.fallback
+    meta["latency_source"] = result.source
     return frames.with_outputs(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
 
 
@@ -168,6 +171,9 @@ class EventLatencyCorrector(nn.Module):
         sigma_us: σ of the ETF temporal prior (used when ``frames.meta["previous_latency"]`` is set).
         score: sharpness score of the search: ``"consensus"`` (default), a single sparsity score or
             ``"etf"`` (the paper's); see :func:`~evlatcorr.search.search_constant_latency`.
+        ghost_confidence: frames whose score curve's confidence is at most this get the ghost-moment cue's
+            latency where it is clear (:mod:`evlatcorr.ghost`); 0: only frames with no minimum and no
+            previous latency (which would get no shift); None: never.
         curve: ``mode="spatial"`` only: a trained latency curve checkpoint.
         **spatial_kwargs: ``mode="spatial"`` only: options of the spatial corrector.
 
@@ -197,6 +203,7 @@ class EventLatencyCorrector(nn.Module):
         window: int = DEFAULT_WINDOW,
         sigma_us: float = DEFAULT_SIGMA_US,
         score: str = DEFAULT_SCORE,
+        ghost_confidence: float | None = DEFAULT_GHOST_CONFIDENCE,
         curve: str | None = None,
         **spatial_kwargs: Any,
     ) -> None:
@@ -207,7 +214,8 @@ class EventLatencyCorrector(nn.Module):
             raise ValueError("curve and spatial options need mode='spatial'")
         self.mode, self.threshold = mode, threshold
         self.config = SearchConfig(num_bins=num_bins, search_range=search_range, num_candidates=num_candidates,
-                                   refine=refine, score=score, epsilon=epsilon, window=window, sigma_us=sigma_us)
+                                   refine=refine, score=score, epsilon=epsilon, window=window, sigma_us=sigma_us,
+                                   ghost_confidence=ghost_confidence)
         self.constant: ConstantLatencyCorrector | None = None
         self.spatial: nn.Module | None = None
         if mode == "constant":

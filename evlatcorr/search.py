@@ -42,6 +42,7 @@ from evlatcorr.config import DEFAULT_SCORE, SCORES, SPARSITY_SCORES, SearchConfi
 from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
 from evlatcorr.events import Events
+from evlatcorr.ghost import ghost_moment, ghost_root
 from evlatcorr.integral import _row_strips, cumulative_event_grid
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score",
@@ -80,6 +81,9 @@ class ConstantSearchResult:
             of the range searched).
         fallback: :math:`(B,)` bool: the curve had no clear minimum and ``latency`` is the fallback
             (``previous_latency`` when given, else the lower end of the range).
+        source: per sample, what set ``latency``: ``"sharpness"`` (the score's minimum), ``"ghost"`` (the
+            score curve was nearly flat and :mod:`evlatcorr.ghost`'s moment crossed zero once) or
+            ``"fallback"``.
         log_ratio: :math:`(B, 1, H, W)` float64 EDI ``log R`` at ``latency`` (latent image at mid-exposure
             ``blurry · exp(−log R)``), exact in continuous time; None with ``method="binned"`` or when a
             sample had no window to score.
@@ -93,6 +97,7 @@ class ConstantSearchResult:
     confidence: Tensor | None = None
     fallback: Tensor | None = None
     log_ratio: Tensor | None = None
+    source: list[str] | None = None
 
 
 def default_search_range(exposure_time: Tensor) -> tuple[Tensor, Tensor]:
@@ -243,6 +248,7 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
         fallback=torch.tensor([r.fallback for r in results], dtype=torch.bool, device=blurry.device),
         log_ratio=(torch.cat([r.log_ratio for r in results]).to(blurry.device)
                    if all(r.log_ratio is not None for r in results) else None),
+        source=[r.source for r in results],
     )
 
 
@@ -256,6 +262,7 @@ class _OneResult:
     confidence: float
     fallback: bool
     log_ratio: Tensor | None = None  # (1, 1, H, W) at ``latency``, from the continuous integral
+    source: str = "sharpness"
 
 
 def sharpness_score(latent: Tensor, latency: Tensor, previous: Tensor | None, score: str, epsilon: float,
@@ -359,8 +366,9 @@ class _CandidateReader:
     ``coarse`` are the candidates in the reader's own units (µs, or sub-intervals for ``"binned"``),
     ``step`` their spacing, ``top`` the last one whose window stays inside the events (below ``floor``: none
     does), ``to_us`` converts to µs, ``log_ratio`` reads log R :math:`(K, 1, H, W)` of candidates,
-    ``fine_of`` gives the refinement's candidates around a best one and ``final_ratio`` the log R of the
-    chosen latency in µs (None where the reader cannot give it).
+    ``fine_of`` gives the refinement's candidates around a best one, ``final_ratio`` the log R of the
+    chosen latency in µs (None where the reader cannot give it) and ``log_change`` the windows' event
+    change θN :math:`(K, 1, H, W)` (None: the reader has no ghost cue).
     """
 
     coarse: Tensor
@@ -370,6 +378,7 @@ class _CandidateReader:
     log_ratio: Callable[[Tensor], Tensor]
     fine_of: Callable[[float], Tensor]
     final_ratio: Callable[[float], Tensor | None]
+    log_change: Callable[[Tensor], Tensor] | None = None
 
 
 def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float, config: SearchConfig,
@@ -403,7 +412,10 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
     def final_ratio(latency: float) -> Tensor:
         return integral.log_ratio(start, end, torch.tensor([latency], dtype=torch.float64))
 
-    return _CandidateReader(coarse, top, low, lambda v: v, log_ratio, fine_of, final_ratio)
+    def log_change(lat: Tensor) -> Tensor:
+        return integral.log_change(start, end, lat)
+
+    return _CandidateReader(coarse, top, low, lambda v: v, log_ratio, fine_of, final_ratio, log_change)
 
 
 def _binned_reader(events: Events, span: _Window, theta: float, config: SearchConfig, integral: str,
@@ -485,7 +497,7 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
     fallback = low if prev is None else min(max(float(prev), low), high)
     if reader.top < reader.floor:  # no candidate window holds events: nothing to score
         nan = torch.full((len(coarse),), math.nan, dtype=torch.float64)
-        return _OneResult(fallback, to_us(coarse).cpu(), nan, to_us(coarse).cpu(), nan, 0.0, True)
+        return _OneResult(fallback, to_us(coarse).cpu(), nan, to_us(coarse).cpu(), nan, 0.0, True, source="fallback")
 
     coarse_scores = torch.stack(_score_candidates(reader, grey, members, config, prev, [coarse] * len(members)))
     fines = [reader.fine_of(float(coarse[int(torch.argmin(coarse_scores[m]))])) for m in range(len(members))]
@@ -494,14 +506,32 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
     estimates = [_refine(coarse, coarse_scores[m], fines[m], fine_scores[m], config.refine)
                  for m in range(len(members))]
     confidence = sorted(e[1] for e in estimates)[len(estimates) // 2]
+    ghost_wanted = config.ghost_confidence is not None and confidence <= config.ghost_confidence
+    if ghost_wanted and (confidence > 0 or prev is None) and reader.log_change is not None:
+        # a flat sharpness curve: the ghost moment's zero where it crosses once (a frame with no minimum at all
+        # keeps the previous frame's latency when there is one)
+        ghost = _ghost_latency(reader, grey, coarse)
+        if ghost is not None:
+            latency = min(max(ghost, low), high)
+            return _OneResult(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(coarse).cpu(),
+                              coarse_scores[0], confidence, False, reader.final_ratio(latency), "ghost")
     if confidence == 0.0:  # most scores have no interior minimum
         return _OneResult(fallback, to_us(coarse).cpu(), coarse_scores[0], to_us(coarse).cpu(), coarse_scores[0],
-                          0.0, True, reader.final_ratio(fallback))
+                          0.0, True, reader.final_ratio(fallback), "fallback")
     chosen = sorted(range(len(members)), key=lambda m: estimates[m][0])[len(members) // 2]  # the median
     best, _, fine, fine_score = estimates[chosen]
     latency = min(max(float(to_us(torch.tensor(best, dtype=torch.float64))), low), high)
     return _OneResult(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(fine).cpu(), fine_score, confidence, False,
                       reader.final_ratio(latency))
+
+
+def _ghost_latency(reader: _CandidateReader, grey: Tensor, coarse: Tensor) -> float | None:
+    """:func:`~evlatcorr.ghost.ghost_root` over the coarse candidates whose windows hold events, µs."""
+    kept = coarse[coarse <= reader.top]
+    if len(kept) < 3:
+        return None
+    moment = ghost_moment(grey, reader.log_ratio(kept), reader.log_change(kept))
+    return ghost_root(reader.to_us(kept).cpu(), moment.cpu())
 
 
 def _aligned_candidates(low: float, high: float, num: int, exposure: float) -> tuple[Tensor, float]:

@@ -37,6 +37,31 @@ def test_latency_reads_the_window_later():
     assert log_r[1, 0, 0, 0].item() == pytest.approx(0.0, abs=1e-15)  # [20, 30]: after the event, level constant
 
 
+def test_log_change_counts_each_windows_net_events():
+    # +1 at 5 us, -1 at 15, +1 at 25; windows [l, l + 10): the sign of the one event inside, 0 past the last
+    theta = 0.5
+    ci = ContinuousIntegral(one_pixel_events([5.0, 15.0, 25.0], [1, -1, 1]), theta)
+    change = ci.log_change(0.0, 10.0, torch.tensor([0.0, 10.0, 20.0, 30.0, 7.0]))
+    assert change.shape == (5, 1, 1, 2) and change.dtype == torch.float32
+    torch.testing.assert_close(change[:, 0, 0, 0], torch.tensor([0.5, -0.5, 0.5, 0.0, -0.5]))
+    assert not bool(change[:, 0, 0, 1].any())  # no events at the other pixel
+
+
+def test_log_change_equals_a_count_of_random_events():
+    g = torch.Generator().manual_seed(3)
+    n, (h, w) = 4000, (5, 7)
+    t, _ = torch.sort(torch.rand(n, generator=g, dtype=torch.float64) * 1000.0)
+    x, y = torch.randint(0, w, (n,), generator=g), torch.randint(0, h, (n,), generator=g)
+    p = torch.randint(0, 2, (n,), generator=g) * 2 - 1
+    ci = ContinuousIntegral(Events(x, y, t, p, sensor_size=(h, w)), 0.2)
+    lat = torch.tensor([0.0, 37.5, 301.25, 600.0])
+    change = ci.log_change(100.0, 350.0, lat)
+    for k, l in enumerate(lat.tolist()):
+        inside = (t >= 100.0 + l) & (t < 350.0 + l)
+        count = torch.zeros(h * w).index_add_(0, (y * w + x)[inside], p[inside].float()).view(h, w)
+        torch.testing.assert_close(change[k, 0], 0.2 * count)
+
+
 def test_thousands_of_events_geometric_series():
     # 3000 +1 events every 2 us from t = 1 us: over [0, 6000] the level is k·θ on [2k - 1, 2k + 1) (k >= 1) and 0 on
     # [0, 1); read at the end (6000 us, after all 3000 events): R = Σ_k exp(θ(C_k − 3000)) dt_k / 6000

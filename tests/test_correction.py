@@ -168,6 +168,24 @@ def test_dark_low_texture_correction_is_not_worse_than_none():
     assert abs(row["latency_error_us"]) <= 600.0
 
 
+@pytest.mark.slow
+def test_flat_sharpness_curve_is_decided_by_the_ghost_cue():
+    # small grass sprites over a dark (4 %) static background, 730 us: no sharpness score has a minimum (the
+    # fallback gave 0 us, no gain); the ghost moment crosses zero once, measured at 835 us (+105), recovery 104 %
+    case, row, simulated = _evaluate_dev_case("dev-26-grass-b0.04-obj2.4-const730")
+    assert abs(row["latency_error_us"]) <= 300.0 and row["recovery"] >= 0.9
+    frames = simulated[0]
+    out = EventLatencyCorrector(threshold=case.threshold)(frames)
+    assert out.meta["latency_source"] == ["ghost"] and not bool(out.meta["latency_fallback"][0])
+    with pytest.warns(UserWarning, match="no clear minimum"):
+        off = EventLatencyCorrector(threshold=case.threshold, ghost_confidence=None)(frames)
+    assert off.meta["latency_source"] == ["fallback"] and float(off.latency.mean()) == 0.0
+    # with a previous frame's latency the temporal prior makes the minimum (measured 616 us for 600): no ghost
+    prior = EventLatencyCorrector(threshold=case.threshold)(frames.replace(
+        meta={**frames.meta, "previous_latency": torch.tensor([600.0])}))
+    assert prior.meta["latency_source"] == ["sharpness"] and abs(float(prior.latency.mean()) - 600.0) <= 100.0
+
+
 # --- frames without events: the same clear error in every mode -------------------------------------------------
 def _one_empty_frame() -> EventFrames:
     """Two frames; only the first has events (its window [0, 200) us), the second none at all."""

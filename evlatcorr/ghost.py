@@ -1,0 +1,94 @@
+"""The ghost-moment cue: a second opinion on the constant latency where the sharpness curve has no clear minimum.
+
+Read ``l`` late, a window that starts ``δ = l − l*`` after the true one leaves out the events of ``δ`` at its
+start and takes in those of ``δ`` past its end. To first order that adds ``(δ / T)`` times the window's own
+event change ``θ N`` (``N``: the pixel's net signed events in the window) to the latent image's log: the
+latent carries a ghost of the event image, with a sign that follows ``δ``. The cue is the correlation of
+the two, after a high-pass (a Gaussian of σ = 1 px removed) that leaves out the smooth shading both share
+whatever the latency:
+
+    m(l) = corr(hp(log L_l), hp(θ N_l))
+
+which falls through zero at the latency where the ghost vanishes. The sharpness scores lose their minimum
+on small objects over a static background and on dark, low-texture scenes; this curve is smooth there, but
+it carries a scene-dependent offset of its own (the sharp image itself correlates with ``N`` on text and
+rotating scenes), and under a latency that varies with intensity it follows the late pixels. The search
+therefore asks it only where the sharpness curve has no minimum (or, with ``SearchConfig.ghost_confidence``
+above 0, a shallow one), and takes its answer only when the curve crosses zero once, from above. Below a
+confidence of 0.01 it fixed the dev split's three constant-latency misses of 2-5 ms, but in a larger draw of
+the dev distribution it made 5 of 8 photoreceptor-lag frames worse, so by default it only replaces the
+fallback of a frame with no minimum and no previous latency (no shift, which gains nothing).
+"""
+
+from __future__ import annotations
+
+import kornia
+import torch
+from torch import Tensor
+
+__all__ = ["ghost_moment", "ghost_root"]
+
+# σ of the high-pass, px: 1 removed the shading offset on most dev scenes; 0 (none) and 2 were worse
+HIGH_PASS_SIGMA = 1.0
+# darkest grey level taken into the log latent (a black pixel has no log)
+_FLOOR = 1e-4
+
+
+def ghost_moment(grey: Tensor, log_ratio: Tensor, log_change: Tensor, sigma: float = HIGH_PASS_SIGMA) -> Tensor:
+    """Correlation of each candidate's high-passed log latent with its window's high-passed event change.
+
+    Args:
+        grey: the blurry frame :math:`(1, 1, H, W)` in [0, 1].
+        log_ratio: EDI ``log R`` of the candidates :math:`(K, 1, H, W)` (latent ``grey · exp(−log R)``).
+        log_change: ``θ N`` of each candidate's window :math:`(K, 1, H, W)`
+            (:meth:`~evlatcorr.continuous.ContinuousIntegral.log_change`).
+        sigma: σ of the Gaussian the high-pass removes, px.
+
+    Returns:
+        :math:`(K,)` in [-1, 1]; 0 where either image is flat.
+
+    Example:
+        >>> grey = torch.rand(1, 1, 16, 16)
+        >>> change = torch.randn(3, 1, 16, 16)
+        >>> log_ratio = torch.stack([-0.1 * change[0], 0 * change[1], 0.1 * change[2]])  # ghost of −, 0, + sign
+        >>> m = ghost_moment(grey, log_ratio, change)
+        >>> bool(m[0] > 0 > m[2])
+        True
+    """
+    log_latent = torch.log(grey.double().clamp_min(_FLOOR)) - log_ratio.double()
+    size = 2 * int(3 * sigma + 0.5) + 1
+    low_pass = kornia.filters.GaussianBlur2d((size, size), (sigma, sigma))
+    a = log_latent - low_pass(log_latent)
+    b = log_change.double() - low_pass(log_change.double())
+    a = (a - a.mean(dim=(1, 2, 3), keepdim=True)).flatten(1)
+    b = (b - b.mean(dim=(1, 2, 3), keepdim=True)).flatten(1)
+    return (a * b).sum(1) / (a.norm(dim=1) * b.norm(dim=1)).clamp_min(1e-12)
+
+
+def ghost_root(latencies: Tensor, moment: Tensor) -> float | None:
+    """The latency where the moment falls through zero, if it does so exactly once, from above.
+
+    Args:
+        latencies: increasing candidate latencies :math:`(K,)` µs.
+        moment: :func:`ghost_moment` of each :math:`(K,)`.
+
+    Returns:
+        the crossing, interpolated linearly between its two candidates, µs; None when the curve never
+        changes sign, changes it more than once (noise) or rises through zero (not a ghost that vanishes).
+
+    Example:
+        >>> ghost_root(torch.tensor([0.0, 100.0, 200.0, 300.0]), torch.tensor([0.3, 0.1, -0.1, -0.3]))
+        150.0
+        >>> ghost_root(torch.tensor([0.0, 100.0, 200.0]), torch.tensor([0.2, -0.1, 0.1])) is None
+        True
+    """
+    if len(moment) < 3:
+        return None
+    above = (moment > 0).cpu()
+    changes = torch.nonzero(above[1:] != above[:-1]).flatten()
+    if len(changes) != 1 or not bool(above[changes[0]]):
+        return None
+    k = int(changes[0])
+    m0, m1 = float(moment[k]), float(moment[k + 1])
+    l0, l1 = float(latencies[k]), float(latencies[k + 1])
+    return l0 + m0 / (m0 - m1) * (l1 - l0)

@@ -1,0 +1,62 @@
+from __future__ import annotations
+
+import pytest
+import torch
+
+from evlatcorr.config import SearchConfig
+from evlatcorr.ghost import ghost_moment, ghost_root
+
+
+def test_moment_sign_follows_the_ghost():
+    # the latent's log is the true image plus a ghost  −g · (θN): the moment has the ghost's sign, and the true
+    # image alone (uncorrelated with N) gives about 0
+    g = torch.Generator().manual_seed(0)
+    sharp = torch.rand(1, 1, 32, 32, generator=g) * 0.8 + 0.1
+    change = torch.randn(5, 1, 32, 32, generator=g)
+    gains = torch.tensor([0.2, 0.1, 0.0, -0.1, -0.2])
+    grey = sharp
+    log_ratio = -gains.view(-1, 1, 1, 1) * change  # latent = grey · exp(gain · change)
+    m = ghost_moment(grey, log_ratio, change)
+    assert m.shape == (5,)
+    assert bool((m[:-1] > m[1:]).all())  # falls with the gain
+    assert m[0] > 0.3 and m[-1] < -0.3 and abs(float(m[2])) < 0.1
+
+
+def test_moment_ignores_smooth_shading_shared_with_the_events():
+    # a latent whose shading follows the event image's smooth part, and no fine ghost: the high-pass leaves ~0
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, 32), torch.linspace(0, 1, 32), indexing="ij")
+    ramp = (xx + yy).view(1, 1, 32, 32)
+    fine = torch.randn(1, 1, 32, 32, generator=torch.Generator().manual_seed(1))
+    grey = torch.exp(ramp - 2.0)
+    change = ramp + fine
+    with_shading = ghost_moment(grey, torch.zeros(1, 1, 32, 32), change, sigma=1.0)
+    assert abs(float(with_shading)) < 0.15
+    no_high_pass = torch.corrcoef(torch.stack([ramp.flatten(), change.flatten()]))[0, 1]
+    assert float(no_high_pass) > 0.1  # without the high-pass the shading alone would correlate
+
+
+def test_flat_images_give_zero_not_nan():
+    m = ghost_moment(torch.full((1, 1, 8, 8), 0.5), torch.zeros(2, 1, 8, 8), torch.zeros(2, 1, 8, 8))
+    assert torch.equal(m, torch.zeros(2, dtype=m.dtype))
+
+
+@pytest.mark.parametrize("moment, expected", [
+    ([0.4, 0.2, -0.2, -0.4], 150.0),         # one fall through zero, interpolated
+    ([0.4, 0.3, 0.0, -0.2], 200.0),          # zero counts as not above
+    ([0.2, 0.1, 0.05, 0.01], None),          # never crosses
+    ([-0.2, -0.1, 0.1, 0.2], None),          # rises through zero
+    ([0.2, -0.1, 0.1, -0.2], None),          # noise: three crossings
+    ([0.2, -0.1], None),                     # too few candidates
+])
+def test_root(moment, expected):
+    lat = torch.arange(len(moment), dtype=torch.float64) * 100.0
+    root = ghost_root(lat, torch.tensor(moment))
+    assert root == (pytest.approx(expected) if expected is not None else None)
+
+
+def test_config_bounds():
+    assert SearchConfig().ghost_confidence == 0.0
+    assert SearchConfig(ghost_confidence=None).ghost_confidence is None
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="ghost_confidence must be in"):
+            SearchConfig(ghost_confidence=bad)
