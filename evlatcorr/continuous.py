@@ -24,9 +24,9 @@ from evlatcorr.events import Events
 
 __all__ = ["ContinuousIntegral"]
 
-# Bytes per candidate latency and pixel that :meth:`ContinuousIntegral.log_ratio` returns (float64), plus the
+# Bytes per candidate latency and pixel that :meth:`ContinuousIntegral.inverse_ratio` returns (float32), plus the
 # float32 latent image its caller makes of it.
-BYTES_PER_CANDIDATE = 12
+BYTES_PER_CANDIDATE = 8
 # Bytes per event kept between calls (time, pixel, level before and after, rise), and at the peak of a call.
 BYTES_PER_EVENT_KEPT = 40
 BYTES_PER_EVENT = 112
@@ -152,6 +152,20 @@ class ContinuousIntegral:
         Returns:
             :math:`(K, 1, H, W)` float64; the latent image is ``blurry · exp(−log R)``.
         """
+        return self._read(start, end, latencies, reference, out, torch.float64)
+
+    def inverse_ratio(self, start: float, end: float, latencies: Tensor, reference: float = 0.5,
+                      out: Tensor | None = None) -> Tensor:
+        """``1 / R`` of the same windows as :meth:`log_ratio`, float32: the latent image is ``blurry / R``.
+
+        What a search that scores latent images needs, without a logarithm and an exponential per pixel and
+        candidate. ``out``: optional float32 :math:`(K, 1, H, W)`.
+        """
+        return self._read(start, end, latencies, reference, out, torch.float32)
+
+    def _read(self, start: float, end: float, latencies: Tensor, reference: float, out: Tensor | None,
+              dtype: torch.dtype) -> Tensor:
+        """log R (float64) or 1 / R (float32) of every window, a strip of rows at a time."""
         lat = latencies.to(self.device, torch.float64).reshape(-1)
         points = torch.stack([start + lat, end + lat, start + reference * (end - start) + lat])  # (3, K)
         # on a 1/1024 µs lattice, so window ends that meet other windows' starts (or references) are one point
@@ -162,17 +176,20 @@ class ContinuousIntegral:
         # a strip of rows at a time: the tables of all the times stay within STRIP_BYTES
         rows = max(1, min(height, STRIP_BYTES // (len(times) * width * BYTES_PER_POINT)))
         if out is None:
-            out = torch.empty((len(lat), 1, height, width), dtype=torch.float64, device=self.device)
-        elif out.shape != (len(lat), 1, height, width) or out.dtype != torch.float64:
-            raise ValueError(f"out must be float64 {(len(lat), 1, height, width)}, got {out.dtype} {tuple(out.shape)}")
+            out = torch.empty((len(lat), 1, height, width), dtype=dtype, device=self.device)
+        elif out.shape != (len(lat), 1, height, width) or out.dtype != dtype:
+            raise ValueError(f"out must be {dtype} {(len(lat), 1, height, width)}, got {out.dtype} {tuple(out.shape)}")
         # one work buffer for every strip's tables: fresh tables each strip would cost their page faults again
         work = torch.empty(2 * len(times) * rows * width, dtype=torch.float64, device=self.device)
         for r0 in range(0, height, rows):
             r1 = min(height, r0 + rows)
             s_total, level = self._tables(times, r0, r1, work)
             mean = s_total.index_select(0, b).sub_(s_total.index_select(0, a)).clamp_min_(1e-300)
-            mean.div_(level.index_select(0, r)).div_(end - start)
-            torch.log(mean, out=out[:, 0, r0:r1])
+            if dtype == torch.float64:
+                mean.div_(level.index_select(0, r)).div_(end - start)
+                torch.log(mean, out=out[:, 0, r0:r1])
+            else:
+                torch.div(level.index_select(0, r), mean, out=out[:, 0, r0:r1]).mul_(end - start)
         return out
 
     def log_change(self, start: float, end: float, latencies: Tensor) -> Tensor:

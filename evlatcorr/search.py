@@ -365,7 +365,8 @@ class _CandidateReader:
 
     ``coarse`` are the candidates in the reader's own units (µs, or sub-intervals for ``"binned"``),
     ``step`` their spacing, ``top`` the last one whose window stays inside the events (below ``floor``: none
-    does), ``to_us`` converts to µs, ``log_ratio`` reads log R :math:`(K, 1, H, W)` of candidates,
+    does), ``to_us`` converts to µs, ``inverse_ratio`` reads 1 / R :math:`(K, 1, H, W)` float32 of candidates
+    (the latent at mid-exposure is ``grey`` times it),
     ``fine_of`` gives the refinement's candidates around a best one, ``final_ratio`` the log R of the
     chosen latency in µs (None where the reader cannot give it) and ``log_change`` the windows' event
     change θN :math:`(K, 1, H, W)` (None: the reader has no ghost cue).
@@ -375,7 +376,7 @@ class _CandidateReader:
     top: float
     floor: float
     to_us: Callable[[Tensor], Tensor]
-    log_ratio: Callable[[Tensor], Tensor]
+    inverse_ratio: Callable[[Tensor], Tensor]
     fine_of: Callable[[float], Tensor]
     final_ratio: Callable[[float], Tensor | None]
     log_change: Callable[[Tensor], Tensor] | None = None
@@ -399,10 +400,10 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
                 // candidate_bytes)
     integral = ContinuousIntegral(events, theta) if top >= low else None
 
-    def log_ratio(lat: Tensor) -> Tensor:
-        out = torch.empty((len(lat), 1, *grey.shape[-2:]), dtype=torch.float64, device=events.device)
+    def inverse_ratio(lat: Tensor) -> Tensor:
+        out = torch.empty((len(lat), 1, *grey.shape[-2:]), dtype=torch.float32, device=events.device)
         for k in range(0, len(lat), chunk):  # each read writes its slice: no concatenated copy
-            integral.log_ratio(start, end, lat[k:k + chunk], out=out[k:k + chunk])
+            integral.inverse_ratio(start, end, lat[k:k + chunk], out=out[k:k + chunk])
         return out
 
     def fine_of(best: float) -> Tensor:
@@ -415,7 +416,7 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
     def log_change(lat: Tensor) -> Tensor:
         return integral.log_change(start, end, lat)
 
-    return _CandidateReader(coarse, top, low, lambda v: v, log_ratio, fine_of, final_ratio, log_change)
+    return _CandidateReader(coarse, top, low, lambda v: v, inverse_ratio, fine_of, final_ratio, log_change)
 
 
 def _binned_reader(events: Events, span: _Window, theta: float, config: SearchConfig, integral: str,
@@ -445,7 +446,7 @@ def _binned_reader(events: Events, span: _Window, theta: float, config: SearchCo
 
     return _CandidateReader(torch.arange(num, device=events.device) * step, top, 0,
                             lambda v: (first + v).to(torch.float64) * width_us,
-                            lambda shifts: table.log_ratio(shifts), fine_of, lambda latency: None)
+                            lambda shifts: torch.exp(-table.log_ratio(shifts)).float(), fine_of, lambda latency: None)
 
 
 def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str, ...], config: SearchConfig,
@@ -462,7 +463,7 @@ def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str
         for m, cand in enumerate(requests):
             wanted[m, torch.searchsorted(kept.cpu(), cand.cpu()[cand.cpu() <= reader.top])] = True
         lat = reader.to_us(kept).to(torch.float64)
-        log_r = reader.log_ratio(kept)  # (K, 1, H, W), latent at mid-exposure
+        inverse = reader.inverse_ratio(kept)  # (K, 1, H, W): the latents at mid-exposure are grey times it
         previous = None if prev is None else prev.expand(len(kept)).float()
         # a few candidates' latent images at a time: scoring all at once held ~7 (K, H, W) arrays
         for k0 in range(0, len(kept), _SCORE_CHUNK):
@@ -470,7 +471,7 @@ def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str
             needed = [m for m in range(len(members)) if bool(wanted[m, k0:k1].any())]
             if not needed:
                 continue
-            latent = grey * torch.exp(-log_r[k0:k1].float())
+            latent = grey * inverse[k0:k1]
             values = sharpness_scores(latent, lat[k0:k1].float().to(latent.device), None if previous is None
                                       else previous[k0:k1], tuple(members[m] for m in needed), config.epsilon,
                                       config.window, config.sigma_us).double().cpu()
@@ -530,7 +531,7 @@ def _ghost_latency(reader: _CandidateReader, grey: Tensor, coarse: Tensor) -> fl
     kept = coarse[coarse <= reader.top]
     if len(kept) < 3:
         return None
-    moment = ghost_moment(grey, reader.log_ratio(kept), reader.log_change(kept))
+    moment = ghost_moment(grey, -torch.log(reader.inverse_ratio(kept).double()), reader.log_change(kept))
     return ghost_root(reader.to_us(kept).cpu(), moment.cpu())
 
 

@@ -37,6 +37,18 @@ def test_latency_reads_the_window_later():
     assert log_r[1, 0, 0, 0].item() == pytest.approx(0.0, abs=1e-15)  # [20, 30]: after the event, level constant
 
 
+def test_inverse_ratio_is_exp_of_minus_log_ratio():
+    g = torch.Generator().manual_seed(2)
+    n, (h, w) = 3000, (4, 6)
+    t, _ = torch.sort(torch.rand(n, generator=g, dtype=torch.float64) * 1000.0)
+    ev = Events(torch.randint(0, w, (n,), generator=g), torch.randint(0, h, (n,), generator=g), t,
+                torch.randint(0, 2, (n,), generator=g), sensor_size=(h, w))
+    ci, lat = ContinuousIntegral(ev, 0.25), torch.tensor([0.0, 120.0, 333.0])
+    inverse = ci.inverse_ratio(100.0, 500.0, lat)
+    assert inverse.dtype == torch.float32 and inverse.shape == (3, 1, h, w)
+    torch.testing.assert_close(inverse, torch.exp(-ci.log_ratio(100.0, 500.0, lat)).float(), rtol=1e-6, atol=0)
+
+
 def test_log_change_counts_each_windows_net_events():
     # +1 at 5 us, -1 at 15, +1 at 25; windows [l, l + 10): the sign of the one event inside, 0 past the last
     theta = 0.5
