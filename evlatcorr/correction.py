@@ -225,11 +225,8 @@ class EventLatencyCorrector(nn.Module):
 
             if not (threshold == "auto" or (isinstance(threshold, (int, float)) and threshold > 0)):
                 raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
-            c = self.config
-            self.spatial = SpatialLatencyCorrector(
-                curve=curve, threshold=threshold, num_bins=c.num_bins, search_range=c.search_range,
-                num_candidates=c.num_candidates, epsilon=c.epsilon, window=c.window, sigma_us=c.sigma_us,
-                **spatial_kwargs)
+            self.spatial = SpatialLatencyCorrector(curve=curve, threshold=threshold, config=self.config,
+                                                   **spatial_kwargs)
 
     # the settings, read through the config (one source of truth)
     num_bins = property(lambda self: self.config.num_bins)

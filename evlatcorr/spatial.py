@@ -38,7 +38,7 @@ import kornia
 import torch
 from torch import Tensor, nn
 
-from evlatcorr.checks import check_has_events, check_search_range, check_threshold, resolve_memory_budget
+from evlatcorr.checks import check_has_events, check_threshold, resolve_memory_budget
 from evlatcorr.config import SearchConfig
 from evlatcorr.edi import EventGrid, _check_grid, _edi_deblur, _event_grid, _event_grid_bytes
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
@@ -253,19 +253,21 @@ def fit_spatial_latency(
         raise ValueError(f"steps must be >= 1, got {steps}")
     if objective_edi not in ("table", "linear"):
         raise ValueError(f"objective_edi must be 'table' or 'linear', got {objective_edi!r}")
-    search_range = check_search_range(search_range)
+    config = SearchConfig(num_bins=num_bins, search_range=search_range, num_candidates=num_candidates,
+                          epsilon=epsilon, window=window, sigma_us=sigma_us)
     theta = check_threshold(threshold, frames.batch_size)
     check_has_events(frames)
-    return _fit_spatial_latency(frames, model, steps, lr, theta, num_bins, search_range, num_candidates, weights,
-                                epsilon, window, sigma_us, progress, start_from_constant, objective_edi)
+    return _fit_spatial_latency(frames, model, steps, lr, theta, config, weights, progress, start_from_constant,
+                                objective_edi)
 
 
 def _fit_spatial_latency(frames: EventFrames, model: PolynomialLatency | None, steps: int, lr: float,
-                         theta: Tensor, num_bins: int, search_range: tuple[float, float] | None,
-                         num_candidates: int, weights: LossWeights | None, epsilon: float, window: int,
-                         sigma_us: float, progress: bool, start_from_constant: bool,
-                         objective_edi: str) -> tuple[PolynomialLatency, list[float]]:
-    """:func:`fit_spatial_latency` of checked inputs (a positive threshold :math:`(B,)`, a checked range)."""
+                         theta: Tensor, config: SearchConfig, weights: LossWeights | None, progress: bool,
+                         start_from_constant: bool, objective_edi: str) -> tuple[PolynomialLatency, list[float]]:
+    """:func:`fit_spatial_latency` of checked inputs (a positive threshold :math:`(B,)`); ``config`` holds the
+    fit's EDI bins (``num_bins``), the latency range and the constant search's settings."""
+    num_bins, search_range = config.num_bins, config.search_range
+    epsilon, window, sigma_us = config.epsilon, config.window, config.sigma_us
     model = model if model is not None else PolynomialLatency()
     model = model.to(frames.device)
     l_max = frames.exposure_time if search_range is None else torch.full_like(frames.exposure_time, search_range[1])
@@ -277,8 +279,6 @@ def _fit_spatial_latency(frames: EventFrames, model: PolynomialLatency | None, s
                                    float(l_max.max()), num_bins + 1)
     else:
         grid = _linear_grid_within_budget(frames, l_min, l_max, num_bins)
-    config = SearchConfig(num_bins=num_bins, search_range=search_range, num_candidates=num_candidates,
-                          epsilon=epsilon, window=window, sigma_us=sigma_us)
     l_const, etf_const = _constant_reference(frames, theta, config, grid, table)
     if start_from_constant:
         with torch.no_grad():  # ψ ≡ mean l_const: the fit only has to learn the variation around it
@@ -372,6 +372,10 @@ class SpatialLatencyCorrector(nn.Module):
 
     Args:
         curve: path of a saved curve or Lightning checkpoint, or None.
+        threshold: contrast threshold θ.
+        config: the search settings (:class:`~evlatcorr.config.SearchConfig`): the output latent's EDI bins
+            (``num_bins``), the latency range, and how the fit's constant starting point ``l_const`` is searched
+            and scored; default ``SearchConfig()``.
         steps: test-time optimisation steps when no curve is given.
         lr: Adam learning rate of the test-time optimisation.
         train_bins: EDI sub-intervals used while fitting (the output latent uses ``num_bins``).
@@ -385,11 +389,9 @@ class SpatialLatencyCorrector(nn.Module):
         SpatialLatencyCorrector(curve=fit per batch, steps=50)
     """
 
-    def __init__(self, curve: str | Path | None = None, threshold: float | str = 0.2, num_bins: int = 500,
-                 search_range: tuple[float, float] | None = None, num_candidates: int = 100,
-                 epsilon: float = DEFAULT_EPSILON, window: int = DEFAULT_WINDOW, sigma_us: float = DEFAULT_SIGMA_US,
-                 steps: int = 30, lr: float = 0.05, train_bins: int = 100, order: int = 5,
-                 weights: LossWeights | None = None, progress: bool | None = None) -> None:
+    def __init__(self, curve: str | Path | None = None, threshold: float | str = 0.2,
+                 config: SearchConfig | None = None, steps: int = 30, lr: float = 0.05, train_bins: int = 100,
+                 order: int = 5, weights: LossWeights | None = None, progress: bool | None = None) -> None:
         super().__init__()
         if isinstance(threshold, str):
             raise ValueError("mode='spatial' needs a numeric threshold")
@@ -399,10 +401,10 @@ class SpatialLatencyCorrector(nn.Module):
             raise ValueError(f"steps must be >= 1 and train_bins >= 2, got {steps} and {train_bins}")
         if order < 0:
             raise ValueError(f"order K must be >= 0, got {order}")
-        search_range = check_search_range(search_range)
+        if config is not None and not isinstance(config, SearchConfig):
+            raise ValueError(f"config must be a SearchConfig, got {type(config).__name__}")
         self.model = load_curve(curve) if curve is not None else None
-        self.threshold, self.num_bins, self.search_range = float(threshold), num_bins, search_range
-        self.num_candidates, self.epsilon, self.window, self.sigma_us = num_candidates, epsilon, window, sigma_us
+        self.threshold, self.config = float(threshold), config or SearchConfig()
         self.steps, self.lr, self.train_bins, self.order, self.weights = steps, lr, train_bins, order, weights
         self.progress = steps >= 100 if progress is None else progress
 
@@ -420,17 +422,17 @@ class SpatialLatencyCorrector(nn.Module):
             with torch.inference_mode(False), torch.enable_grad():
                 if any(t.is_inference() for t in (frames.blurry, frames.events.t)):
                     frames = _clone_frames(frames)
-                model, _ = _fit_spatial_latency(frames, PolynomialLatency(self.order), self.steps, self.lr,
-                                                theta, self.train_bins, self.search_range, self.num_candidates,
-                                                self.weights, self.epsilon, self.window, self.sigma_us,
+                model, _ = _fit_spatial_latency(frames, PolynomialLatency(self.order), self.steps, self.lr, theta,
+                                                self.config.replace(num_bins=self.train_bins), self.weights,
                                                 self.progress, True, "table")
+        search_range = self.config.search_range
         with torch.no_grad():
-            high = frames.exposure_time if self.search_range is None else torch.full_like(
-                frames.exposure_time, self.search_range[1])
+            high = frames.exposure_time if search_range is None else torch.full_like(
+                frames.exposure_time, search_range[1])
             latency = torch.minimum(model(frames.blurry).clamp_min(0.0), high.to(frames.blurry).view(-1, 1, 1, 1))
             corrected = frames.events.shift(latency.double())
             latent = _edi_deblur(frames.blurry, corrected, frames.exposure_start, frames.exposure_end,
-                                 _mid_exposure(frames), theta, None, self.num_bins)
+                                 _mid_exposure(frames), theta, None, self.config.num_bins)
         meta = dict(frames.meta)
         meta["latency_curve"] = model.coefficients.detach().cpu()
         return frames.with_outputs(latency=latency.float().contiguous(), corrected=corrected, latent=latent, meta=meta)

@@ -86,6 +86,16 @@ class TestPolynomialLatency:
             EventLatencyCorrector(mode="spatial", threshold="auto")
         assert SpatialLatencyCorrector(steps=150).progress and not SpatialLatencyCorrector(steps=60).progress
 
+    def test_search_settings_reach_the_spatial_mode(self):
+        # the constant starting point of the fit is searched as the corrector was told, not with defaults
+        corrector = EventLatencyCorrector(mode="spatial", score="etf", ghost_confidence=None, search_range=(0, 9000),
+                                          num_candidates=40)
+        config = corrector.spatial.config
+        assert (config.score, config.ghost_confidence, config.search_range, config.num_candidates) == (
+            "etf", None, (0.0, 9000.0), 40)
+        with pytest.raises(ValueError, match="config must be a SearchConfig"):
+            SpatialLatencyCorrector(config={"score": "etf"})
+
 
 def test_gradients_reach_every_coefficient(frames):
     # finite differences of L_total (float64) against autograd, for every a_i
