@@ -156,11 +156,13 @@ def search_constant_latency(
             prefix-sum table (trapezoidal rule), as before the continuous integral; kept for comparison.
         config: the search settings as one :class:`~evlatcorr.config.SearchConfig` (already validated); when
             given it replaces ``num_bins``, ``search_range``, ``num_candidates``, ``refine``, ``epsilon``,
-            ``window``, ``sigma_us`` and ``score``.
+            ``window``, ``sigma_us`` and ``score``, and sets ``ghost_confidence``.
 
     Candidates whose window ``[exposure_start + l, exposure_end + l]`` runs past a sample's last
     event are never scored. When the curve has no interior minimum (see ``confidence``), the
-    latency falls back to ``previous_latency`` or, without it, the lower end of the range.
+    latency falls back to ``previous_latency`` or, without it, to the zero of the ghost-moment cue
+    (:mod:`evlatcorr.ghost`, ``config.ghost_confidence``) where it has a clear one, else to the lower end
+    of the range; ``source`` says which.
 
     Candidates are whole sub-intervals ``exposure time / num_bins``, so the first one may lie up to
     a sub-interval below ``low`` and the last above ``high`` (a range narrower than a sub-interval
