@@ -148,16 +148,15 @@ def spatial_objective(
     """
     theta = check_threshold(threshold, frames.batch_size)
     _check_grid_spans(grid, frames, 0.0, l_max, num_bins)  # the map is clipped into [0, l_max]
-    return _spatial_objective(model, frames, l_const, l_max, etf_const, theta, num_bins, weights, epsilon, window,
-                              sigma_us, grid, table)
+    config = SearchConfig(num_bins=num_bins, epsilon=epsilon, window=window, sigma_us=sigma_us)
+    return _spatial_objective(model, frames, l_const, l_max, etf_const, theta, config, weights, grid, table)
 
 
 def _spatial_objective(model: PolynomialLatency, frames: EventFrames, l_const: Tensor, l_max: Tensor,
-                       etf_const: Tensor, theta: Tensor, num_bins: int, weights: LossWeights | None, epsilon: float,
-                       window: int, sigma_us: float, grid: EventGrid | None, table: LatencyTable | None
-                       ) -> dict[str, Tensor]:
+                       etf_const: Tensor, theta: Tensor, config: SearchConfig, weights: LossWeights | None,
+                       grid: EventGrid | None, table: LatencyTable | None) -> dict[str, Tensor]:
     """:func:`spatial_objective` of checked inputs: a positive threshold :math:`(B,)`, a grid spanning
-    ``[0, l_max]``."""
+    ``[0, l_max]``; ``config`` gives the EDI bins and the ETF settings."""
     w = weights or LossWeights()
     latency = model(frames.blurry)  # (B, 1, H, W) µs
     b = latency.shape[0]
@@ -167,9 +166,9 @@ def _spatial_objective(model: PolynomialLatency, frames: EventFrames, l_const: T
         latent = frames.blurry * torch.exp(-table.read(clipped)).to(frames.blurry.dtype)
     else:
         latent = _edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                             _mid_exposure(frames), theta, clipped, num_bins, integral="linear", grid=grid)
+                             _mid_exposure(frames), theta, clipped, config.num_bins, integral="linear", grid=grid)
     mean_latency = clipped.mean(dim=(1, 2, 3))
-    etf = etf_loss(latent, mean_latency, l_const.to(latency), epsilon, window, sigma_us)
+    etf = etf_loss(latent, mean_latency, l_const.to(latency), config.epsilon, config.window, config.sigma_us)
     # latencies as fractions of each frame's exposure time: dimensionless, so the paper's weights hold
     unit = frames.exposure_time.to(latency).view(b, 1, 1, 1)
     terms = {
@@ -267,7 +266,6 @@ def _fit_spatial_latency(frames: EventFrames, model: PolynomialLatency | None, s
     """:func:`fit_spatial_latency` of checked inputs (a positive threshold :math:`(B,)`); ``config`` holds the
     fit's EDI bins (``num_bins``), the latency range and the constant search's settings."""
     num_bins, search_range = config.num_bins, config.search_range
-    epsilon, window, sigma_us = config.epsilon, config.window, config.sigma_us
     model = model if model is not None else PolynomialLatency()
     model = model.to(frames.device)
     l_max = frames.exposure_time if search_range is None else torch.full_like(frames.exposure_time, search_range[1])
@@ -293,8 +291,7 @@ def _fit_spatial_latency(frames: EventFrames, model: PolynomialLatency | None, s
         iterator = tqdm(iterator, desc="fit latency curve", unit="step")
     for _ in iterator:
         optimiser.zero_grad()
-        terms = _spatial_objective(model, frames, l_const, l_max, etf_const, theta, num_bins, weights, epsilon,
-                                   window, sigma_us, grid, table)
+        terms = _spatial_objective(model, frames, l_const, l_max, etf_const, theta, config, weights, grid, table)
         terms["total"].backward()
         optimiser.step()
         history.append(float(terms["total"].detach()))
