@@ -65,6 +65,9 @@ def main(argv: list[str] | None = None) -> None:
                    help="built-in correctors estimate the threshold (threshold='auto') instead of the true one")
     p.add_argument("--search-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                    help="latency search range of the built-in correctors, µs (default: their own, 0 to the exposure)")
+    p.add_argument("--ghost-confidence", type=float, default=None, metavar="C",
+                   help="built-in correctors: frames whose score confidence is at most C take the ghost cue's "
+                        "latency (default: theirs, 0: only frames with no minimum; see evlatcorr.ghost)")
     p.add_argument("--cases", nargs="+", default=None, metavar="NAME", help="case names or glob patterns")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     p.add_argument("--out", type=Path, default=Path("outputs/accuracy"))
@@ -81,6 +84,8 @@ def main(argv: list[str] | None = None) -> None:
 
     threshold_of = (lambda case: "auto") if args.auto_threshold else (lambda case: case.threshold)
     options = {} if args.search_range is None else {"search_range": tuple(args.search_range)}
+    if args.ghost_confidence is not None:
+        options["ghost_confidence"] = args.ghost_confidence
     modes = {"both": ("constant", "spatial"), "none": ()}.get(args.mode, (args.mode,))
     estimators = {}
     for mode in modes:

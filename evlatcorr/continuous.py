@@ -167,11 +167,8 @@ class ContinuousIntegral:
               dtype: torch.dtype) -> Tensor:
         """log R (float64) or 1 / R (float32) of every window, a strip of rows at a time."""
         lat = latencies.to(self.device, torch.float64).reshape(-1)
-        points = torch.stack([start + lat, end + lat, start + reference * (end - start) + lat])  # (3, K)
-        # on a 1/1024 µs lattice, so window ends that meet other windows' starts (or references) are one point
-        points = torch.round(points * _LATTICE) / _LATTICE
-        times, index = torch.unique(points.reshape(-1), sorted=True, return_inverse=True)
-        a, b, r = index.view(3, -1)
+        mid = start + reference * (end - start)
+        times, (a, b, r) = _distinct_times(torch.stack([start + lat, end + lat, mid + lat]))
         height, width = self.sensor_size
         # a strip of rows at a time: the tables of all the times stay within STRIP_BYTES
         rows = max(1, min(height, STRIP_BYTES // (len(times) * width * BYTES_PER_POINT)))
@@ -204,9 +201,7 @@ class ContinuousIntegral:
             :math:`(K, 1, H, W)` float32: θ times each pixel's net signed events in ``[start + l, end + l)``.
         """
         lat = latencies.to(self.device, torch.float64).reshape(-1)
-        points = torch.round(torch.stack([start + lat, end + lat]) * _LATTICE) / _LATTICE
-        times, index = torch.unique(points.reshape(-1), sorted=True, return_inverse=True)
-        a, b = index.view(2, -1)
+        times, (a, b) = _distinct_times(torch.stack([start + lat, end + lat]))
         # C(g) counts the events before g: an event counts from the first time after it on (slot G: never)
         slot = torch.searchsorted(times, self.t, right=True)
         p = self.num_pixels
@@ -215,6 +210,17 @@ class ContinuousIntegral:
         table = table.view(len(times) + 1, p)[:len(times)].cumsum(0)
         change = table.index_select(0, b).sub_(table.index_select(0, a))
         return change.view(len(lat), 1, *self.sensor_size)
+
+
+def _distinct_times(points: Tensor) -> tuple[Tensor, Tensor]:
+    """The sorted distinct times of ``points`` :math:`(M, K)` and where each point lies among them :math:`(M, K)`.
+
+    Times are rounded to a 1/1024 µs lattice first, so window ends that meet other windows' starts (or
+    references) computed two ways are one point.
+    """
+    points = torch.round(points * _LATTICE) / _LATTICE
+    times, index = torch.unique(points.reshape(-1), sorted=True, return_inverse=True)
+    return times, index.view(points.shape)
 
 
 def _cumsum_rows_(table: Tensor) -> Tensor:

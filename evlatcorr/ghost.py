@@ -47,14 +47,25 @@ def ghost_moment(grey: Tensor, log_ratio: Tensor, log_change: Tensor, sigma: flo
     Returns:
         :math:`(K,)` in [-1, 1]; 0 where either image is flat.
 
+    Raises:
+        ValueError: when the shapes do not match or ``sigma`` is not positive.
+
     Example:
-        >>> grey = torch.rand(1, 1, 16, 16)
-        >>> change = torch.randn(3, 1, 16, 16)
-        >>> log_ratio = torch.stack([-0.1 * change[0], 0 * change[1], 0.1 * change[2]])  # ghost of −, 0, + sign
+        >>> g = torch.Generator().manual_seed(0)
+        >>> grey = 0.4 + 0.2 * torch.rand(1, 1, 16, 16, generator=g)
+        >>> change = torch.randn(3, 1, 16, 16, generator=g)
+        >>> log_ratio = torch.stack([-0.5 * change[0], 0 * change[1], 0.5 * change[2]])  # ghost of +, 0, − sign
         >>> m = ghost_moment(grey, log_ratio, change)
         >>> bool(m[0] > 0 > m[2])
         True
     """
+    if grey.dim() != 4 or grey.shape[:2] != (1, 1):
+        raise ValueError(f"grey must be (1, 1, H, W), got {tuple(grey.shape)}")
+    if log_ratio.dim() != 4 or log_ratio.shape[1:] != grey.shape[1:] or log_change.shape != log_ratio.shape:
+        raise ValueError(f"log_ratio and log_change must both be (K, 1, H, W) with (H, W) = {tuple(grey.shape[-2:])}, "
+                         f"got {tuple(log_ratio.shape)} and {tuple(log_change.shape)}")
+    if not sigma > 0:
+        raise ValueError(f"sigma must be positive, got {sigma}")
     log_latent = torch.log(grey.double().clamp_min(_FLOOR)) - log_ratio.double()
     size = 2 * int(3 * sigma + 0.5) + 1
     low_pass = kornia.filters.GaussianBlur2d((size, size), (sigma, sigma))
@@ -76,12 +87,18 @@ def ghost_root(latencies: Tensor, moment: Tensor) -> float | None:
         the crossing, interpolated linearly between its two candidates, µs; None when the curve never
         changes sign, changes it more than once (noise) or rises through zero (not a ghost that vanishes).
 
+    Raises:
+        ValueError: when the two are not 1-D of one length.
+
     Example:
         >>> ghost_root(torch.tensor([0.0, 100.0, 200.0, 300.0]), torch.tensor([0.3, 0.1, -0.1, -0.3]))
         150.0
         >>> ghost_root(torch.tensor([0.0, 100.0, 200.0]), torch.tensor([0.2, -0.1, 0.1])) is None
         True
     """
+    if latencies.dim() != 1 or moment.shape != latencies.shape:
+        raise ValueError(f"latencies and moment must be 1-D of one length, got {tuple(latencies.shape)} and "
+                         f"{tuple(moment.shape)}")
     if len(moment) < 3:
         return None
     above = (moment > 0).cpu()

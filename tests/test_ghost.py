@@ -60,3 +60,19 @@ def test_config_bounds():
     for bad in (-0.1, 1.5):
         with pytest.raises(ValueError, match="ghost_confidence must be in"):
             SearchConfig(ghost_confidence=bad)
+
+
+@pytest.mark.parametrize("grey, log_ratio, change, sigma, match", [
+    (torch.rand(1, 3, 8, 8), torch.zeros(2, 1, 8, 8), torch.zeros(2, 1, 8, 8), 1.0, r"grey must be \(1, 1, H, W\)"),
+    (torch.rand(1, 1, 8, 8), torch.zeros(2, 1, 8, 7), torch.zeros(2, 1, 8, 7), 1.0, "log_ratio and log_change"),
+    (torch.rand(1, 1, 8, 8), torch.zeros(2, 1, 8, 8), torch.zeros(3, 1, 8, 8), 1.0, "log_ratio and log_change"),
+    (torch.rand(1, 1, 8, 8), torch.zeros(2, 1, 8, 8), torch.zeros(2, 1, 8, 8), 0.0, "sigma must be positive"),
+])
+def test_moment_bad_input(grey, log_ratio, change, sigma, match):
+    with pytest.raises(ValueError, match=match):
+        ghost_moment(grey, log_ratio, change, sigma)
+
+
+def test_root_bad_input():
+    with pytest.raises(ValueError, match="1-D of one length"):
+        ghost_root(torch.zeros(4), torch.zeros(3))
