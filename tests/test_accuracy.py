@@ -15,6 +15,7 @@ from evlatcorr.benchmark.accuracy import (
     evaluate_case,
     load_estimator,
     make_cases,
+    run_suite,
     simulate_case,
     summarize,
     to_markdown,
@@ -181,6 +182,28 @@ def test_summary_and_files(tiny, tmp_path):
     data = json.loads(paths["json"].read_text())
     assert len(data["results"]) == 4 and data["summary"]["groups"]
     assert paths["csv"].read_text().count("\n") == 5
+
+
+def test_an_estimator_that_raises_fails_its_case_not_the_suite(tiny, tmp_path):
+    case, simulated, ref = tiny
+
+    def no_events(frames):
+        raise ValueError("sample 0 has no events")
+
+    failed = evaluate_case(case, no_events, simulated=simulated, reference=ref)
+    assert failed["error"] == "ValueError: sample 0 has no events"
+    assert math.isnan(failed["est_latency_us"]) and math.isnan(failed["recovery"]) and not failed["no_gap"]
+    assert failed["psnr_ideal"] == ref["psnr_ideal"]  # the reference still reported
+    good = evaluate_case(case, lambda f: f.meta["true_latency"], simulated=simulated, reference=ref)
+    assert good["error"] == ""
+    rows = [dict(failed, estimator="e"), dict(good, estimator="e")]
+    group = next(g for g in summarize(rows)["groups"] if g["latency_model"] == "constant")
+    # the failure is counted, and left out of the figures the other case sets
+    assert group["failed"] == 1 and group["worst_abs_error_us"] == 0.0 and group["cases"] == 2
+    assert "failed: ValueError: sample 0 has no events" in to_markdown(rows)
+    lines = []
+    run_suite([case], {"e": lambda c: no_events}, progress=lines.append)
+    assert lines == ["[1/1]        e tiny: the estimator failed (ValueError: sample 0 has no events)"]
 
 
 def test_load_estimator_from_a_file(tmp_path):

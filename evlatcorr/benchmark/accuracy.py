@@ -423,7 +423,8 @@ def evaluate_case(case: Case, estimate: Estimator, *,
         ``latency_abs_error_us``, ``latency_bias_us`` (mean estimate − mean truth), ``psnr_corrected``,
         ``recovery`` (NaN when there is no gap), ``no_gap``, ``best_shift_share`` (the share of the best
         constant shift's PSNR gain; NaN for ``"intensity_delay"``), ``time_s`` (the estimate's wall time) and
-        ``warnings`` (messages raised by it).
+        ``warnings`` (messages raised by it) and ``error`` (empty; when the estimator raised, its exception as
+        ``"Type: message"``, with NaN estimates and scores: one case's failure does not stop a suite).
     """
     simulated = simulated if simulated is not None else simulate_case(case)
     delayed = simulated[0]
@@ -432,7 +433,10 @@ def evaluate_case(case: Case, estimate: Estimator, *,
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         t0 = time.perf_counter()
-        raw = estimate(frames)
+        try:
+            raw = estimate(frames)
+        except Exception as exc:  # noqa: BLE001 - one case's failure is recorded, the suite goes on
+            return _failed_row(case, ref, f"{type(exc).__name__}: {exc}", time.perf_counter() - t0, caught)
         elapsed = time.perf_counter() - t0
     latency = _as_map(raw, delayed)
     true = delayed.meta["true_latency"].to(torch.float64)
@@ -450,7 +454,21 @@ def evaluate_case(case: Case, estimate: Estimator, *,
         "est_latency_max_us": float(latency.max()), "latency_error_us": error, "latency_abs_error_us": abs_error,
         "latency_bias_us": float(latency.mean() - true.mean()), "psnr_corrected": psnr_corrected,
         "recovery": recovery, "no_gap": bool(math.isnan(recovery)), "best_shift_share": share, "time_s": elapsed,
-        "warnings": sorted({str(w.message) for w in caught}),
+        "warnings": sorted({str(w.message) for w in caught}), "error": "",
+    }
+
+
+def _failed_row(case: Case, ref: Mapping[str, Any], error: str, elapsed: float, caught: Sequence[Any]
+                ) -> dict[str, Any]:
+    """:func:`evaluate_case`'s row for an estimator that raised: NaN estimates and scores, the message in ``error``."""
+    nan = math.nan
+    return {
+        **_case_columns(case), **ref,
+        "est_latency_us": nan, "est_latency_min_us": nan, "est_latency_max_us": nan, "latency_error_us": nan,
+        "latency_abs_error_us": nan, "latency_bias_us": nan, "psnr_corrected": nan, "recovery": nan,
+        "no_gap": bool(math.isnan(_gain_ratio(ref["psnr_uncorrected"], ref["psnr_uncorrected"], ref["psnr_ideal"]))),
+        "best_shift_share": nan, "time_s": elapsed, "warnings": sorted({str(w.message) for w in caught}),
+        "error": error,
     }
 
 
@@ -531,7 +549,9 @@ def run_suite(cases: Sequence[Case], estimators: Mapping[str, Callable[[Case], E
             row = evaluate_case(case, factory(case), simulated=simulated, reference=reference)
             row.update(estimator=name, sim_time_s=t1 - t0, reference_time_s=t2 - t1)
             results.append(row)
-            if progress is not None:
+            if progress is not None and row["error"]:
+                progress(f"[{k + 1}/{len(cases)}] {name:>8} {case.name}: the estimator failed ({row['error']})")
+            elif progress is not None:
                 progress(f"[{k + 1}/{len(cases)}] {name:>8} {case.name}: true {row['true_latency_us']:.0f} est "
                          f"{row['est_latency_us']:.0f} err {row['latency_error_us']:+.0f} us, PSNR ideal "
                          f"{row['psnr_ideal']:.2f} uncorr {row['psnr_uncorrected']:.2f} corr "
@@ -554,7 +574,7 @@ def _group_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     const = [r for r in rows if r["latency_model"] == "constant"]
     gap = [r for r in rows if r["latency_model"] in ("constant", "intensity_delay")]
     photo = [r for r in rows if r["latency_model"] == "intensity"]
-    errors = [r["latency_abs_error_us"] for r in const]
+    errors = _finite(r["latency_abs_error_us"] for r in const)
     # how far EDI's own PSNR optimum lies from the truth: the floor of a latency error that still buys image quality
     oracle = [abs(r["best_shift_us"] - r["true_latency_us"]) for r in const]
     recovery = _finite(r["recovery"] for r in gap)
@@ -568,6 +588,7 @@ def _group_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "median_best_shift_share": _median(r["best_shift_share"] for r in photo),
         "median_const_best_shift_share": _median(r["best_shift_share"] for r in const),
         "median_time_s": _median(r["time_s"] for r in rows),
+        "failed": sum(bool(r.get("error")) for r in rows),
     }
 
 
@@ -579,7 +600,8 @@ def summarize(results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "worst_abs_error_us", "median_best_shift_error_us" (|oracle shift − true|),
         "median_const_best_shift_share" (constant cases), "median_map_error_us" (map cases), "median_recovery",
         "worst_recovery" (constant and intensity_delay cases with a gap), "no_gap",
-        "median_best_shift_share" (intensity), "median_time_s"}, ...], "spatial_vs_constant": [...]}``;
+        "median_best_shift_share" (intensity), "median_time_s", "failed" (cases whose estimator raised; left out
+        of the other figures)}, ...], "spatial_vs_constant": [...]}``;
         the second lists, for map cases evaluated by both ``"constant"`` and ``"spatial"``, their
         map errors and whether spatial's is lower.
     """
@@ -625,8 +647,8 @@ def to_markdown(results: Sequence[Mapping[str, Any]], summary: Mapping[str, Any]
     lines = ["## Summary", "",
              "| estimator | split | latency model | cases | median abs error µs | worst abs error µs | "
              "median abs error of EDI's best shift µs | median map error µs | median recovery | worst recovery | "
-             "no gap | median share of best shift | median time s |",
-             "|" + " --- |" * 13]
+             "no gap | median share of best shift | median time s | failed |",
+             "|" + " --- |" * 14]
     for g in summary["groups"]:
         photo = g["latency_model"] == "intensity"
         share = g["median_best_shift_share"] if photo else g["median_const_best_shift_share"]
@@ -636,7 +658,7 @@ def to_markdown(results: Sequence[Mapping[str, Any]], summary: Mapping[str, Any]
                      f"{_share(g['median_recovery'])} | "
                      f"{_share(g['worst_recovery'])} | {g['no_gap']} | "
                      f"{_share(share)} | "
-                     f"{_num(g['median_time_s'], 2)} |")
+                     f"{_num(g['median_time_s'], 2)} | {g['failed']} |")
     comparison = summary.get("spatial_vs_constant") or []
     if comparison:
         wins = sum(c["spatial_better"] for c in comparison)
@@ -658,10 +680,13 @@ def to_markdown(results: Sequence[Mapping[str, Any]], summary: Mapping[str, Any]
               "|" + " --- |" * 13]
     for r in results:
         best = "" if math.isnan(r["psnr_best_shift"]) else f"{r['best_shift_us']:.0f} / {r['psnr_best_shift']:.2f}"
+        estimate = (f"{r['est_latency_us']:.0f} | {r['latency_error_us']:+.0f}" if not r.get("error")
+                    else f"failed: {r['error']} | –")
         lines.append(f"| {r['estimator']} | {r['name']} | {r['noise_models'] or '–'} | {r['true_latency_us']:.0f} | "
-                     f"{r['est_latency_us']:.0f} | {r['latency_error_us']:+.0f} | {r['psnr_ideal']:.2f} | "
-                     f"{r['psnr_uncorrected']:.2f} | {r['psnr_corrected']:.2f} | {_pct(r['recovery'])} | {best} | "
-                     f"{'' if math.isnan(r['psnr_best_shift']) else _pct(r['best_shift_share'])} | "
+                     f"{estimate} | {r['psnr_ideal']:.2f} | "
+                     f"{r['psnr_uncorrected']:.2f} | {_num(r['psnr_corrected'], 2)} | "
+                     f"{'–' if r.get('error') else _pct(r['recovery'])} | {best} | "
+                     f"{'' if math.isnan(r['psnr_best_shift']) or r.get('error') else _pct(r['best_shift_share'])} | "
                      f"{r['time_s']:.2f} |")
     return "\n".join(lines) + "\n"
 
