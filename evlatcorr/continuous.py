@@ -110,30 +110,31 @@ class ContinuousIntegral:
         work = torch.empty(2 * len(times) * height * width, dtype=torch.float64, device=self.device)
         return self._tables(times, 0, height, work)
 
-    def _tables(self, g: Tensor, r0: int, r1: int, work: Tensor, slots: _Slots | None = None
-                ) -> tuple[Tensor, Tensor]:
+    def _tables(self, g: Tensor, r0: int, r1: int, work: Tensor) -> tuple[Tensor, Tensor]:
         """:meth:`at` for the rows ``[r0, r1)``: :math:`(G, r1 − r0, W)` each, written into ``work`` (float64, at
-        least ``2·G·(r1 − r0)·W`` elements, overwritten); ``slots``: how to place event times among ``g``."""
+        least ``2·G·(r1 − r0)·W`` elements, overwritten)."""
         width = self.sensor_size[1]
         num, p = len(g), (r1 - r0) * width
         lo, hi = self.row_bounds[r0], self.row_bounds[r1]
         t, pixel = self.t[lo:hi], self.pixel[lo:hi] - r0 * width
-        # g[slot - 1] <= t < g[slot]; events before g_0 land in slot 0, those from g_{G-1} on past the table
-        slot = (slots or _Slots(g))(t)
-        # exp(level) is piecewise constant: at g_j it is its value before the pixel's first event, exp(−peak),
-        # plus the rises of every event before g_j (those before g_0 as well: slot 0), and its integral from g_0 is
-        # (g_j − g_0)·level(g_j) − Σ rise·(t − g_0) over the events in [g_0, g_j). Masks as weights, not
-        # compaction, so nothing waits on the device for a count.
-        counted = slot < num
-        rise = torch.where(counted, self.rise[lo:hi], 0.0)
-        # both tables in one (G, 2, P) buffer, each time's level row beside its held row: one cumulative sum
-        # over the time rows covers both
-        tables = work[:2 * num * p].view(num, 2, p).zero_()
-        flat = slot.clamp_(max=num - 1).mul_(2 * p).add_(pixel)
-        tables.view(-1).index_add_(0, flat, rise)
-        tables.view(-1).index_add_(0, flat.add_(p), rise.mul_((t - g[0]).clamp_(min=0.0)))
-        _cumsum_rows_(tables.view(num, 2 * p))
-        level, held = tables[:, 0].add_(torch.exp(-self.peak[r0 * width:r1 * width])), tables[:, 1]
+        after, before = self.level_after[lo:hi], self.level_before[lo:hi]
+        # events before the grid set the start level, those inside it the steps; masks as weights, not
+        # compaction, so nothing waits on the device for a count
+        ahead = t < g[0]
+        inside = ~ahead & (t < g[-1])
+        peak = self.peak[r0 * width:r1 * width]
+        # θC at g_0 (exact, in the log domain), relative to the pixel's peak
+        start_level = torch.zeros(p, dtype=torch.float64, device=self.device).index_add_(
+            0, pixel, torch.where(ahead, after - before, 0.0))
+        slot = torch.searchsorted(g, t, right=True).clamp_(max=num - 1)  # g[slot - 1] <= t < g[slot] inside
+        # exp(level) is piecewise constant: its value at g_j is the start value plus the rises of the events
+        # before g_j, and its integral from g_0 is (g_j − g_0)·level(g_j) − Σ rise·(t − g_0) over those events
+        rise = torch.where(inside, self.rise[lo:hi], 0.0)
+        flat = slot * p + pixel
+        level = work[:num * p].zero_().index_add_(0, flat, rise)
+        held = work[num * p:2 * num * p].zero_().index_add_(0, flat, rise * (t - g[0]))
+        level = _cumsum_rows_(level.view(num, p)).add_(torch.exp(start_level - peak))
+        held = _cumsum_rows_(held.view(num, p))
         s_total = held.neg_().addcmul_(level, (g - g[0])[:, None])
         return s_total.view(num, r1 - r0, width), level.view(num, r1 - r0, width)
 
@@ -177,10 +178,9 @@ class ContinuousIntegral:
             raise ValueError(f"out must be {dtype} {(len(lat), 1, height, width)}, got {out.dtype} {tuple(out.shape)}")
         # one work buffer for every strip's tables: fresh tables each strip would cost their page faults again
         work = torch.empty(2 * len(times) * rows * width, dtype=torch.float64, device=self.device)
-        slots = _Slots(times)
         for r0 in range(0, height, rows):
             r1 = min(height, r0 + rows)
-            s_total, level = self._tables(times, r0, r1, work, slots)
+            s_total, level = self._tables(times, r0, r1, work)
             mean = s_total.index_select(0, b).sub_(s_total.index_select(0, a)).clamp_min_(1e-300)
             if dtype == torch.float64:
                 mean.div_(level.index_select(0, r)).div_(end - start)
@@ -203,56 +203,13 @@ class ContinuousIntegral:
         lat = latencies.to(self.device, torch.float64).reshape(-1)
         times, (a, b) = _distinct_times(torch.stack([start + lat, end + lat]))
         # C(g) counts the events before g: an event counts from the first time after it on (slot G: never)
-        slot = _Slots(times)(self.t)
+        slot = torch.searchsorted(times, self.t, right=True)
         p = self.num_pixels
         table = torch.zeros((len(times) + 1) * p, dtype=torch.float32, device=self.device).index_add_(
             0, slot * p + self.pixel, (self.level_after - self.level_before).to(torch.float32))
         table = table.view(len(times) + 1, p)[:len(times)].cumsum(0)
         change = table.index_select(0, b).sub_(table.index_select(0, a))
         return change.view(len(lat), 1, *self.sensor_size)
-
-
-class _Slots:
-    """Where event times fall among sorted times ``g``: ``slot`` with ``g[slot − 1] <= t < g[slot]`` (0 before
-    ``g[0]``, ``len(g)`` from ``g[−1]`` on), as ``torch.searchsorted(g, t, right=True)``.
-
-    The search's times lie on a lattice (its candidates are evenly spaced and their windows share ends), and
-    there a time's slot is a division and a table lookup, about 10x faster on a CPU than a binary search per
-    event. The division's rounding is corrected with two comparisons against exact lattice times (``g`` is on
-    the 1/1024 µs lattice, so ``g[0] + k·step`` is exact), so both ways give the same slots.
-    """
-
-    # the lookup table may hold this many lattice points per time (and at least _MIN_LATTICE)
-    _MAX_FILL, _MIN_LATTICE = 8, 4096
-
-    def __init__(self, g: Tensor) -> None:
-        self.g, self.lookup = g, None
-        if len(g) < 3:
-            return
-        step = float((g[1:] - g[:-1]).min())
-        span = float(g[-1] - g[0])
-        if not step > 0 or span / step > max(self._MAX_FILL * len(g), self._MIN_LATTICE):
-            return
-        k = (g - g[0]) / step
-        index = torch.round(k)
-        if not bool((g[0] + index * step == g).all()):  # not on one lattice
-            return
-        self.step, self.size = step, int(index[-1]) + 1
-        # lattice point j (time g[0] + j·step) → how many of g are <= it
-        lattice = torch.zeros(self.size + 1, dtype=torch.int64, device=g.device)
-        lattice.index_add_(0, index.to(torch.int64), torch.ones_like(index, dtype=torch.int64))
-        self.lookup = torch.cumsum(lattice, 0)
-
-    def __call__(self, t: Tensor) -> Tensor:
-        if self.lookup is None:
-            return torch.searchsorted(self.g, t, right=True)
-        g0, step = self.g[0], self.step
-        # j: the lattice point at or before t (−1 before g[0]); rounding fixed against the exact lattice times
-        j = torch.floor((t - g0) / step)
-        j = j.sub_((g0 + j * step > t).to(j.dtype)).add_((g0 + (j + 1) * step <= t).to(j.dtype))
-        before = j < 0
-        slot = self.lookup.index_select(0, j.clamp_(0, self.size).to(torch.int64))
-        return slot.masked_fill_(before, 0)
 
 
 def _distinct_times(points: Tensor) -> tuple[Tensor, Tensor]:

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from evlatcorr.continuous import ContinuousIntegral, _Slots
+from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.edi import edi_deblur
 from evlatcorr.events import Events
 from evlatcorr.simulate import simulate
@@ -118,20 +118,6 @@ def test_times_evaluated_together_or_apart_agree():
     together = ci.log_ratio(start, end, torch.linspace(0.0, 3000.0, 7))
     apart = torch.cat([ci.log_ratio(start, end, torch.tensor([v])) for v in torch.linspace(0.0, 3000.0, 7).tolist()])
     torch.testing.assert_close(together, apart, rtol=1e-10, atol=1e-12)
-
-
-@pytest.mark.parametrize("times, on_lattice", [
-    (torch.arange(-3.0, 40.0) * 62.5, True),
-    (torch.tensor([0.0, 200.0, 400.0, 10_000.0, 10_200.0, 20_000.0, 20_200.0]), True),  # with gaps
-    (torch.tensor([0.0, 1.0, 3.0]) / 1024, True),  # the finest lattice step
-    (torch.tensor([0.0, 1.5, 2.0, 7.25, 100.0]), False),  # a searchsorted per event
-])
-def test_slots_equal_searchsorted_including_times_on_the_grid(times, on_lattice):
-    g = times.to(torch.float64)
-    assert (_Slots(g).lookup is not None) == on_lattice
-    t = torch.cat([torch.rand(5000, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-                   * (g[-1] - g[0] + 400) + g[0] - 200, g, g - 1 / 1024, g + 1 / 1024, g.nextafter(g - 1)])
-    assert torch.equal(_Slots(g)(t), torch.searchsorted(g, t, right=True))
 
 
 @pytest.mark.parametrize("kwargs, match", [
