@@ -14,12 +14,18 @@ one-pass search, frames per second.
     python benchmarks/speed.py --part memory --events 3000000  # peak memory of one constant correction
     python benchmarks/speed.py --part batch                    # 4 frames in one call against one frame
     python benchmarks/speed.py --part spatial                  # the spatial test-time fit, new and previous
+    python benchmarks/speed.py --part against --against cfd57f4  # this checkout's default search against a revision's
 
 ``--part adapters`` times, at the benchmark's resolution (256x336, 20 ms exposure), the constant
 corrector (``EventLatencyCorrector()``: search, shift, EDI latent) against each adapter's forward pass
 (event representation + network, eval mode, no grad) on the same frame, and prints the corrector's
 cost as a percentage of each (``corrector/EFNet: <p> %``), each timed after three untimed calls (the
 steady state of a stream of frames). Weights do not change the time; the shipped ones are used when present.
+
+``--part against --against REV`` times the default search (``search_constant_latency`` at its defaults) of this
+checkout and of the git revision ``REV`` on the same frame, each in fresh processes taken in turn for
+``--rounds`` rounds (the machine's slow drifts hit both alike), and prints each one's median over every call and
+their ratio (``speed-up against REV: <x>``): the "old and new in one run" of a speed claim.
 
 ``--part memory`` runs one constant correction (``EventLatencyCorrector()``, the defaults) on a
 DAVIS346 frame (260x346) with ``--events`` events spread over its exposure and search window, in a
@@ -30,10 +36,13 @@ on a GPU, ``torch.cuda.max_memory_allocated``.
 from __future__ import annotations
 
 import argparse
+import json
 import resource
 import statistics
 import subprocess
 import sys
+import tarfile
+import tempfile
 import time
 from pathlib import Path
 
@@ -92,7 +101,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="repeats of the one-pass search")
     parser.add_argument("--naive-repeats", type=int, default=3, help="repeats of the naive loop")
     parser.add_argument("--device", action="append", help="cpu and/or cuda (default: cpu, and cuda if present)")
-    parser.add_argument("--part", choices=("search", "batch", "spatial", "adapters", "memory", "all"), default="all")
+    parser.add_argument("--part", choices=("search", "batch", "spatial", "adapters", "memory", "against", "all"),
+                        default="all", help="what to time; 'against' is not part of 'all' (it needs --against)")
+    parser.add_argument("--against", metavar="REV", help="git revision whose default search --part against times")
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of --part against")
     parser.add_argument("--events", type=int, default=3_000_000, help="events of --part memory")
     parser.add_argument("--memory-child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--adapter-size", type=int, nargs=2, default=(256, 336), metavar=("H", "W"),
@@ -101,6 +113,11 @@ def main() -> None:
     devices = args.device or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
     if args.memory_child:
         memory_child(torch.device(devices[0]), args)
+        return
+    if args.part == "against":
+        if not args.against:
+            parser.error("--part against needs --against REV (a git revision of this repository)")
+        bench_against(args)
         return
 
     print(f"frame {args.width}x{args.height}, {args.bins} bins, exposure {args.exposure_us / 1000:.0f} ms, "
@@ -117,6 +134,76 @@ def main() -> None:
             bench_batch(torch.device(name), args)
         if args.part in ("spatial", "all"):
             bench_spatial(torch.device(name), args)
+
+
+# one process's timing of the default search at a source tree (argv: tree, frame file, repeats); the tree's own
+# evlatcorr is imported first, before anything makes a tensor, as a user's script would
+_AGAINST_CHILD = """
+import json, sys, time
+tree, frame_file, repeats = sys.argv[1], sys.argv[2], int(sys.argv[3])
+sys.path.insert(0, tree)
+import evlatcorr
+import torch
+from evlatcorr.events import Events
+from evlatcorr.search import search_constant_latency
+assert evlatcorr.__file__.startswith(tree), evlatcorr.__file__
+d = torch.load(frame_file)
+events = Events(d["x"], d["y"], d["t"], d["p"], sensor_size=tuple(d["size"]))
+def call():
+    return search_constant_latency(d["blurry"], events, d["start"], d["end"], 0.2, d["bins"], None, d["candidates"])
+for _ in range(3):
+    call()
+times = []
+for _ in range(repeats):
+    t0 = time.perf_counter()
+    out = call()
+    times.append(time.perf_counter() - t0)
+print(json.dumps({"times": times, "latency": float(out.latency[0])}))
+"""
+
+
+def bench_against(args: argparse.Namespace) -> None:
+    """The default search of this checkout and of git revision ``args.against`` on one frame (CPU), in fresh
+    processes taken in turn."""
+    root = Path(__file__).resolve().parents[1]
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "revision"
+        tree.mkdir()
+        archive = Path(tmp) / "revision.tar"
+        try:
+            subprocess.run(["git", "-C", str(root), "archive", "--format=tar", "-o", str(archive), args.against],
+                           capture_output=True, text=True, check=True)
+        except (OSError, subprocess.CalledProcessError) as exc:
+            detail = getattr(exc, "stderr", "") or str(exc)
+            sys.exit(f"speed.py: cannot read revision {args.against!r} from the git repository at {root}: "
+                     f"{detail.strip()}")
+        with tarfile.open(archive) as tar:
+            tar.extractall(tree, **({"filter": "data"} if hasattr(tarfile, "data_filter") else {}))
+        blurry, ev, start, end = make_frame(args.height, args.width, args.exposure_us, 4000.0, torch.device("cpu"))
+        frame = Path(tmp) / "frame.pt"
+        torch.save({"blurry": blurry, "x": ev.x, "y": ev.y, "t": ev.t, "p": ev.p, "size": ev.sensor_size,
+                    "start": start, "end": end, "bins": args.bins, "candidates": args.candidates}, frame)
+        labels = {"this checkout": root, args.against: tree}
+        times: dict[str, list[float]] = {label: [] for label in labels}
+        latency: dict[str, float] = {}
+        print(f"[cpu] default search, this checkout against {args.against}: {len(ev)} events, {args.rounds} rounds "
+              f"of {args.repeats} calls each (after 3 untimed), fresh processes in turn", flush=True)
+        for k in range(args.rounds):
+            for label, path in labels.items():
+                run = subprocess.run([sys.executable, "-c", _AGAINST_CHILD, str(path), str(frame), str(args.repeats)],
+                                     capture_output=True, text=True)
+                if run.returncode != 0:
+                    sys.exit(f"speed.py: the search of {label} failed:\n{run.stderr.strip()[-2000:]}")
+                out = json.loads(run.stdout.strip().splitlines()[-1])
+                times[label] += out["times"]
+                latency[label] = out["latency"]
+                print(f"[cpu] round {k + 1}, {label}: median {statistics.median(out['times']) * 1000:.1f} ms",
+                      flush=True)
+    new, old = (statistics.median(times[label]) for label in labels)
+    print(f"[cpu] default search: this checkout {new * 1000:.1f} ms, {args.against} {old * 1000:.1f} ms (medians of "
+          f"{len(times[args.against])} calls; estimates {latency['this checkout']:.0f} and "
+          f"{latency[args.against]:.0f} us)")
+    print(f"[cpu] speed-up against {args.against}: {old / new:.2f}x")
 
 
 def bench_batch(device: torch.device, args: argparse.Namespace, batch: int = 4) -> None:

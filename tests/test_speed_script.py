@@ -1,0 +1,42 @@
+"""``benchmarks/speed.py --part against``: this checkout's default search timed against a git revision's."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "benchmarks" / "speed.py"
+
+pytestmark = pytest.mark.skipif(not (ROOT / ".git").exists(), reason="needs a git checkout (it reads a revision)")
+
+
+def run_speed(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), "--part", "against", *args], capture_output=True, text=True,
+                          cwd=ROOT, timeout=300)
+
+
+def test_against_a_revision_times_both_in_turn_and_prints_the_ratio():
+    run = run_speed("--against", "HEAD", "--height", "24", "--width", "32", "--repeats", "1", "--rounds", "2")
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    assert [line.split(":")[0] for line in lines if line.startswith("[cpu] round")] == [
+        "[cpu] round 1, this checkout", "[cpu] round 1, HEAD", "[cpu] round 2, this checkout", "[cpu] round 2, HEAD"]
+    summary = next(line for line in lines if "medians of 2 calls" in line)
+    # HEAD's search is this checkout's (the tests do not change it): the same estimate on the same frame
+    estimates = summary.split("estimates ")[1].split(" us")[0].split(" and ")
+    assert estimates[0] == estimates[1]
+    assert float(lines[-1].split("speed-up against HEAD: ")[1].rstrip("x")) > 0
+
+
+@pytest.mark.parametrize("args, code, message", [
+    (("--against", "no-such-revision-xyz"), 1, "cannot read revision 'no-such-revision-xyz'"),
+    ((), 2, "--part against needs --against REV"),
+])
+def test_against_bad_arguments_exit_with_one_clear_line(args, code, message):
+    run = run_speed(*args)
+    assert run.returncode == code and message in run.stderr
+    assert "Traceback" not in run.stderr
