@@ -26,11 +26,42 @@ from torch import Tensor
 from evlatcorr.checks import check_batch_vector, check_memory
 from evlatcorr.events import Events
 
-__all__ = ["event_histogram", "cumulative_event_grid", "sample_grid", "grid_bytes_per_point"]
+__all__ = ["event_histogram", "cumulative_event_grid", "sample_grid", "grid_bytes_per_point", "cumsum_"]
 
 # Smallest interval (µs) over which the linear integral spreads an event: two events at the same
 # pixel and timestamp become (almost) a step instead of a division by zero.
 _MIN_SPREAD_US = 1e-3
+
+
+def cumsum_(table: Tensor, dim: int) -> Tensor:
+    """Cumulative sum of ``table`` along ``dim``, in place (what :func:`torch.cumsum` gives).
+
+    On a CPU, ``torch.cumsum`` along any dim but the last walks each line with a stride of everything after
+    ``dim``: over the time bins of a ``(B, M, H, W)`` grid it took 314 ms where adding each slice to the next
+    took 15 ms here. The slices are added in the same order, so the sums are the same: bit for bit in float64,
+    and for integer values (event counts) in float32 (``torch.cumsum`` accumulates float32 in float64, which
+    can round differently on fractional values). The loop runs over the slices along ``dim`` (time bins or
+    time points, a few hundred), not over events or pixels; elsewhere ``torch.cumsum`` is one kernel.
+
+    Args:
+        table: any tensor.
+        dim: the dimension to sum along.
+
+    Returns:
+        ``table``, overwritten with its cumulative sum.
+
+    Example:
+        >>> cumsum_(torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]), 0)
+        tensor([[ 1.,  2.],
+                [ 4.,  6.],
+                [ 9., 12.]])
+    """
+    if table.device.type != "cpu":
+        return table.copy_(torch.cumsum(table, dim))
+    slices = table.unbind(dim)
+    for before, after in zip(slices[:-1], slices[1:]):
+        after.add_(before)
+    return table
 
 
 def grid_bytes_per_point(integral: str = "step", dtype: torch.dtype = torch.float32) -> int:
@@ -165,7 +196,9 @@ def _cumulative_event_grid(events: Events, g0: Tensor, width_us: Tensor, num_bin
         hist = _event_histogram(events, g0, g0 + num_bins * width_us, num_bins, dtype)
         b, _, height, width = hist.shape
         cum = hist.new_zeros((b, num_bins + 1, height, width))
-        torch.cumsum(hist, 1, out=cum[:, 1:])  # into its place: two grid-sized arrays at a time, not three
+        cum[:, 1:] = hist  # summed in its place: two grid-sized arrays at a time, not three
+        del hist
+        cumsum_(cum[:, 1:], 1)
         return cum
     return _linear_grid(events, g0, width_us, num_bins).to(dtype)
 
@@ -212,8 +245,8 @@ def _linear_grid(events: Events, g0: Tensor, width_us: Tensor, num_bins: int) ->
         flat = (bidx * m1 + slot) * (height * width) + pix2 % (height * width)
         s1.index_add_(0, flat[keep], c[keep])
         s2.index_add_(0, flat[keep], (c * q)[keep])
-    s1 = s1.view(b, m1, height, width).cumsum(1)
-    s2 = s2.view(b, m1, height, width).cumsum(1)
+    s1 = cumsum_(s1.view(b, m1, height, width), 1)
+    s2 = cumsum_(s2.view(b, m1, height, width), 1)
     grid = torch.arange(m1, dtype=torch.float64, device=device).view(1, m1, 1, 1)
     cum = grid * s1 - s2
     return cum - cum[:, :1]

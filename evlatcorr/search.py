@@ -43,7 +43,7 @@ from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
 from evlatcorr.events import Events
 from evlatcorr.ghost import ghost_moment, ghost_root
-from evlatcorr.integral import _row_strips, cumulative_event_grid
+from evlatcorr.integral import _row_strips, cumsum_, cumulative_event_grid
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score",
            "sharpness_scores", "SCORES", "DEFAULT_SCORE", "SearchConfig"]
@@ -631,7 +631,9 @@ class _ShiftTable:
         x = self.theta * cum.double()
         peak = x.amax(0, keepdim=True)
         prefix = torch.zeros((x.shape[0] + 1, *x.shape[1:]), dtype=x.dtype, device=x.device)
-        torch.cumsum(torch.exp_(x.sub_(peak)), 0, out=prefix[1:])  # in place: one float64 copy at a time
+        prefix[1:] = torch.exp_(x.sub_(peak))  # summed in place: one float64 copy at a time
+        del x
+        cumsum_(prefix[1:], 0)
         return cum, peak, prefix
 
     def log_ratio(self, shifts: Tensor, reference: float = 0.5) -> Tensor:

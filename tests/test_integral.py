@@ -6,7 +6,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evlatcorr import Events
-from evlatcorr.integral import _row_strips, cumulative_event_grid, event_histogram, grid_bytes_per_point, sample_grid
+from evlatcorr.integral import (
+    _row_strips,
+    cumsum_,
+    cumulative_event_grid,
+    event_histogram,
+    grid_bytes_per_point,
+    sample_grid,
+)
 from tests.conftest import random_events
 
 
@@ -124,3 +131,16 @@ def test_sample_grid_interpolates_and_differentiates():
     out = sample_grid(cum, pos)
     torch.testing.assert_close(out.flatten(), torch.tensor([0.5, 1.5, 3.0], dtype=torch.float64))
     assert torch.autograd.gradcheck(lambda p: sample_grid(cum, p), (pos.detach()[:, :2].clone().requires_grad_(),))
+
+
+@pytest.mark.parametrize("dim", [0, 1, 3])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_cumsum_in_place_is_torch_cumsum_bit_for_bit(dim, dtype):
+    g = torch.Generator().manual_seed(0)
+    if dtype == torch.float64:
+        table = torch.randn(3, 40, 5, 7, generator=g, dtype=dtype) * 1e3
+    else:  # event counts: integer values, exact in float32 either way
+        table = torch.randint(-3, 4, (3, 40, 5, 7), generator=g).to(dtype)
+    want = torch.cumsum(table, dim)
+    out = cumsum_(table, dim)
+    assert out is table and torch.equal(out, want)
