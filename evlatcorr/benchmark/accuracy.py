@@ -434,10 +434,24 @@ def evaluate_case(case: Case, estimate: Estimator, *,
         warnings.simplefilter("always")
         t0 = time.perf_counter()
         try:
-            raw = estimate(frames)
+            raw, error = estimate(frames), ""
         except Exception as exc:  # noqa: BLE001 - one case's failure is recorded, the suite goes on
-            return _failed_row(case, ref, f"{type(exc).__name__}: {exc}", time.perf_counter() - t0, caught)
+            raw, error = None, f"{type(exc).__name__}: {exc}"
         elapsed = time.perf_counter() - t0
+    scores = dict.fromkeys(_ESTIMATE_COLUMNS, math.nan) if error else _estimate_columns(case, delayed, ref, raw)
+    return {
+        **_case_columns(case), **ref, **scores,
+        "no_gap": not ref["psnr_ideal"] > ref["psnr_uncorrected"] + NO_GAP_DB, "time_s": elapsed,
+        "warnings": sorted({str(w.message) for w in caught}), "error": error,
+    }
+
+
+_ESTIMATE_COLUMNS = ("est_latency_us", "est_latency_min_us", "est_latency_max_us", "latency_error_us",
+                     "latency_abs_error_us", "latency_bias_us", "psnr_corrected", "recovery", "best_shift_share")
+
+
+def _estimate_columns(case: Case, delayed: EventFrames, ref: Mapping[str, Any], raw: Any) -> dict[str, float]:
+    """The :data:`_ESTIMATE_COLUMNS` of an estimator's answer ``raw``."""
     latency = _as_map(raw, delayed)
     true = delayed.meta["true_latency"].to(torch.float64)
     if case.latency_model == "constant":
@@ -446,29 +460,12 @@ def evaluate_case(case: Case, estimate: Estimator, *,
     else:
         error = abs_error = float((latency - true).abs().mean())
     psnr_corrected = edi_psnr(delayed, case.threshold, latency.float())
-    recovery = _gain_ratio(psnr_corrected, ref["psnr_uncorrected"], ref["psnr_ideal"])
-    share = _gain_ratio(psnr_corrected, ref["psnr_uncorrected"], ref["psnr_best_shift"])
     return {
-        **_case_columns(case), **ref,
         "est_latency_us": float(latency.mean()), "est_latency_min_us": float(latency.min()),
         "est_latency_max_us": float(latency.max()), "latency_error_us": error, "latency_abs_error_us": abs_error,
         "latency_bias_us": float(latency.mean() - true.mean()), "psnr_corrected": psnr_corrected,
-        "recovery": recovery, "no_gap": bool(math.isnan(recovery)), "best_shift_share": share, "time_s": elapsed,
-        "warnings": sorted({str(w.message) for w in caught}), "error": "",
-    }
-
-
-def _failed_row(case: Case, ref: Mapping[str, Any], error: str, elapsed: float, caught: Sequence[Any]
-                ) -> dict[str, Any]:
-    """:func:`evaluate_case`'s row for an estimator that raised: NaN estimates and scores, the message in ``error``."""
-    nan = math.nan
-    return {
-        **_case_columns(case), **ref,
-        "est_latency_us": nan, "est_latency_min_us": nan, "est_latency_max_us": nan, "latency_error_us": nan,
-        "latency_abs_error_us": nan, "latency_bias_us": nan, "psnr_corrected": nan, "recovery": nan,
-        "no_gap": bool(math.isnan(_gain_ratio(ref["psnr_uncorrected"], ref["psnr_uncorrected"], ref["psnr_ideal"]))),
-        "best_shift_share": nan, "time_s": elapsed, "warnings": sorted({str(w.message) for w in caught}),
-        "error": error,
+        "recovery": _gain_ratio(psnr_corrected, ref["psnr_uncorrected"], ref["psnr_ideal"]),
+        "best_shift_share": _gain_ratio(psnr_corrected, ref["psnr_uncorrected"], ref["psnr_best_shift"]),
     }
 
 
