@@ -144,3 +144,19 @@ def test_cumsum_in_place_is_torch_cumsum_bit_for_bit(dim, dtype):
     want = torch.cumsum(table, dim)
     out = cumsum_(table, dim)
     assert out is table and torch.equal(out, want)
+
+
+@pytest.mark.parametrize("table, dim, match", [
+    (torch.tensor(1.0), 0, "at least one dimension"),
+    ([1.0, 2.0], 0, "got list"),
+    (torch.zeros(2, 3), 2, r"dim must be an int in \[-2, 1\]"),
+    (torch.zeros(2, 3), 0.5, "got 0.5"),
+])
+def test_cumsum_in_place_bad_arguments(table, dim, match):
+    with pytest.raises(ValueError, match=match):
+        cumsum_(table, dim)
+
+
+def test_cumsum_in_place_negative_dim_and_a_known_answer():
+    table = torch.tensor([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    assert cumsum_(table, -1).tolist() == [[1.0, 3.0, 6.0], [4.0, 9.0, 15.0]]
