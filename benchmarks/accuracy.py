@@ -37,6 +37,10 @@ from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from evlatcorr.pages import prefer_large_pages  # noqa: E402
+
+prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
+
 import torch  # noqa: E402
 
 from evlatcorr.benchmark.accuracy import (  # noqa: E402

@@ -25,13 +25,17 @@ import time
 import warnings
 from pathlib import Path
 
-import matplotlib
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from evlatcorr.pages import prefer_large_pages  # noqa: E402
+
+prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
+
+import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from evlatcorr import EventLatencyCorrector, edi_deblur  # noqa: E402
 from evlatcorr.consistency import pair_disagreement  # noqa: E402

@@ -11,7 +11,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-# evlatcorr before anything that makes a tensor: it backs large CPU tensors with 2 MB pages
+from evlatcorr.pages import prefer_large_pages  # noqa: E402
+
+prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
+
 from evlatcorr.benchmark.table1 import main  # noqa: E402
 
 if __name__ == "__main__":

@@ -28,10 +28,14 @@ import time
 import warnings
 from pathlib import Path
 
-import lightning as L
-import torch
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from evlatcorr.pages import prefer_large_pages  # noqa: E402
+
+prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
+
+import lightning as L  # noqa: E402
+import torch  # noqa: E402
 
 from evlatcorr import EventLatencyCorrector  # noqa: E402
 from evlatcorr.benchmark.compare import edi_latent, image_quality  # noqa: E402

@@ -46,9 +46,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import torch
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from evlatcorr.pages import prefer_large_pages  # noqa: E402
+
+prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
+
+import torch  # noqa: E402
 
 from evlatcorr import EventLatencyCorrector  # noqa: E402
 from evlatcorr.edi import edi_deblur  # noqa: E402
@@ -136,8 +140,8 @@ def main() -> None:
             bench_spatial(torch.device(name), args)
 
 
-# one process's timing of the default search at a source tree (argv: tree, frame file, repeats); the tree's own
-# evlatcorr is imported first, before anything makes a tensor, as a user's script would
+# one process's timing of the default search at a source tree (argv: tree, frame file, repeats); it inherits
+# THP_MEM_ALLOC_ENABLE from this script, so both trees run on the same pages
 _AGAINST_CHILD = """
 import json, sys, time
 tree, frame_file, repeats = sys.argv[1], sys.argv[2], int(sys.argv[3])

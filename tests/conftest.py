@@ -1,9 +1,13 @@
 from __future__ import annotations
 
-import pytest
-import torch
+from evlatcorr.pages import prefer_large_pages
 
-from evlatcorr import Events
+prefer_large_pages()  # as the command lines and scripts do, before the first tensor
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+from evlatcorr import Events  # noqa: E402
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 

@@ -1,0 +1,57 @@
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+
+def run_fresh(code: str, **env: str) -> str:
+    """Run ``code`` in a fresh interpreter without THP_MEM_ALLOC_ENABLE (plus ``env``); its stdout."""
+    environ = {k: v for k, v in os.environ.items() if k != "THP_MEM_ALLOC_ENABLE"} | env
+    done = subprocess.run([sys.executable, "-c", code], env=environ, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    return done.stdout.strip()
+
+
+def test_importing_the_package_loads_nothing_and_sets_nothing():
+    out = run_fresh("import os, sys, evlatcorr, evlatcorr.lightning\n"
+                    "print(os.environ.get('THP_MEM_ALLOC_ENABLE'), 'torch' in sys.modules)\n"
+                    "print(evlatcorr.EventLatencyCorrector.__module__, evlatcorr.lightning.MODELS is not None)")
+    assert out.splitlines() == ["None False", "evlatcorr.correction True"]
+
+
+def test_an_unknown_attribute_is_an_attribute_error():
+    import evlatcorr
+
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        evlatcorr.nope  # noqa: B018
+    assert {"EventLatencyCorrector", "prefer_large_pages", "__version__"} <= set(dir(evlatcorr))
+
+
+@pytest.mark.parametrize(("given", "expected"), [(None, "1 True"), ("0", "0 False"), ("1", "1 True")])
+def test_prefer_large_pages_keeps_what_the_environment_says(given, expected):
+    env = {} if given is None else {"THP_MEM_ALLOC_ENABLE": given}
+    code = "import os, evlatcorr; ok = evlatcorr.prefer_large_pages(); print(os.environ['THP_MEM_ALLOC_ENABLE'], ok)"
+    assert run_fresh(code, **env) == expected
+
+
+def test_the_command_asks_for_large_pages_before_its_first_import_of_torch():
+    # the console script and `python -m evlatcorr` run evlatcorr.__main__.main
+    code = ("import os, sys, builtins\n"
+            "real_import = builtins.__import__\n"
+            "seen = []\n"
+            "def spy(name, *args, **kwargs):\n"
+            "    if name == 'torch' and not seen:\n"
+            "        seen.append(os.environ.get('THP_MEM_ALLOC_ENABLE'))\n"
+            "    return real_import(name, *args, **kwargs)\n"
+            "builtins.__import__ = spy\n"
+            "from evlatcorr.__main__ import main\n"
+            "assert 'torch' not in sys.modules\n"
+            "try:\n"
+            "    main(['--help'])\n"
+            "except SystemExit:\n"
+            "    pass\n"
+            "print(seen)")
+    assert run_fresh(code).splitlines()[-1] == "['1']"
