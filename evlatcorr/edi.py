@@ -41,7 +41,6 @@ from evlatcorr.integral import _cumulative_event_grid, _row_strips, grid_bytes_p
 __all__ = [
     "EventGrid",
     "event_grid",
-    "event_grid_bytes",
     "latency_map",
     "edi_log_ratio",
     "edi_deblur",
@@ -201,31 +200,9 @@ def _event_grid(events: Events, start: Tensor, end: Tensor, ref: Tensor, lat_lo:
     return EventGrid(cum, g0, width_us, num_bins, integral)
 
 
-def event_grid_bytes(
-    events: Events,
-    exposure_start: Tensor,
-    exposure_end: Tensor,
-    num_bins: int = 500,
-    latency_range: tuple[Tensor | float, Tensor | float] = (0.0, 0.0),
-    time: Tensor | None = None,
-    integral: str = "step",
-    dtype: torch.dtype = torch.float32,
-) -> int:
-    """Estimated peak bytes of building :func:`event_grid` with these arguments (nothing is allocated).
-
-    Example:
-        >>> ev = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([50.0]), torch.tensor([1]),
-        ...             sensor_size=(1, 1))
-        >>> event_grid_bytes(ev, torch.tensor([0.0]), torch.tensor([100.0]), num_bins=10, latency_range=(0.0, 30.0))
-        204
-    """
-    times = _grid_times(events, exposure_start, exposure_end, num_bins, latency_range, time)
-    return _event_grid_bytes(events, *times, num_bins, integral, dtype)
-
-
 def _event_grid_bytes(events: Events, start: Tensor, end: Tensor, ref: Tensor, lat_lo: Tensor, lat_hi: Tensor,
                       num_bins: int, integral: str, dtype: torch.dtype) -> int:
-    """:func:`event_grid_bytes` of checked inputs (as :func:`_event_grid`)."""
+    """Estimated peak bytes of :func:`_event_grid` with these checked inputs (nothing is allocated)."""
     m = _grid_span(start, end, ref, lat_lo, lat_hi, num_bins)[2]
     return _grid_bytes(events.batch_size, m, events.sensor_size, integral, dtype)
 

@@ -85,11 +85,7 @@ class EventFrames:
             raise ValueError(f"events have batch_size {self.events.batch_size} but blurry has {b} frames")
         if self.events.sensor_size != (h, w):
             raise ValueError(f"events sensor_size {self.events.sensor_size} does not match blurry (H, W)={(h, w)}")
-        self.exposure_start = check_batch_vector(self.exposure_start, b, "exposure_start").to(
-            self.blurry.device, torch.float64)
-        self.exposure_end = check_batch_vector(self.exposure_end, b, "exposure_end").to(
-            self.blurry.device, torch.float64)
-        check_exposure(self.exposure_start, self.exposure_end)
+        self.exposure_start, self.exposure_end = self._checked_exposure(self.exposure_start, self.exposure_end)
         if self.latency is not None:
             check_shape(self.latency, [b, 1, h, w], "latency")
         if self.sharp is not None:
@@ -99,11 +95,8 @@ class EventFrames:
             check_shape(self.blurry_next, list(self.blurry.shape), "blurry_next")
             if self.exposure_start_next is None or self.exposure_end_next is None:
                 raise ValueError("blurry_next needs exposure_start_next and exposure_end_next")
-            self.exposure_start_next = check_batch_vector(self.exposure_start_next, b, "exposure_start_next").to(
-                self.blurry.device, torch.float64)
-            self.exposure_end_next = check_batch_vector(self.exposure_end_next, b, "exposure_end_next").to(
-                self.blurry.device, torch.float64)
-            check_exposure(self.exposure_start_next, self.exposure_end_next)
+            self.exposure_start_next, self.exposure_end_next = self._checked_exposure(
+                self.exposure_start_next, self.exposure_end_next, "_next")
         if self.target_times is not None:
             tt = torch.as_tensor(self.target_times, dtype=torch.float64, device=self.blurry.device)
             if tt.dim() == 1:
@@ -112,6 +105,14 @@ class EventFrames:
             self.target_times = tt
             if self.target_frames is not None:
                 check_shape(self.target_frames, [b, tt.shape[1], "C", h, w], "target_frames")
+
+    def _checked_exposure(self, start: Any, end: Any, suffix: str = "") -> tuple[Tensor, Tensor]:
+        """``exposure_start{suffix}``, ``exposure_end{suffix}`` as float64 :math:`(B,)` on the frames' device."""
+        b, device = self.blurry.shape[0], self.blurry.device
+        start = check_batch_vector(start, b, f"exposure_start{suffix}").to(device, torch.float64)
+        end = check_batch_vector(end, b, f"exposure_end{suffix}").to(device, torch.float64)
+        check_exposure(start, end)
+        return start, end
 
     @property
     def batch_size(self) -> int:

@@ -282,19 +282,17 @@ def sharpness_score(latent: Tensor, latency: Tensor, previous: Tensor | None, sc
         latency: their latencies :math:`(K,)` µs (for the temporal prior).
         previous: ``l'`` µs, broadcastable to ``latency``, or None for no prior.
         score: ``"sparsity"``, ``"sparsity_bright"``, ``"sparsity_multiscale"`` or ``"etf"``.
-        epsilon: ETF edge amplifier.
-        window: ETF contrast window.
-        sigma_us: σ of the temporal prior, µs.
+        epsilon, window, sigma_us: the ETF's settings (:func:`~evlatcorr.etf.etf_loss`); ``sigma_us`` is the
+            temporal prior's σ for every score.
 
     Returns:
         :math:`(K,)`.
 
     Example:
-        >>> sharp = torch.zeros(1, 1, 16, 16); sharp[..., 8:] = 1.0
-        >>> blurred = kornia.filters.box_blur(sharp, (1, 5))
-        >>> lat = torch.zeros(1)
-        >>> bool(sharpness_score(sharp, lat, None, "sparsity", 20.0, 7, 1000.0)
-        ...      < sharpness_score(blurred, lat, None, "sparsity", 20.0, 7, 1000.0))
+        >>> edge = torch.zeros(1, 1, 16, 16); edge[..., 8:] = 1.0
+        >>> ghosted = 0.5 * (edge + edge.roll(3, dims=-1))  # the same edge a few pixels away, at half contrast
+        >>> scores = sharpness_score(torch.cat([edge, ghosted]), torch.zeros(2), None, "sparsity", 20.0, 7, 1000.0)
+        >>> bool(scores[0] < scores[1])
         True
     """
     return sharpness_scores(latent, latency, previous, (score,), epsilon, window, sigma_us)[0]

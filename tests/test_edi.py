@@ -7,12 +7,13 @@ import torch
 
 from evlatcorr import EventFrames, Events
 from evlatcorr.edi import (
+    _event_grid_bytes,
+    _grid_times,
     edi_deblur,
     edi_interpolate,
     edi_log_ratio,
     estimate_threshold,
     event_grid,
-    event_grid_bytes,
 )
 from tests.conftest import random_events
 
@@ -186,8 +187,8 @@ class TestEventGrid:
         start, end = torch.zeros(2), torch.full((2,), 100.0)
         grid = event_grid(ev, start, end, 10, (0.0, 30.0), integral=integral, dtype=dtype)
         per_point = 12 if integral == "step" else 40  # the step grid's 3 float32 arrays; linear's 4 float64 + out
-        assert event_grid_bytes(ev, start, end, 10, (0.0, 30.0), integral=integral, dtype=dtype) == \
-            grid.cum.numel() * per_point
+        times = _grid_times(ev, start, end, 10, (0.0, 30.0), None)
+        assert _event_grid_bytes(ev, *times, 10, integral, dtype) == grid.cum.numel() * per_point
 
     def test_grid_over_the_memory_budget_is_refused(self):
         # latencies up to 1e9 us in 10 us steps: 10**8 grid points x 4 pixels x 12 bytes

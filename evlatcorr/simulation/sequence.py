@@ -59,7 +59,8 @@ class SimulatedSequence:
 
     @property
     def sensor_size(self) -> tuple[int, int]:
-        return int(self.blurry.shape[-2]), int(self.blurry.shape[-1])
+        """``(H, W)``: the events', which the frames share."""
+        return self.ideal_events.sensor_size
 
     def render(self, times: Sequence[float] | Tensor) -> Tensor:
         """Sharp colour frames :math:`(T, 3, H, W)` at ``times`` (µs), from the simulated camera.
