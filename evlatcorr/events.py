@@ -133,9 +133,22 @@ class Events:
 
     # construction -------------------------------------------------------------------------
     @classmethod
-    def _trusted(cls, x: Tensor, y: Tensor, t: Tensor, p: Tensor, batch: Tensor,
-                 sensor_size: tuple[int, int], batch_size: int) -> Events:
-        """Build without validation from tensors already in canonical form (internal use)."""
+    def from_canonical(cls, x: Tensor, y: Tensor, t: Tensor, p: Tensor, batch: Tensor,
+                       sensor_size: tuple[int, int], batch_size: int) -> Events:
+        """Build without any check or copy from tensors already in the canonical form of an :class:`Events`.
+
+        For code that derives the tensors from other events (shifted times, a mask, a re-sort), where the
+        constructor's checks would only read the data again (on a GPU, a device sync each). Nothing is
+        validated: ``x, y`` int64 in the sensor, ``t`` float64 µs, ``p`` int8 ±1, ``batch`` int64, sorted by
+        ``(batch, t)``, are the caller's promise.
+
+        Example:
+            >>> ev = Events(torch.tensor([0, 1]), torch.tensor([0, 0]), torch.tensor([1.0, 2.0]),
+            ...             torch.tensor([1, 0]), sensor_size=(1, 2))
+            >>> later = Events.from_canonical(ev.x, ev.y, ev.t + 5.0, ev.p, ev.batch, ev.sensor_size, ev.batch_size)
+            >>> later.t.tolist(), later.p.tolist()
+            ([6.0, 7.0], [1, -1])
+        """
         ev = cls.__new__(cls)
         ev.x, ev.y, ev.t, ev.p, ev.batch = x, y, t, p, batch
         ev.sensor_size, ev.batch_size = sensor_size, batch_size
@@ -189,7 +202,7 @@ class Events:
             offsets.append(total)
             total += s.batch_size
         device = samples[0].t.device
-        return cls._trusted(
+        return cls.from_canonical(
             torch.cat([s.x.to(device) for s in samples]),
             torch.cat([s.y.to(device) for s in samples]),
             torch.cat([s.t.to(device) for s in samples]),
@@ -214,16 +227,16 @@ class Events:
 
     def to(self, device: torch.device | str) -> Events:
         """Move all tensors to ``device``."""
-        return Events._trusted(self.x.to(device), self.y.to(device), self.t.to(device), self.p.to(device),
-                               self.batch.to(device), self.sensor_size, self.batch_size)
+        return Events.from_canonical(self.x.to(device), self.y.to(device), self.t.to(device), self.p.to(device),
+                                     self.batch.to(device), self.sensor_size, self.batch_size)
 
     def select(self, mask: Tensor) -> Events:
         """Keep the events where the boolean ``mask`` :math:`(N,)` is true (order is preserved)."""
         if mask.shape != self.t.shape or mask.dtype != torch.bool:
             raise ValueError(f"mask must be a bool tensor of shape {tuple(self.t.shape)}, got "
                              f"{mask.dtype} {tuple(mask.shape)}")
-        return Events._trusted(self.x[mask], self.y[mask], self.t[mask], self.p[mask], self.batch[mask],
-                               self.sensor_size, self.batch_size)
+        return Events.from_canonical(self.x[mask], self.y[mask], self.t[mask], self.p[mask], self.batch[mask],
+                                     self.sensor_size, self.batch_size)
 
     def sample(self, index: int) -> Events:
         """The events of one sample, as a batch of size 1."""
@@ -231,8 +244,8 @@ class Events:
             raise ValueError(f"sample index must be in [0, {self.batch_size}), got {index}")
         # events are sorted by sample: one contiguous slice (a mask would copy through all samples' events)
         lo, hi = torch.searchsorted(self.batch, torch.tensor([index, index + 1], device=self.device)).tolist()
-        return Events._trusted(self.x[lo:hi], self.y[lo:hi], self.t[lo:hi], self.p[lo:hi],
-                               torch.zeros_like(self.batch[lo:hi]), self.sensor_size, 1)
+        return Events.from_canonical(self.x[lo:hi], self.y[lo:hi], self.t[lo:hi], self.p[lo:hi],
+                                     torch.zeros_like(self.batch[lo:hi]), self.sensor_size, 1)
 
     def counts(self) -> Tensor:
         """Number of events per sample :math:`(B,)`."""
@@ -291,10 +304,10 @@ class Events:
         t = self.t - per_event
         latency = torch.as_tensor(latency)
         if latency.dim() < 4:  # one latency per sample keeps each sample's time order: nothing to sort
-            return Events._trusted(self.x, self.y, t, self.p, self.batch, self.sensor_size, self.batch_size)
+            return Events.from_canonical(self.x, self.y, t, self.p, self.batch, self.sensor_size, self.batch_size)
         order = _sort_order(self.batch, t)
-        return Events._trusted(self.x[order], self.y[order], t[order], self.p[order], self.batch[order],
-                               self.sensor_size, self.batch_size)
+        return Events.from_canonical(self.x[order], self.y[order], t[order], self.p[order], self.batch[order],
+                                     self.sensor_size, self.batch_size)
 
 
 def _sort_order(batch: Tensor, t: Tensor) -> Tensor:

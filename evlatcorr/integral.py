@@ -276,8 +276,8 @@ def _row_strips(events: Events, rows: int) -> list[tuple[int, int, Events]]:
     for k, r0 in enumerate(range(0, height, rows)):
         r1 = min(height, r0 + rows)
         idx = order[bounds[k]:bounds[k + 1]]
-        strips.append((r0, r1, Events._trusted(events.x[idx], events.y[idx] - r0, events.t[idx], events.p[idx],
-                                               events.batch[idx], (r1 - r0, width), events.batch_size)))
+        strips.append((r0, r1, Events.from_canonical(events.x[idx], events.y[idx] - r0, events.t[idx], events.p[idx],
+                                                     events.batch[idx], (r1 - r0, width), events.batch_size)))
     return strips
 
 

@@ -440,7 +440,7 @@ def _clone_frames(frames: EventFrames) -> EventFrames:
     from evlatcorr.events import Events
 
     ev = frames.events
-    events = Events._trusted(ev.x.clone(), ev.y.clone(), ev.t.clone(), ev.p.clone(), ev.batch.clone(),
-                             ev.sensor_size, ev.batch_size)
+    events = Events.from_canonical(ev.x.clone(), ev.y.clone(), ev.t.clone(), ev.p.clone(), ev.batch.clone(),
+                                   ev.sensor_size, ev.batch_size)
     return frames.replace(blurry=frames.blurry.clone(), events=events,
                           exposure_start=frames.exposure_start.clone(), exposure_end=frames.exposure_end.clone())

@@ -44,8 +44,8 @@ def _tensor(image: np.ndarray) -> torch.Tensor:
 
 def _trusted_events(events: np.ndarray, sensor_size: tuple[int, int]) -> Events:
     # the chunks were validated as they were read (sorted, finite, on the sensor, p = ±1)
-    return Events._trusted(torch.from_numpy(events["x"].astype(np.int64)),
-                           torch.from_numpy(events["y"].astype(np.int64)),
-                           torch.from_numpy(events["t"].astype(np.float64)),
-                           torch.from_numpy(events["p"].astype(np.int8)),
-                           torch.zeros(len(events), dtype=torch.long), sensor_size, 1)
+    return Events.from_canonical(torch.from_numpy(events["x"].astype(np.int64)),
+                                 torch.from_numpy(events["y"].astype(np.int64)),
+                                 torch.from_numpy(events["t"].astype(np.float64)),
+                                 torch.from_numpy(events["p"].astype(np.int8)),
+                                 torch.zeros(len(events), dtype=torch.long), sensor_size, 1)

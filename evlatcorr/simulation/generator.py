@@ -88,4 +88,4 @@ class EventGenerator:
             p = torch.zeros(0, dtype=torch.int8, device=device)
         order = torch.argsort(t, stable=True)
         pix, t, p = pix[order], t[order], p[order]
-        return Events._trusted(pix % width, pix // width, t, p, torch.zeros_like(pix), sensor_size, 1)
+        return Events.from_canonical(pix % width, pix // width, t, p, torch.zeros_like(pix), sensor_size, 1)

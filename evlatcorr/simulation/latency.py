@@ -87,7 +87,7 @@ def delay_events(model: str, signal: Events, true_latency: Tensor, mids: Tensor,
     if model == "intensity_delay":
         return _delay_by_map(signal, true_latency, mids)
     lat = float(latency_us) if model == "constant" else 0.0
-    return Events._trusted(signal.x, signal.y, signal.t + lat, signal.p, signal.batch, signal.sensor_size, 1)
+    return Events.from_canonical(signal.x, signal.y, signal.t + lat, signal.p, signal.batch, signal.sensor_size, 1)
 
 
 def _delay_by_map(signal: Events, true_latency: Tensor, mids: Tensor) -> Events:
@@ -95,7 +95,7 @@ def _delay_by_map(signal: Events, true_latency: Tensor, mids: Tensor) -> Events:
     sensor = signal.sensor_size
     nearest = torch.searchsorted((mids[1:] + mids[:-1]) / 2, signal.t)
     delay = true_latency[:, 0].flatten(1)[nearest, signal.y * sensor[1] + signal.x].double()
-    shifted = Events._trusted(signal.x, signal.y, signal.t + delay, signal.p, signal.batch, sensor, 1)
+    shifted = Events.from_canonical(signal.x, signal.y, signal.t + delay, signal.p, signal.batch, sensor, 1)
     order = torch.argsort(shifted.t, stable=True)
-    return Events._trusted(shifted.x[order], shifted.y[order], shifted.t[order], shifted.p[order],
-                           shifted.batch, sensor, 1)
+    return Events.from_canonical(shifted.x[order], shifted.y[order], shifted.t[order], shifted.p[order],
+                                 shifted.batch, sensor, 1)

@@ -72,7 +72,7 @@ def merge_noise(signal: Events, noise: NoiseEvents | None) -> Events:
     p = torch.cat([signal.p, noise[2]])
     order = torch.argsort(t, stable=True)
     pix, t, p = pix[order], t[order], p[order]
-    return Events._trusted(pix % width, pix // width, t, p, torch.zeros_like(pix), signal.sensor_size, 1)
+    return Events.from_canonical(pix % width, pix // width, t, p, torch.zeros_like(pix), signal.sensor_size, 1)
 
 
 def apply_refractory(events: Events, refractory_us: float) -> Events:
