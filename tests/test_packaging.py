@@ -106,3 +106,9 @@ def test_installed_wheel_loads_the_default_checkpoints(tmp_path):
         assert _under(path, site / "evlatcorr" / "checkpoints"), (name, path)
         assert Path(path).name.startswith(name)
     assert out["same"] == dict.fromkeys(SHIPPED, True)  # the adapters hold the installed weights
+
+    # the console script pip wrote runs the command line (evlatcorr.__main__:main)
+    script = site / "bin" / "evlatcorr"
+    assert script.is_file(), sorted(p.name for p in (site / "bin").iterdir()) if (site / "bin").is_dir() else site
+    usage = _run([sys.executable, str(script), "--help"], cwd=run_dir, env=env).stdout
+    assert usage.startswith("usage: evlatcorr") and "deblur" in usage
