@@ -30,6 +30,14 @@ def test_an_unknown_attribute_is_an_attribute_error():
     assert {"EventLatencyCorrector", "prefer_large_pages", "__version__"} <= set(dir(evlatcorr))
 
 
+def test_submodules_are_found_by_attribute_as_before():
+    # `import evlatcorr` used to import these; code that reads them by attribute keeps working
+    out = run_fresh("import sys, evlatcorr\n"
+                    "print('evlatcorr.search' in sys.modules, evlatcorr.search.search_constant_latency.__name__,\n"
+                    "      evlatcorr.lightning.cli.__name__, hasattr(evlatcorr, 'not_a_module'))")
+    assert out == "False search_constant_latency evlatcorr.lightning.cli False"
+
+
 @pytest.mark.parametrize(("given", "expected"), [(None, "1 True"), ("0", "0 False"), ("1", "1 True")])
 def test_prefer_large_pages_keeps_what_the_environment_says(given, expected):
     env = {} if given is None else {"THP_MEM_ALLOC_ENABLE": given}
