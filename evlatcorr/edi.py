@@ -247,12 +247,9 @@ def edi_log_ratio(
     """``log R`` of Eq. (5)/(7): the log of the mean event-driven brightness ratio over the exposure.
 
     Args:
-        events: a batch of ``B`` samples.
-        exposure_start: :math:`(B,)` µs.
-        exposure_end: :math:`(B,)` µs.
+        events, exposure_start, exposure_end, latency, num_bins: as :func:`edi_deblur` (the latency
+            differentiably).
         threshold: contrast threshold θ (log-intensity step per event), a float or :math:`(B,)`.
-        latency: µs; scalar, :math:`(B,)` or :math:`(B,1,H,W)`. Differentiable.
-        num_bins: number of sub-intervals of the exposure (paper: 500).
         time: reference time per sample :math:`(B,)` (default: mid-exposure); may lie outside.
         integral: ``"step"`` or ``"linear"`` (see :mod:`evlatcorr.integral`), or ``"continuous"``: the step
             integral exact in continuous time (:mod:`evlatcorr.continuous`; ``num_bins`` unused, one latency
