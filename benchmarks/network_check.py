@@ -1,0 +1,74 @@
+"""A network's PSNR recovery with each estimator's corrected events, on the accuracy suite's cases.
+
+The accuracy suite (``benchmarks/accuracy.py``) scores estimates by EDI. This runs a restoration network
+(shipped weights, trained on ideal events) on each case's ideal, delayed and corrected events instead, and
+reports its recovery ``(corrected − delayed) / (ideal − delayed)`` per estimator. See
+:mod:`evlatcorr.benchmark.network_check`.
+
+    python benchmarks/network_check.py --split test --models constant          # EFNet, the default corrector
+    python benchmarks/network_check.py --split test --models constant \\
+        --estimator benchmarks/estimators/step_lag.py:estimate                  # ... and another estimator
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see benchmarks/accuracy.py; before torch loads
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from evlatcorr.pages import prefer_large_pages  # noqa: E402
+
+prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
+
+from evlatcorr.benchmark.accuracy import DEFAULT_SIZE, LATENCY_MODELS, corrector_estimator, load_estimator, make_cases  # noqa: E402,E501
+from evlatcorr.benchmark.network_check import check_case, checks_to_markdown  # noqa: E402
+from evlatcorr.restore import build_model  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--split", choices=("test", "dev"), default="test")
+    p.add_argument("--num", type=int, default=None, help="first N cases of the split")
+    p.add_argument("--size", type=int, nargs=2, default=DEFAULT_SIZE, metavar=("H", "W"))
+    p.add_argument("--models", nargs="+", choices=LATENCY_MODELS, default=list(LATENCY_MODELS),
+                   help="latency models of the cases kept")
+    p.add_argument("--network", choices=("efnet", "gem"), default="efnet", help="shipped weights")
+    p.add_argument("--estimator", action="append", default=[], metavar="MODULE:FUNCTION",
+                   help="an estimator f(frames) -> latency map besides the default corrector; repeatable")
+    p.add_argument("--out", type=Path, default=Path("outputs/network_check.md"))
+    args = p.parse_args(argv)
+    cases = [c for c in make_cases(args.split, args.num, tuple(args.size)) if c.latency_model in args.models]
+    if not cases:
+        p.error(f"no case of split {args.split} with latency models {args.models}")
+    extra = {}
+    for spec in args.estimator:
+        try:
+            extra[Path(spec.rpartition(":")[0]).stem or spec] = load_estimator(spec)
+        except (ValueError, ImportError) as err:
+            p.error(f"--estimator {spec}: {err}")
+    network = build_model(args.network)
+    rows = []
+    t0 = time.perf_counter()
+    for i, case in enumerate(cases, 1):
+        estimators = {"constant": corrector_estimator("constant", case.threshold), **extra}
+        rows.append(check_case(case, estimators, network))
+        r = rows[-1]
+        print(f"[{i}/{len(cases)}] {case.name}: {args.network} PSNR ideal {r['psnr_ideal']:.2f} delayed "
+              f"{r['psnr_delayed']:.2f}; " + ", ".join(f"{n} {e['latency_us']:.0f} us {e['psnr']:.2f}"
+                                                      for n, e in r["estimators"].items()), flush=True)
+    text = (f"# {args.network} recovery with corrected events ({args.split} split, {len(cases)} cases, "
+            f"{time.perf_counter() - t0:.0f} s)\n\n" + checks_to_markdown(rows, args.network))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text)
+    print("\n" + text + f"\nwrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

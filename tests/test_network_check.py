@@ -1,0 +1,32 @@
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from evlatcorr.benchmark.network_check import check_case, checks_to_markdown, summarize_checks
+from evlatcorr.restore import build_model
+from tests.test_accuracy import tiny_case
+
+
+@pytest.fixture(scope="module")
+def row():
+    # a constant 4000 us: no shift gives the delayed events' output exactly, the true shift the ideal timing
+    return check_case(tiny_case(), {"none": lambda frames: 0.0, "truth": lambda frames: 4000.0}, build_model("efnet"))
+
+
+def test_no_shift_recovers_nothing_and_the_true_latency_recovers_most(row):
+    none, truth = row["estimators"]["none"], row["estimators"]["truth"]
+    assert row["psnr_ideal"] > row["psnr_delayed"] + 1.0  # the network loses to the latency
+    assert none["latency_us"] == 0.0 and none["psnr"] == row["psnr_delayed"] and none["recovery"] == 0.0
+    assert truth["latency_us"] == 4000.0 and truth["recovery"] > 0.5
+
+
+def test_summary_and_markdown(row):
+    flat = {**row, "name": "flat", "psnr_ideal": row["psnr_delayed"],
+            "estimators": {n: {**e, "recovery": math.nan} for n, e in row["estimators"].items()}}
+    summary = summarize_checks([row, flat])
+    assert summary["none/constant"] == {"cases": 1, "median_recovery": 0.0, "worst_recovery": 0.0}
+    assert set(summary) == {"none/constant", "truth/constant", "none/all", "truth/all"}
+    text = checks_to_markdown([row, flat], "efnet")
+    assert "| none | constant | 1 | 0% | 0% |" in text and "/ no gap |" in text and text.count("| tiny |") == 1
