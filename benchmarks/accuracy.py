@@ -20,12 +20,11 @@ under ``--out``.
 
 from __future__ import annotations
 
-import os
+import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU pages, before torch loads
 
-# While another process keeps a core busy, OpenMP's busy-waiting threads made the simulator's
-# small-tensor steps 3-20x slower on a 2-core VM; passive waiting costs little otherwise. Must be
-# set before torch loads.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# isort: split
+
+_setup.passive_openmp()
 
 import argparse  # noqa: E402
 import fnmatch  # noqa: E402
@@ -35,16 +34,9 @@ import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from evlatcorr.pages import prefer_large_pages  # noqa: E402
-
-prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
-
 import torch  # noqa: E402
 
 from evlatcorr.benchmark.accuracy import (  # noqa: E402
-    DEFAULT_SIZE,
     Case,
     corrector_estimator,
     load_estimator,
@@ -58,9 +50,7 @@ from evlatcorr.benchmark.accuracy import (  # noqa: E402
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--split", choices=("test", "dev", "both"), default="test")
-    p.add_argument("--num", type=int, default=None, help="first N cases of each split")
-    p.add_argument("--size", type=int, nargs=2, default=DEFAULT_SIZE, metavar=("H", "W"))
+    _setup.add_case_options(p, "test", ("test", "dev", "both"))
     p.add_argument("--mode", choices=("constant", "spatial", "both", "none"), default="constant",
                    help="built-in EventLatencyCorrector modes to evaluate ('none': only --estimator)")
     p.add_argument("--estimator", action="append", default=[], metavar="MODULE:FUNCTION",

@@ -6,16 +6,12 @@
 
 from __future__ import annotations
 
+import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU pages, before torch loads
+
+# isort: split
+
 import argparse
-import sys
 import time
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from evlatcorr.pages import prefer_large_pages  # noqa: E402
-
-prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
 
 from evlatcorr import EventLatencyCorrector  # noqa: E402
 from evlatcorr.benchmark.compare import edi_psnr, psnr, recovery  # noqa: E402

@@ -12,31 +12,24 @@ reports its recovery ``(corrected − delayed) / (ideal − delayed)`` per estim
 
 from __future__ import annotations
 
-import os
+import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU pages, before torch loads
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see benchmarks/accuracy.py; before torch loads
+# isort: split
+
+_setup.passive_openmp()
 
 import argparse  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from evlatcorr.pages import prefer_large_pages  # noqa: E402
-
-prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
-
-from evlatcorr.benchmark.accuracy import DEFAULT_SIZE, LATENCY_MODELS, corrector_estimator, load_estimator, make_cases  # noqa: E402,E501
+from evlatcorr.benchmark.accuracy import LATENCY_MODELS, corrector_estimator, load_estimator, make_cases  # noqa: E402
 from evlatcorr.benchmark.network_check import check_case, checks_to_markdown  # noqa: E402
 from evlatcorr.restore import build_model  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--split", choices=("test", "dev"), default="test")
-    p.add_argument("--num", type=int, default=None, help="first N cases of the split")
-    p.add_argument("--size", type=int, nargs=2, default=DEFAULT_SIZE, metavar=("H", "W"))
+    _setup.add_case_options(p, "test", num_help="first N cases of the split")
     p.add_argument("--models", nargs="+", choices=LATENCY_MODELS, default=list(LATENCY_MODELS),
                    help="latency models of the cases kept")
     p.add_argument("--network", choices=("efnet", "gem"), default="efnet", help="shipped weights")

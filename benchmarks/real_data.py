@@ -17,19 +17,16 @@ shipped weights) with the corrected events, plus each frame's score against the 
 
 from __future__ import annotations
 
+import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU pages, before torch loads
+
+# isort: split
+
 import argparse
 import csv
 import statistics
-import sys
 import time
 import warnings
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from evlatcorr.pages import prefer_large_pages  # noqa: E402
-
-prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
 
 import matplotlib  # noqa: E402
 

@@ -6,14 +6,11 @@
     python benchmarks/run.py --help          # every option
 """
 
+import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU pages, before torch loads
+
+# isort: split
+
 import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from evlatcorr.pages import prefer_large_pages  # noqa: E402
-
-prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
 
 from evlatcorr.benchmark.table1 import main  # noqa: E402
 

@@ -11,29 +11,22 @@ the cases where the score prefers the true map. A score that does not cannot lea
 
 from __future__ import annotations
 
-import os
+import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU pages, before torch loads
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see benchmarks/accuracy.py; before torch loads
+# isort: split
+
+_setup.passive_openmp()
 
 import argparse  # noqa: E402
-import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from evlatcorr.pages import prefer_large_pages  # noqa: E402
-
-prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
-
-from evlatcorr.benchmark.accuracy import DEFAULT_SIZE, make_cases  # noqa: E402
+from evlatcorr.benchmark.accuracy import make_cases  # noqa: E402
 from evlatcorr.benchmark.score_check import CHECKED_SCORES, MAP_MODELS, check_case, checks_to_markdown  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--split", choices=("test", "dev"), default="dev")
-    p.add_argument("--num", type=int, default=None, help="first N cases of the split (before keeping map cases)")
-    p.add_argument("--size", type=int, nargs=2, default=DEFAULT_SIZE, metavar=("H", "W"))
+    _setup.add_case_options(p, "dev", num_help="first N cases of the split (before keeping map cases)")
     p.add_argument("--scores", nargs="+", choices=CHECKED_SCORES, default=list(CHECKED_SCORES))
     p.add_argument("--out", type=Path, default=Path("outputs/score_check.md"))
     args = p.parse_args(argv)

@@ -22,17 +22,14 @@ against the true ``τ(I)``) under ``--out``.
 
 from __future__ import annotations
 
+import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU pages, before torch loads
+
+# isort: split
+
 import argparse
-import sys
 import time
 import warnings
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from evlatcorr.pages import prefer_large_pages  # noqa: E402
-
-prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
 
 import lightning as L  # noqa: E402
 import torch  # noqa: E402

@@ -35,6 +35,10 @@ on a GPU, ``torch.cuda.max_memory_allocated``.
 
 from __future__ import annotations
 
+import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU pages, before torch loads
+
+# isort: split
+
 import argparse
 import json
 import resource
@@ -45,12 +49,6 @@ import tarfile
 import tempfile
 import time
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from evlatcorr.pages import prefer_large_pages  # noqa: E402
-
-prefer_large_pages()  # 2 MB CPU pages: set before anything below makes the first tensor
 
 import torch  # noqa: E402
 
