@@ -3,6 +3,7 @@ from __future__ import annotations
 import math
 
 import pytest
+import torch
 
 from evlatcorr.benchmark.network_check import check_case, checks_to_markdown, summarize_checks
 from evlatcorr.restore import build_model
@@ -30,3 +31,8 @@ def test_summary_and_markdown(row):
     assert set(summary) == {"none/constant", "truth/constant", "none/all", "truth/all"}
     text = checks_to_markdown([row, flat], "efnet")
     assert "| none | constant | 1 | 0% | 0% |" in text and "/ no gap |" in text and text.count("| tiny |") == 1
+
+
+def test_an_estimator_with_a_wrong_shape_is_refused():
+    with pytest.raises(ValueError, match=r"latency map of shape \(1, 1, 32, 40\)"):
+        check_case(tiny_case(), {"bad": lambda frames: torch.zeros(2, 3)}, build_model("efnet"))

@@ -17,6 +17,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 import statistics
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -74,7 +75,7 @@ def summarize_checks(rows: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, f
     for model in ("constant", "intensity_delay", "intensity", "all"):
         sub = [r for r in rows if model == "all" or r["latency_model"] == model]
         for name in names:
-            values = [v for r in sub if (v := r["estimators"][name]["recovery"]) == v]  # NaN: no gap
+            values = [v for r in sub if not math.isnan(v := r["estimators"][name]["recovery"])]  # NaN: no gap
             if values:
                 summary[f"{name}/{model}"] = {"cases": len(values), "median_recovery": statistics.median(values),
                                               "worst_recovery": min(values)}
@@ -97,7 +98,7 @@ def checks_to_markdown(rows: Sequence[Mapping[str, Any]], network_name: str) -> 
         cells = []
         for n in names:
             e = r["estimators"][n]
-            gain = "no gap" if e["recovery"] != e["recovery"] else f"{100 * e['recovery']:.0f}%"
+            gain = "no gap" if math.isnan(e["recovery"]) else f"{100 * e['recovery']:.0f}%"
             cells.append(f"{e['latency_us']:.0f} / {e['psnr']:.2f} / {gain}")
         lines.append(f"| {r['name']} | {r['true_latency_us']:.0f} | {r['psnr_ideal']:.2f} | {r['psnr_delayed']:.2f} | "
                      + " | ".join(cells) + " |")
