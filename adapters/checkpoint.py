@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import pickle
 import re
 import warnings
@@ -42,6 +41,8 @@ from pathlib import Path
 
 import torch
 from torch import Tensor, nn
+
+from evlatcorr.locations import checkpoint_dirs
 
 __all__ = ["card_sha256", "checkpoint_dirs", "file_sha256", "load_state_dict_file", "load_weights",
            "resolve_checkpoint", "save_weights"]
@@ -577,24 +578,7 @@ def save_weights(module: nn.Module, path: str | Path, dtype: torch.dtype | None 
     return written
 
 
-# finding shipped checkpoints -------------------------------------------------------------------
-def checkpoint_dirs() -> list[Path]:
-    """Folders searched for ``"default"`` checkpoints, in order: ``$EVLATCORR_CHECKPOINT_DIR``, the
-    repository's ``checkpoints/`` (source checkout) and the installed package's ``checkpoints/``."""
-    dirs = []
-    if os.environ.get("EVLATCORR_CHECKPOINT_DIR"):
-        dirs.append(Path(os.environ["EVLATCORR_CHECKPOINT_DIR"]).expanduser())
-    dirs.append(Path(__file__).resolve().parent.parent / "checkpoints")  # adapters/.. = the repository root
-    import evlatcorr
-
-    dirs.append(Path(evlatcorr.__file__).resolve().parent / "checkpoints")  # installed package data
-    out: list[Path] = []
-    for d in dirs:
-        if d not in out:
-            out.append(d)
-    return out
-
-
+# finding shipped checkpoints (where: evlatcorr.locations.checkpoint_dirs) ---------------------------------
 def resolve_checkpoint(name_or_path: str | Path | None, model_name: str) -> Path | None:
     """Turn an adapter's ``checkpoint`` argument into a file for :func:`load_weights`.
 

@@ -46,6 +46,7 @@ from evlatcorr.benchmark.accuracy import (  # noqa: E402
     to_markdown,
     write_results,
 )
+from evlatcorr.config import SCORES  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -59,6 +60,9 @@ def main(argv: list[str] | None = None) -> None:
                    help="built-in correctors estimate the threshold (threshold='auto') instead of the true one")
     p.add_argument("--search-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                    help="latency search range of the built-in correctors, µs (default: their own, 0 to the exposure)")
+    p.add_argument("--score", default=None, choices=SCORES,
+                   help="built-in correctors' sharpness score (default: theirs, 'consensus'; 'learned': the curve "
+                        "reader, evlatcorr.curve_reader)")
     p.add_argument("--ghost-confidence", type=float, default=None, metavar="C",
                    help="built-in correctors: frames whose score confidence is at most C take the ghost cue's "
                         "latency (default: theirs, 0: only frames with no minimum; see evlatcorr.ghost)")
@@ -80,6 +84,8 @@ def main(argv: list[str] | None = None) -> None:
     options = {} if args.search_range is None else {"search_range": tuple(args.search_range)}
     if args.ghost_confidence is not None:
         options["ghost_confidence"] = args.ghost_confidence
+    if args.score is not None:
+        options["score"] = args.score
     modes = {"both": ("constant", "spatial"), "none": ()}.get(args.mode, (args.mode,))
     estimators = {}
     for mode in modes:

@@ -66,11 +66,13 @@ def ghost_moment(grey: Tensor, log_ratio: Tensor, log_change: Tensor, sigma: flo
                          f"got {tuple(log_ratio.shape)} and {tuple(log_change.shape)}")
     if not sigma > 0:
         raise ValueError(f"sigma must be positive, got {sigma}")
-    log_latent = torch.log(grey.double().clamp_min(_FLOOR)) - log_ratio.double()
+    # float64 unless both curves come in float32 (a correlation over the image needs no more)
+    dtype = torch.float32 if log_ratio.dtype == log_change.dtype == torch.float32 else torch.float64
+    log_latent = torch.log(grey.to(dtype).clamp_min(_FLOOR)) - log_ratio.to(dtype)
     size = 2 * int(3 * sigma + 0.5) + 1
     low_pass = kornia.filters.GaussianBlur2d((size, size), (sigma, sigma))
     a = log_latent - low_pass(log_latent)
-    b = log_change.double() - low_pass(log_change.double())
+    b = log_change.to(dtype) - low_pass(log_change.to(dtype))
     a = (a - a.mean(dim=(1, 2, 3), keepdim=True)).flatten(1)
     b = (b - b.mean(dim=(1, 2, 3), keepdim=True)).flatten(1)
     return (a * b).sum(1) / (a.norm(dim=1) * b.norm(dim=1)).clamp_min(1e-12)

@@ -16,7 +16,8 @@ events (Eq. 7). Two ways to read all candidates at once:
   ``(n + span) × H × W`` serves every candidate. Needed for the ``"linear"`` integral.
 
 The scores of all candidates are batched calls. The best candidate is refined at every ``T / n`` around
-it, then to below that by a parabola through the three best scores.
+it (40 µs at the defaults, far below what any score can tell apart), and the latent image at the latency
+chosen is the one its candidate was scored on (no further read of the events).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ from evlatcorr.ghost import ghost_moment, ghost_root
 from evlatcorr.integral import _row_strips, cumsum_, cumulative_event_grid
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score",
-           "sharpness_scores", "SCORES", "DEFAULT_SCORE", "SearchConfig"]
+           "sharpness_scores", "candidate_curves", "SCORES", "DEFAULT_SCORE", "SearchConfig"]
 
 _SPARSITY = SPARSITY_SCORES
 # Memory bound of one strip of the prefix-sum table (float64), in elements.
@@ -85,8 +86,9 @@ class ConstantSearchResult:
             score curve was nearly flat and :mod:`evlatcorr.ghost`'s moment crossed zero once) or
             ``"fallback"``.
         log_ratio: :math:`(B, 1, H, W)` float64 EDI ``log R`` at ``latency`` (latent image at mid-exposure
-            ``blurry · exp(−log R)``), exact in continuous time; None with ``method="binned"`` or when a
-            sample had no window to score.
+            ``blurry · exp(−log R)``), exact in continuous time (to float32 rounding when ``latency`` is a scored
+            candidate: the ratio its score saw); None with ``method="binned"`` or when a sample had no window to
+            score.
     """
 
     latency: Tensor
@@ -136,7 +138,7 @@ def search_constant_latency(
         num_bins: sub-intervals of the exposure ``n`` (paper: 500); candidates are whole sub-intervals.
         search_range: ``(low, high)`` µs, finite, ``high > low``; default ``(0, exposure time)`` per sample.
         num_candidates: number of coarse candidates over the range (default 100).
-        refine: search every sub-interval around the best candidate, then fit a parabola.
+        refine: search every sub-interval around the best candidate.
         previous_latency: ``l'`` :math:`(B,)` µs for the temporal term ``g``; None drops it.
         epsilon: ETF edge amplifier.
         window: ETF contrast window.
@@ -144,8 +146,10 @@ def search_constant_latency(
         integral: ``"step"`` (impulse events) or ``"linear"`` (each event spread since the previous one
             at its pixel, Eq. 16-18; see :mod:`evlatcorr.integral`).
         score: ``"consensus"`` (default: the median of the estimates of the three sparsity scores),
-            ``"sparsity"``, ``"sparsity_bright"``, ``"sparsity_multiscale"`` or ``"etf"`` (paper Eq. 14);
-            see :func:`sharpness_score`.
+            ``"sparsity"``, ``"sparsity_bright"``, ``"sparsity_multiscale"``, ``"etf"`` (paper Eq. 14; see
+            :func:`sharpness_score`) or ``"learned"`` (:mod:`evlatcorr.curve_reader` picks the coarse candidate
+            from the three sparsity curves and the ghost moment; the median of their fine minima around it;
+            continuous method only).
         memory_budget: bytes the search table may take; default
             :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`. A larger table is built strip by strip for
             each batch of candidates (the same values, more time).
@@ -304,11 +308,12 @@ def sharpness_scores(latent: Tensor, latency: Tensor, previous: Tensor | None, s
     (the log image of each floor ``c``, the gradient term of each floor and scale)."""
     for score in scores:
         if score != "etf" and score not in _SPARSITY:
-            raise ValueError(f"score must be one of {SCORES[:-1]} here ('consensus' is a search over several), "
+            raise ValueError(f"score must be one of {SCORES[:-2]} here ('consensus' and 'learned' search over "
+                             "several), "
                              f"got {score!r}")
     # relative to each image's mean, so the score is exactly invariant to the brightness scale
-    positive = latent.clamp_min(0)
-    mean = positive.mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-12)
+    relative = latent.clamp_min(0)
+    relative = relative.div_(relative.mean(dim=(1, 2, 3), keepdim=True).clamp_min_(1e-12))
     terms: dict[tuple[float, int], Tensor] = {}
     for score in scores:
         if score == "etf":
@@ -317,7 +322,7 @@ def sharpness_scores(latent: Tensor, latency: Tensor, previous: Tensor | None, s
         log_image = None
         for factor in factors:
             if (floor, factor) not in terms:
-                log_image = torch.log(positive / mean + floor) if log_image is None else log_image
+                log_image = torch.add(relative, floor).log_() if log_image is None else log_image
                 image = log_image if factor == 1 else torch.nn.functional.avg_pool2d(log_image, factor)
                 terms[floor, factor] = _gradient_sparsity(image)
     out = []
@@ -338,14 +343,32 @@ def sharpness_scores(latent: Tensor, latency: Tensor, previous: Tensor | None, s
 def _gradient_sparsity(image: Tensor) -> Tensor:
     """``‖∇I‖₁ / (‖∇I‖₂ · sqrt(n))`` per image :math:`(K, 1, H, W)` → :math:`(K,)`, in (0, 1] whatever the size.
 
-    Central differences with replicated borders (kornia's normalised ``"diff"`` gradient), by slicing.
+    Central differences with replicated borders (kornia's normalised ``"diff"`` gradient): one-sided at the
+    border rows and columns. The ratio does not depend on the gradient's scale, so the differences are not
+    halved; the norms are taken without padding the image or keeping absolute values and squares.
     """
-    padded = torch.nn.functional.pad(image, (1, 1, 1, 1), mode="replicate")
-    dx = (padded[..., 1:-1, 2:] - padded[..., 1:-1, :-2]).mul_(0.5).flatten(1)
-    dy = (padded[..., 2:, 1:-1] - padded[..., :-2, 1:-1]).mul_(0.5).flatten(1)
-    l1 = dx.abs().sum(1) + dy.abs().sum(1)
-    l2 = (dx.square().sum(1) + dy.square().sum(1)).sqrt()
-    return l1 / (l2 * math.sqrt(2 * dx.shape[1]) + 1e-12)
+    norms = [torch.linalg.vector_norm(d.flatten(1), order, dim=1) for d in _central_differences(image)
+             for order in (1, 2)]
+    if not norms:  # a single pixel has no gradient
+        return torch.zeros(image.shape[0], dtype=image.dtype, device=image.device)
+    l1 = sum(norms[0::2])
+    l2 = torch.stack(norms[1::2]).square_().sum(0).sqrt_()
+    n = 2 * image.shape[-2] * image.shape[-1]
+    return l1 / (l2 * math.sqrt(n) + 1e-12)
+
+
+def _central_differences(image: Tensor) -> list[Tensor]:
+    """Twice kornia's normalised central differences of :math:`(K, 1, H, W)` with replicated borders, as the
+    interior and border pieces of the x and y gradients (empty pieces left out)."""
+    height, width = image.shape[-2:]
+    pieces = []
+    if width > 1:
+        pieces += [image[..., 2:] - image[..., :-2], image[..., 1:2] - image[..., :1],
+                   image[..., -1:] - image[..., -2:-1]]
+    if height > 1:
+        pieces += [image[..., 2:, :] - image[..., :-2, :], image[..., 1:2, :] - image[..., :1, :],
+                   image[..., -1:, :] - image[..., -2:-1, :]]
+    return [piece for piece in pieces if piece.numel()]
 
 
 @dataclass(frozen=True)
@@ -400,10 +423,15 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
                 // candidate_bytes)
     integral = ContinuousIntegral(events, theta) if top >= low else None
 
+    last_read: dict[str, Tensor] = {}
+
     def inverse_ratio(lat: Tensor) -> Tensor:
+        if last_read and torch.equal(last_read["latencies"], lat.cpu()):  # e.g. the learned score's ghost moment
+            return last_read["inverse"]
         out = torch.empty((len(lat), 1, *grey.shape[-2:]), dtype=torch.float32, device=events.device)
         for k in range(0, len(lat), chunk):  # each read writes its slice: no concatenated copy
             integral.inverse_ratio(start, end, lat[k:k + chunk], out=out[k:k + chunk])
+        last_read.update(latencies=lat.cpu(), inverse=out)
         return out
 
     def fine_of(best: float) -> Tensor:
@@ -411,6 +439,12 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
         return torch.unique((best + k * fine_step).clamp(low, min(high, top)))
 
     def final_ratio(latency: float) -> Tensor:
+        # the chosen latency is usually a candidate of the last read: its latent is the one the score saw
+        if last_read:
+            hit = torch.nonzero(last_read["latencies"] == latency).flatten()
+            if len(hit):
+                k = int(hit[0])
+                return torch.log(last_read["inverse"][k:k + 1].double()).neg_()
         return integral.log_ratio(start, end, torch.tensor([latency], dtype=torch.float64))
 
     def log_change(lat: Tensor) -> Tensor:
@@ -446,7 +480,8 @@ def _binned_reader(events: Events, span: _Window, theta: float, config: SearchCo
 
     return _CandidateReader(torch.arange(num, device=events.device) * step, top, 0,
                             lambda v: (first + v).to(torch.float64) * width_us,
-                            lambda shifts: torch.exp(-table.log_ratio(shifts)).float(), fine_of, lambda latency: None)
+                            lambda shifts: torch.exp(-table.log_ratio(shifts)).float(), fine_of, lambda latency: None,
+                            lambda shifts: table.log_change(shifts))
 
 
 def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str, ...], config: SearchConfig,
@@ -491,7 +526,7 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
         raise ValueError(f"search_range [{low:.4g}, {high:.4g}] us reaches {max(abs(low), abs(high)) / width_us:.3g} "
                          f"sub-intervals of {width_us:.4g} us (exposure time / num_bins), more than the search "
                          "can count (2**53): narrow search_range")
-    members = tuple(_SPARSITY) if config.score == "consensus" else (config.score,)
+    members = tuple(_SPARSITY) if config.score in ("consensus", "learned") else (config.score,)
     reader = (_continuous_reader(grey, events, span, theta, config, budget) if method == "continuous"
               else _binned_reader(events, span, theta, config, integral, budget))
     coarse, to_us = reader.coarse, reader.to_us
@@ -500,8 +535,15 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
         nan = torch.full((len(coarse),), math.nan, dtype=torch.float64)
         return _OneResult(fallback, to_us(coarse).cpu(), nan, to_us(coarse).cpu(), nan, 0.0, True, source="fallback")
 
-    coarse_scores = torch.stack(_score_candidates(reader, grey, members, config, prev, [coarse] * len(members)))
-    fines = [reader.fine_of(float(coarse[int(torch.argmin(coarse_scores[m]))])) for m in range(len(members))]
+    # the learned reader reads the curves as it was trained (no temporal prior) and takes the prior afterwards
+    coarse_prev = None if config.score == "learned" else prev
+    coarse_scores = torch.stack(_score_candidates(reader, grey, members, config, coarse_prev,
+                                                  [coarse] * len(members)))
+    if config.score == "learned":  # every score refines around the reader's pick
+        prior = None if prev is None else (to_us(coarse).cpu().double(), float(prev), config.sigma_us)
+        fines = [reader.fine_of(_learned_pick(reader, grey, coarse, coarse_scores, prior))] * len(members)
+    else:
+        fines = [reader.fine_of(float(coarse[int(torch.argmin(coarse_scores[m]))])) for m in range(len(members))]
     fine_scores = (_score_candidates(reader, grey, members, config, prev, fines) if config.refine
                    else [None] * len(members))
     estimates = [_refine(coarse, coarse_scores[m], fines[m], fine_scores[m], config.refine)
@@ -524,6 +566,67 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
     latency = min(max(float(to_us(torch.tensor(best, dtype=torch.float64))), low), high)
     return _OneResult(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(fine).cpu(), fine_score, confidence, False,
                       reader.final_ratio(latency))
+
+
+def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor
+                  ) -> tuple[Tensor, Tensor]:
+    """:func:`~evlatcorr.curve_reader.curve_features` of one frame's coarse candidates, and which are valid."""
+    from evlatcorr.curve_reader import curve_features
+
+    valid = torch.isfinite(coarse_scores[0])
+    kept = coarse[coarse <= reader.top]  # the valid candidates: a prefix of the sorted coarse ones
+    moment = torch.zeros(len(coarse), dtype=torch.float64)
+    if len(kept):
+        inverse, change = reader.inverse_ratio(kept), reader.log_change(kept)
+        for k0 in range(0, len(kept), _SCORE_CHUNK):  # float32, a few candidates at a time (in cache)
+            k1 = min(k0 + _SCORE_CHUNK, len(kept))
+            moment[k0:k1] = ghost_moment(grey, torch.log(inverse[k0:k1]).neg_(), change[k0:k1]).cpu()
+    return curve_features(coarse_scores, moment, valid), valid.cpu()
+
+
+def _learned_pick(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor,
+                  prior: tuple[Tensor, float, float] | None = None) -> float:
+    """The coarse candidate :mod:`evlatcorr.curve_reader`'s shipped ensemble finds likeliest (reader units).
+
+    ``prior``: ``(candidates in µs, previous latency, σ)``: the temporal prior of the sparsity scores,
+    ``exp((l − l')² / 4σ²)`` on a score, enters as ``−(l − l')² / 4σ²`` on the reader's log-probability.
+    """
+    from evlatcorr.curve_reader import load_curve_reader
+
+    curves, valid = _curve_inputs(reader, grey, coarse, coarse_scores)
+    with torch.no_grad():
+        log_p = load_curve_reader()(curves[None], valid[None])[0].double()
+    if prior is not None:
+        latencies, previous, sigma = prior
+        log_p = log_p - (latencies - previous) ** 2 / (4 * sigma**2)
+    return float(coarse[int(torch.argmax(log_p))])
+
+
+def candidate_curves(blurry: Tensor, events: Events, exposure_start: float, exposure_end: float,
+                     threshold: float) -> tuple[Tensor, Tensor, Tensor]:
+    """What ``score="learned"`` reads for one frame at the default settings: the coarse candidates
+    :math:`(K,)` µs, their :func:`~evlatcorr.curve_reader.curve_features` :math:`(F, K)` and which are valid
+    :math:`(K,)` (what :func:`evlatcorr.curve_reader.train_curve_reader` is trained on).
+
+    Args:
+        blurry: :math:`(1, C, H, W)` in [0, 1].
+        events: the frame's events (``batch_size == 1``), reaching past ``exposure_end``.
+        exposure_start, exposure_end: µs.
+        threshold: contrast threshold θ.
+    """
+    check_image(blurry, "blurry")
+    if blurry.shape[0] != 1 or events.batch_size != 1:
+        raise ValueError(f"candidate_curves takes one frame, got {blurry.shape[0]} images and {events.batch_size} "
+                         "event samples")
+    config = SearchConfig(score="learned")
+    grey = kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
+    last = float(events.t.max()) if len(events) else -math.inf
+    span = _Window(exposure_start, exposure_end, 0.0, exposure_end - exposure_start, last - exposure_end)
+    reader = _continuous_reader(grey, events, span, float(threshold), config, None)
+    coarse_scores = torch.stack(_score_candidates(reader, grey, tuple(_SPARSITY), config, None,
+                                                  [reader.coarse] * len(_SPARSITY)))
+    curves, valid = _curve_inputs(reader, grey, reader.coarse, coarse_scores)
+    return reader.coarse.cpu(), curves, valid
 
 
 def _ghost_latency(reader: _CandidateReader, grey: Tensor, coarse: Tensor) -> float | None:
@@ -554,22 +657,14 @@ def _aligned_candidates(low: float, high: float, num: int, exposure: float) -> t
 
 def _refine(coarse: Tensor, coarse_scores: Tensor, fine: Tensor, fine_scores: Tensor | None,
             refine: bool) -> tuple[float, float, Tensor, Tensor]:
-    """One score's best candidate (fractional between evenly spaced fine candidates), its confidence, and the
-    candidates it refined."""
+    """One score's best candidate (a fine one when refined), its confidence, and the candidates it refined."""
     finite = torch.isfinite(coarse_scores)
     k_best = int(torch.argmin(coarse_scores))
     confidence = _confidence(coarse_scores[finite], k_best)
     best = coarse[k_best].item()
     if not refine or fine_scores is None:
         return float(best), confidence, coarse, coarse_scores
-    k = int(torch.argmin(fine_scores))
-    best, offset = fine[k].item(), 0.0
-    if 0 < k < len(fine) - 1:
-        f_m, f_0, f_p = (float(v) for v in fine_scores[k - 1:k + 2])
-        curvature = f_m - 2 * f_0 + f_p
-        if curvature > 0 and math.isfinite(curvature):
-            offset = max(-0.5, min(0.5, 0.5 * (f_m - f_p) / curvature)) * (fine[k + 1] - fine[k]).item()
-    return best + offset, confidence, fine, fine_scores
+    return fine[int(torch.argmin(fine_scores))].item(), confidence, fine, fine_scores
 
 
 def _confidence(scores: Tensor, k_best: int) -> float:
@@ -633,6 +728,14 @@ class _ShiftTable:
         del x
         cumsum_(prefix[1:], 0)
         return cum, peak, prefix
+
+    def log_change(self, shifts: Tensor) -> Tensor:
+        """θ times each pixel's net events in each shift's window :math:`(K, 1, H, W)` float32 (the ghost cue's)."""
+        out = []
+        for strip in self.strips:
+            cum = (strip if isinstance(strip, tuple) else self._build(strip))[0]
+            out.append(self.theta * (cum[shifts + self.n] - cum[shifts]))
+        return torch.cat(out, dim=1)[:, None].float()
 
     def log_ratio(self, shifts: Tensor, reference: float = 0.5) -> Tensor:
         """log R for each shift, latent at ``start + reference * exposure`` (0.5 = mid-exposure)."""

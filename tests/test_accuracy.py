@@ -84,7 +84,7 @@ def test_split_covers_every_factor(split, minimum):
 
 def test_bad_arguments():
     with pytest.raises(ValueError, match="split"):
-        make_cases("train")
+        make_cases("validation")
     with pytest.raises(ValueError, match="num"):
         make_cases("dev", num=-1)
     with pytest.raises(ValueError, match="size"):

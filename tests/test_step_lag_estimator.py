@@ -39,3 +39,13 @@ def test_the_estimator_moves_the_corrector_s_latency_earlier_and_scores_in_the_s
     torch.testing.assert_close(lagged, (plain - float(lag[0])).clamp_min(0.0))
     row = evaluate_case(case, estimate)
     assert row["error"] == "" and abs(row["est_latency_us"] - float(lagged[0, 0, 0, 0])) < 1e-3
+
+
+def test_the_consensus_plugin_is_the_corrector_with_the_previous_default_score():
+    case = tiny_case()
+    delayed = simulate_case(case)[0]
+    frames = delayed.replace(meta={**delayed.meta, "threshold": case.threshold})
+    plugin = Path(__file__).resolve().parents[1] / "benchmarks" / "estimators" / "consensus.py"
+    latency = load_estimator(f"{plugin}:estimate")(frames)
+    expected = EventLatencyCorrector(threshold=case.threshold, score="consensus")(frames).latency
+    torch.testing.assert_close(latency, expected)

@@ -83,13 +83,19 @@ DARK_BRIGHTNESS = 0.1
 DARK_PHOTOGRAPHS = ("hubble_deep_field", "moon")  # photographs with large uniform dark regions
 SCENE_FACTOR = 3  # procedural scenes are this many times the sensor's size
 
-_NUM_CASES = {"dev": 40, "test": 48}
-_PHOTOGRAPHS = {"dev": PHOTOGRAPHS_TRAIN, "test": PHOTOGRAPHS_TEST}
-_SPLIT_SEED = {"dev": 1, "test": 2}  # case draws: generator seed 1000 * split seed + factor index
-_SCENE_SEED = {"dev": 100_000, "test": 200_000}  # procedural scenes and sprites: disjoint seed ranges
-_SIM_SEED = {"dev": 10_000, "test": 20_000}
+# the learned curve reader's training cases (evlatcorr.curve_reader): constant latency only, the dev split's
+# photographs, seeds disjoint from dev and test; drawn in three batches of 200, 300 and 400 cases
+TRAIN_SPLITS = ("train", "train1", "train2")
+_NUM_CASES = {"dev": 40, "test": 48, "train": 200, "train1": 300, "train2": 400}
+_PHOTOGRAPHS = {"dev": PHOTOGRAPHS_TRAIN, "test": PHOTOGRAPHS_TEST, **{s: PHOTOGRAPHS_TRAIN for s in TRAIN_SPLITS}}
+# case draws: generator seed 1000 * split seed + factor index
+_SPLIT_SEED = {"dev": 1, "test": 2, "train": 3, "train1": 4, "train2": 5}
+# procedural scenes and sprites: disjoint seed ranges
+_SCENE_SEED = {"dev": 100_000, "test": 200_000, "train": 300_000, "train1": 400_000, "train2": 500_000}
+_SIM_SEED = {"dev": 10_000, "test": 20_000, "train": 30_000, "train1": 40_000, "train2": 50_000}
 _MOTION_WEIGHTS = (0.3, 0.15, 0.2, 0.15, 0.2)
 _LATENCY_WEIGHTS = (0.5, 0.25, 0.25)
+_TRAIN_LATENCY_WEIGHTS = (1.0, 0.0, 0.0)
 _MOTION_TAGS = {"translation": "tr", "random": "rnd", "rotation": "rot", "zoom": "zoom", "objects": "obj"}
 _LATENCY_TAGS = {"constant": "const", "intensity_delay": "delay", "intensity": "photo"}
 
@@ -207,7 +213,8 @@ def make_cases(split: str, num: int | None = None, size: tuple[int, int] = DEFAU
     """The suite's cases of one split, the same on every machine.
 
     Args:
-        split: ``"dev"`` (40 cases) or ``"test"`` (48 cases).
+        split: ``"dev"`` (40 cases), ``"test"`` (48 cases), or one of :data:`TRAIN_SPLITS` (constant latency only:
+            what the learned curve reader is trained on; never reported).
         num: keep only the first ``num`` cases (a random subset that may miss some factors).
         size: sensor ``(H, W)``.
 
@@ -220,8 +227,8 @@ def make_cases(split: str, num: int | None = None, size: tuple[int, int] = DEFAU
         >>> [c.name for c in make_cases("dev", num=2)]
         ['dev-00-cell-b0.06-rot0.2-delay', 'dev-01-retina-b0.66-rot1.1-photo']
     """
-    if split not in SPLITS:
-        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    if split not in SPLITS + TRAIN_SPLITS:
+        raise ValueError(f"split must be one of {SPLITS + TRAIN_SPLITS}, got {split!r}")
     if num is not None and (not isinstance(num, int) or num < 0):
         raise ValueError(f"num must be a non-negative integer or None, got {num!r}")
     if len(size) != 2 or not all(isinstance(s, int) and s >= 16 for s in size):
@@ -237,7 +244,8 @@ def make_cases(split: str, num: int | None = None, size: tuple[int, int] = DEFAU
     motions = _balanced(MOTION_KINDS, _MOTION_WEIGHTS, n, _generator(split, 3))
     speeds = [_log_uniform(u, 0.2, 4.0) for u in _stratified(n, _generator(split, 4))]
     directions = (torch.rand(n, generator=_generator(split, 5), dtype=torch.float64) * 360).tolist()
-    models = _balanced(LATENCY_MODELS, _LATENCY_WEIGHTS, n, _generator(split, 6))
+    models = _balanced(LATENCY_MODELS, _TRAIN_LATENCY_WEIGHTS if split in TRAIN_SPLITS else _LATENCY_WEIGHTS, n,
+                       _generator(split, 6))
     latencies = [200.0 + u * 11_800.0 for u in _stratified(n, _generator(split, 7))]
     g = _generator(split, 8)
     ranges = [(200.0 + 800.0 * float(a), 4000.0 + 8000.0 * float(b))

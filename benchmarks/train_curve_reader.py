@@ -1,0 +1,74 @@
+"""Train the learned curve reader (``score="learned"``, :mod:`evlatcorr.curve_reader`) and write its weights.
+
+Simulates the accuracy suite's training cases (:data:`evlatcorr.benchmark.accuracy.TRAIN_SPLITS`: 900
+constant-latency frames of the dev split's photographs and procedural scenes, seeds disjoint from dev and
+test), reads each frame's candidate curves as the search does (:func:`evlatcorr.search.candidate_curves`),
+and fits an ensemble of 5 readers to the true latencies (about 15 minutes on 2 CPU cores: 12 simulating,
+3 training).
+
+    python benchmarks/train_curve_reader.py                                  # writes checkpoints/curve-reader.*
+    python benchmarks/train_curve_reader.py --cache curves.pt --out /tmp/reader.safetensors
+
+Then ``python benchmarks/accuracy.py --split dev --score learned`` measures it.
+"""
+
+import _setup  # noqa: F401  (the repository on sys.path, 2 MB pages)
+
+# isort: split
+import argparse
+import time
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from evlatcorr.benchmark.accuracy import TRAIN_SPLITS, make_cases, simulate_case
+from evlatcorr.curve_reader import WEIGHTS_NAME, save_curve_reader, train_curve_reader
+from evlatcorr.search import candidate_curves
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def extract(cache: Path | None) -> dict:
+    """Every training case's candidate curves and true latency (read from ``cache`` when it exists)."""
+    if cache is not None and cache.exists():
+        return torch.load(cache)
+    cases = [c for split in TRAIN_SPLITS for c in make_cases(split)]
+    curves, valid, targets = [], [], []
+    latencies = None
+    for case in tqdm(cases, desc="training cases", unit="case"):
+        delayed, _, _ = simulate_case(case)
+        latencies, x, v = candidate_curves(delayed.blurry, delayed.events, float(delayed.exposure_start[0]),
+                                           float(delayed.exposure_end[0]), case.threshold)
+        curves.append(x)
+        valid.append(v)
+        targets.append(case.latency_us)
+    data = {"latencies": latencies, "curves": torch.stack(curves), "valid": torch.stack(valid),
+            "targets": torch.tensor(targets, dtype=torch.float64), "names": [c.name for c in cases]}
+    if cache is not None:
+        torch.save(data, cache)
+    return data
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=ROOT / "checkpoints" / f"{WEIGHTS_NAME}.safetensors")
+    parser.add_argument("--cache", type=Path, default=None, help="save (or reuse) the extracted curves here")
+    parser.add_argument("--members", type=int, default=5)
+    parser.add_argument("--epochs", type=int, default=300)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    t0 = time.perf_counter()
+    data = extract(args.cache)
+    print(f"{len(data['targets'])} training frames in {time.perf_counter() - t0:.0f} s", flush=True)
+    ensemble = train_curve_reader(data["curves"], data["valid"], data["latencies"], data["targets"],
+                                  members=args.members, epochs=args.epochs, seed=args.seed)
+    provenance = {"cases": list(TRAIN_SPLITS), "frames": len(data["targets"]), "members": args.members,
+                  "epochs": args.epochs, "seed": args.seed, "command": "python benchmarks/train_curve_reader.py"}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    save_curve_reader(ensemble, args.out, provenance)
+    print(f"wrote {args.out} ({time.perf_counter() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()

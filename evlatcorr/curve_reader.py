@@ -1,0 +1,179 @@
+"""A learned reader of the search's candidate curves: which candidate is the true latency (``score="learned"``).
+
+Each sparsity score's minimum lies off the true latency on many scenes (step EDI's lag, ghosts of small objects
+over a static background, flat dark regions), each score in its own way, and no hand-written rule over the
+curves (the median of the three, votes, tie-breaks at the ghost moment's zero) did better on the suite's dev
+split. :class:`CurveReader` learns that rule from simulated frames whose latency is known: a small 1-D CNN
+over the coarse candidates reads
+
+- the three sparsity scores' curves, each relative to its median and range over the candidates that could be
+  scored (so neither a score's level nor its scale matters),
+- the ghost moment (:func:`evlatcorr.ghost.ghost_moment`) of each candidate,
+- which candidates could be scored (their window holds events),
+
+and gives a log-probability per candidate. :class:`CurveReaderEnsemble` averages a few readers trained from
+different seeds. The search refines the reader's pick with the sparsity scores at every ``T / n`` around it.
+
+The shipped weights (``checkpoints/curve-reader.safetensors``, about 20 kB) come from
+``python benchmarks/train_curve_reader.py``: constant-latency cases of the accuracy suite's generator
+(:func:`evlatcorr.benchmark.accuracy.make_cases` with ``split="train"``: the dev split's photographs, seeds
+disjoint from both dev and test), the reader trained against each case's true latency.
+
+Example:
+    >>> reader = CurveReader()
+    >>> curves = torch.zeros(2, NUM_FEATURES, 101)
+    >>> valid = torch.ones(2, 101, dtype=torch.bool)
+    >>> reader(curves, valid).shape
+    torch.Size([2, 101])
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["NUM_FEATURES", "CurveReader", "CurveReaderEnsemble", "curve_features", "train_curve_reader",
+           "load_curve_reader", "WEIGHTS_NAME"]
+
+# three sparsity curves, the ghost moment, the valid mask
+NUM_FEATURES = 5
+WEIGHTS_NAME = "curve-reader"
+# the training target: a Gaussian around the true latency, µs (about one and a half coarse candidates)
+TARGET_SIGMA_US = 300.0
+# noise added to the normalised curves while training (they span about 1)
+TRAIN_NOISE = 0.02
+_MASKED = -1e4
+
+
+def curve_features(scores: Tensor, moment: Tensor, valid: Tensor) -> Tensor:
+    """The reader's input :math:`(NUM\\_FEATURES, K)` float32 from one frame's candidate curves.
+
+    Args:
+        scores: the sparsity scores :math:`(3, K)` of the candidates (any value where ``valid`` is False).
+        moment: the ghost moment of each candidate :math:`(K,)` (0 where not valid).
+        valid: :math:`(K,)` bool: the candidate's window holds events.
+
+    Returns:
+        each score relative to its median over the valid candidates and divided by its range there (0 where
+        not valid, or everywhere when fewer than two are valid), the moment, and ``valid`` as 0/1.
+    """
+    if scores.dim() != 2 or moment.shape != scores.shape[1:] or valid.shape != moment.shape:
+        raise ValueError(f"scores must be (M, K) with moment and valid (K,), got {tuple(scores.shape)}, "
+                         f"{tuple(moment.shape)} and {tuple(valid.shape)}")
+    scores, moment, valid = scores.double().cpu(), moment.double().cpu(), valid.cpu()
+    rows = []
+    for curve in scores:
+        kept = curve[valid]
+        if len(kept) >= 2:
+            spread = (kept.max() - kept.min()).clamp_min(1e-12)
+            rows.append(torch.where(valid, (curve - kept.median()) / spread, 0.0))
+        else:
+            rows.append(torch.zeros_like(curve))
+    rows.append(torch.where(valid, moment, 0.0))
+    rows.append(valid.double())
+    return torch.stack(rows).float()
+
+
+class CurveReader(nn.Module):
+    """Log-odds :math:`(B, K)` of each candidate being the true latency, from :func:`curve_features` :math:`(B, F, K)`.
+
+    Three dilated convolutions (receptive field 29 candidates) and a 1x1 output; candidates that could not be
+    scored get a large negative logit.
+    """
+
+    def __init__(self, num_features: int = NUM_FEATURES, channels: int = 16) -> None:
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Conv1d(num_features, channels, 5, padding=2), nn.ReLU(),
+            nn.Conv1d(channels, channels, 5, padding=4, dilation=2), nn.ReLU(),
+            nn.Conv1d(channels, channels, 5, padding=8, dilation=4), nn.ReLU(),
+            nn.Conv1d(channels, 1, 1))
+
+    def forward(self, curves: Tensor, valid: Tensor) -> Tensor:
+        return self.net(curves)[:, 0].masked_fill(~valid, _MASKED)
+
+
+class CurveReaderEnsemble(nn.Module):
+    """The mean log-probability :math:`(B, K)` of several :class:`CurveReader`."""
+
+    def __init__(self, members: int = 5) -> None:
+        super().__init__()
+        self.members = nn.ModuleList(CurveReader() for _ in range(members))
+
+    def forward(self, curves: Tensor, valid: Tensor) -> Tensor:
+        return torch.stack([torch.log_softmax(m(curves, valid), 1) for m in self.members]).mean(0)
+
+
+def train_curve_reader(curves: Tensor, valid: Tensor, latencies: Tensor, targets: Tensor, members: int = 5,
+                       epochs: int = 300, seed: int = 0) -> CurveReaderEnsemble:
+    """Fit an ensemble to frames of known latency (full-batch Adam; seconds on a CPU for a thousand frames).
+
+    Args:
+        curves: :func:`curve_features` of each frame :math:`(N, F, K)`.
+        valid: :math:`(N, K)` bool.
+        latencies: the candidates :math:`(K,)` µs (the same for every frame).
+        targets: each frame's true latency :math:`(N,)` µs.
+        members: readers in the ensemble, each from its own seed ``seed + i``.
+        epochs: full-batch steps per reader.
+
+    Returns:
+        the ensemble, in eval mode.
+    """
+    if curves.dim() != 3 or valid.shape != (curves.shape[0], curves.shape[2]) or targets.shape != curves.shape[:1]:
+        raise ValueError(f"need curves (N, F, K), valid (N, K) and targets (N,), got {tuple(curves.shape)}, "
+                         f"{tuple(valid.shape)} and {tuple(targets.shape)}")
+    target = torch.exp(-0.5 * ((latencies.float()[None] - targets.float()[:, None]) / TARGET_SIGMA_US) ** 2) * valid
+    target = target / target.sum(1, keepdim=True).clamp_min(1e-12)
+    ensemble = CurveReaderEnsemble(members)
+    generator = torch.Generator().manual_seed(seed)
+    for i, reader in enumerate(ensemble.members):
+        torch.manual_seed(seed + i)  # the layers' initialisation
+        reader.load_state_dict(CurveReader().state_dict())
+        optimiser = torch.optim.Adam(reader.parameters(), lr=3e-3, weight_decay=1e-3)
+        for _ in range(epochs):
+            noisy = curves + TRAIN_NOISE * torch.randn(curves.shape, generator=generator) * valid[:, None]
+            noisy[:, -1] = curves[:, -1]  # the mask stays exact
+            loss = -(target * torch.log_softmax(reader(noisy, valid), 1)).sum(1).mean()
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+    return ensemble.eval()
+
+
+@functools.lru_cache(maxsize=4)
+def load_curve_reader(path: str | None = None) -> CurveReaderEnsemble:
+    """The shipped ensemble (or the one saved at ``path``, a ``.safetensors`` file), in eval mode.
+
+    Raises:
+        FileNotFoundError: when no weights are found (the message says where it looked).
+    """
+    from safetensors.torch import load_file
+
+    if path is None:
+        from evlatcorr.locations import checkpoint_dirs
+
+        candidates = [d / f"{WEIGHTS_NAME}.safetensors" for d in checkpoint_dirs()]
+        found = next((c for c in candidates if c.is_file()), None)
+        if found is None:
+            raise FileNotFoundError(f"no {WEIGHTS_NAME}.safetensors in {[str(d) for d in checkpoint_dirs()]}: "
+                                    "run python benchmarks/train_curve_reader.py, or use another score")
+        path = str(found)
+    state = load_file(path)
+    members = len({key.split(".")[1] for key in state})
+    ensemble = CurveReaderEnsemble(members)
+    ensemble.load_state_dict(state, strict=True)
+    return ensemble.eval()
+
+
+def save_curve_reader(ensemble: CurveReaderEnsemble, path: str | Path, provenance: dict | None = None) -> None:
+    """Write the ensemble as safetensors (and ``provenance`` as JSON beside it)."""
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    save_file({k: v.contiguous() for k, v in ensemble.state_dict().items()}, str(path))
+    if provenance is not None:
+        path.with_suffix(".json").write_text(json.dumps(provenance, indent=2) + "\n")
