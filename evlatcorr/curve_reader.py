@@ -162,6 +162,8 @@ def load_curve_reader(path: str | None = None) -> CurveReaderEnsemble:
             raise FileNotFoundError(f"no {WEIGHTS_NAME}.safetensors in {[str(d) for d in checkpoint_dirs()]}: "
                                     "run python benchmarks/train_curve_reader.py, or use another score")
         path = str(found)
+    elif not Path(path).is_file():
+        raise FileNotFoundError(f"no curve reader weights at {path}")
     state = load_file(path)
     members = len({key.split(".")[1] for key in state})
     ensemble = CurveReaderEnsemble(members)

@@ -576,12 +576,20 @@ def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse
     valid = torch.isfinite(coarse_scores[0])
     kept = coarse[coarse <= reader.top]  # the valid candidates: a prefix of the sorted coarse ones
     moment = torch.zeros(len(coarse), dtype=torch.float64)
+    moment[:len(kept)] = _candidate_moments(reader, grey, kept)
+    return curve_features(coarse_scores, moment, valid), valid.cpu()
+
+
+def _candidate_moments(reader: _CandidateReader, grey: Tensor, kept: Tensor) -> Tensor:
+    """:func:`~evlatcorr.ghost.ghost_moment` of candidates whose windows hold events, float64 :math:`(K,)` on the
+    CPU: in float32, a few candidates at a time (their images stay in cache)."""
+    moment = torch.zeros(len(kept), dtype=torch.float64)
     if len(kept):
         inverse, change = reader.inverse_ratio(kept), reader.log_change(kept)
-        for k0 in range(0, len(kept), _SCORE_CHUNK):  # float32, a few candidates at a time (in cache)
+        for k0 in range(0, len(kept), _SCORE_CHUNK):
             k1 = min(k0 + _SCORE_CHUNK, len(kept))
             moment[k0:k1] = ghost_moment(grey, torch.log(inverse[k0:k1]).neg_(), change[k0:k1]).cpu()
-    return curve_features(coarse_scores, moment, valid), valid.cpu()
+    return moment
 
 
 def _learned_pick(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor,
@@ -634,8 +642,7 @@ def _ghost_latency(reader: _CandidateReader, grey: Tensor, coarse: Tensor) -> fl
     kept = coarse[coarse <= reader.top]
     if len(kept) < 3:
         return None
-    moment = ghost_moment(grey, -torch.log(reader.inverse_ratio(kept).double()), reader.log_change(kept))
-    return ghost_root(reader.to_us(kept).cpu(), moment.cpu())
+    return ghost_root(reader.to_us(kept).cpu(), _candidate_moments(reader, grey, kept))
 
 
 def _aligned_candidates(low: float, high: float, num: int, exposure: float) -> tuple[Tensor, float]:

@@ -133,3 +133,13 @@ def test_shipped_weights_are_small_and_say_how_they_were_made():
     assert weights.stat().st_size <= 100_000
     provenance = json.loads(weights.with_suffix(".json").read_text())
     assert provenance["cases"] == list(TRAIN_SPLITS) and provenance["frames"] == 900
+
+
+def test_training_and_loading_refuse_bad_input(tmp_path):
+    curves, valid, latencies, targets = _planted(4, torch.Generator().manual_seed(2))
+    with pytest.raises(ValueError, match="need curves"):
+        train_curve_reader(curves, valid[:, :-1], latencies, targets)
+    with pytest.raises(ValueError, match="need curves"):
+        train_curve_reader(curves, valid, latencies, targets[:-1])
+    with pytest.raises(FileNotFoundError, match="no curve reader weights"):
+        load_curve_reader(str(tmp_path / "missing.safetensors"))
