@@ -196,7 +196,7 @@ def _skip_warning(batch, why: str) -> None:
 
 def _latency_row(batch, out, theta, seconds: float, skipped: str = "") -> dict:
     """One CSV row: the frame, its latency (mean, min, max of the map), θ, the search's confidence and what set
-    the latency (``source``: sharpness, ghost or fallback)."""
+    the latency (``source``: sharpness, ghost, reader or fallback)."""
     row = {"frame": batch.meta["frame"], "exposure_start_us": f"{float(batch.exposure_start):.1f}",
            "exposure_end_us": f"{float(batch.exposure_end):.1f}"}
     if out is not None and out.latency is not None:

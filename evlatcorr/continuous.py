@@ -28,8 +28,9 @@ __all__ = ["ContinuousIntegral"]
 # Bytes per candidate latency and pixel that :meth:`ContinuousIntegral.inverse_ratio` returns (float32), plus the
 # float32 latent image its caller makes of it.
 BYTES_PER_CANDIDATE = 8
-# Bytes per event kept between calls (time, pixel, level before and after, rise), and at the peak of a call.
-BYTES_PER_EVENT_KEPT = 40
+# Bytes per event kept between calls (time, pixel, level before and after, rise, the pixel-order permutation),
+# and at the peak of a call.
+BYTES_PER_EVENT_KEPT = 48
 BYTES_PER_EVENT = 112
 # Bytes per time point and pixel of the tables one strip of rows is evaluated in (S and the level, float64, and
 # the gathers that read them), and the most one strip may take.
@@ -75,6 +76,10 @@ class ContinuousIntegral:
         # int32 keys sort twice as fast as int64 (the same stable order); the sort returns the sorted keys, and
         # index_select gathers about twice as fast as advanced indexing on a CPU
         keys, order = torch.sort(pixel.to(torch.int32) if self.num_pixels < 2**31 else pixel, stable=True)
+        # the events in time order (the input's own times, no copy) and where each pixel-order event came from: an
+        # event's slot among sorted times is then a count over the time-ordered stream, not a binary search each
+        self.time_ordered = events.t
+        self.order = order.to(torch.int32) if len(order) < 2**31 else order
         self.pixel, self.t = keys.to(torch.int64), events.t.to(torch.float64).index_select(0, order)
         polarity = events.p.index_select(0, order).to(torch.int64)
         # each event's level C after it at its pixel: a cumulative sum within the pixel's run
@@ -109,11 +114,20 @@ class ContinuousIntegral:
         times = times.to(self.device, torch.float64)
         height, width = self.sensor_size
         work = torch.empty(2 * len(times) * height * width, dtype=torch.float64, device=self.device)
-        return self._tables(times, 0, height, work)
+        return self._tables(times, 0, height, work, self._slots(times))
 
-    def _tables(self, g: Tensor, r0: int, r1: int, work: Tensor) -> tuple[Tensor, Tensor]:
+    def _slots(self, g: Tensor) -> Tensor:
+        """How many of the sorted times ``g`` each event (pixel order) is at or after: ``searchsorted(g, t,
+        right=True)``, from one count over the time-ordered stream."""
+        n = len(self.time_ordered)
+        first = torch.searchsorted(self.time_ordered, g)  # the first event at or after each time
+        marks = torch.zeros(n + 1, dtype=torch.int32, device=self.device).index_add_(
+            0, first, torch.ones_like(first, dtype=torch.int32))
+        return torch.cumsum(marks[:n], 0, dtype=torch.int32).index_select(0, self.order)
+
+    def _tables(self, g: Tensor, r0: int, r1: int, work: Tensor, slots: Tensor) -> tuple[Tensor, Tensor]:
         """:meth:`at` for the rows ``[r0, r1)``: :math:`(G, r1 − r0, W)` each, written into ``work`` (float64, at
-        least ``2·G·(r1 − r0)·W`` elements, overwritten)."""
+        least ``2·G·(r1 − r0)·W`` elements, overwritten); ``slots``: :meth:`_slots` of ``g``."""
         width = self.sensor_size[1]
         num, p = len(g), (r1 - r0) * width
         lo, hi = self.row_bounds[r0], self.row_bounds[r1]
@@ -121,13 +135,14 @@ class ContinuousIntegral:
         after, before = self.level_after[lo:hi], self.level_before[lo:hi]
         # events before the grid set the start level, those inside it the steps; masks as weights, not
         # compaction, so nothing waits on the device for a count
-        ahead = t < g[0]
-        inside = ~ahead & (t < g[-1])
+        slot = slots[lo:hi]
+        ahead = slot == 0
+        inside = ~ahead & (slot < num)
         peak = self.peak[r0 * width:r1 * width]
         # θC at g_0 (exact, in the log domain), relative to the pixel's peak
         start_level = torch.zeros(p, dtype=torch.float64, device=self.device).index_add_(
             0, pixel, torch.where(ahead, after - before, 0.0))
-        slot = torch.searchsorted(g, t, right=True).clamp_(max=num - 1)  # g[slot - 1] <= t < g[slot] inside
+        slot = slot.clamp(max=num - 1).to(torch.int64)  # g[slot - 1] <= t < g[slot] inside
         # exp(level) is piecewise constant: its value at g_j is the start value plus the rises of the events
         # before g_j, and its integral from g_0 is (g_j − g_0)·level(g_j) − Σ rise·(t − g_0) over those events
         rise = torch.where(inside, self.rise[lo:hi], 0.0)
@@ -156,17 +171,20 @@ class ContinuousIntegral:
         return self._read(start, end, latencies, reference, out, torch.float64)
 
     def inverse_ratio(self, start: float, end: float, latencies: Tensor, reference: float = 0.5,
-                      out: Tensor | None = None) -> Tensor:
+                      out: Tensor | None = None, change_out: Tensor | None = None) -> Tensor:
         """``1 / R`` of the same windows as :meth:`log_ratio`, float32: the latent image is ``blurry / R``.
 
         What a search that scores latent images needs, without a logarithm and an exponential per pixel and
-        candidate. ``out``: optional float32 :math:`(K, 1, H, W)`.
+        candidate. ``out``: optional float32 :math:`(K, 1, H, W)`. ``change_out``: optional float32
+        :math:`(K, 1, H, W)` that also receives :meth:`log_change` of the windows, from the same tables (the log
+        of the level ratio at the window's ends: no second pass over the events).
         """
-        return self._read(start, end, latencies, reference, out, torch.float32)
+        return self._read(start, end, latencies, reference, out, torch.float32, change_out)
 
     def _read(self, start: float, end: float, latencies: Tensor, reference: float, out: Tensor | None,
-              dtype: torch.dtype) -> Tensor:
-        """log R (float64) or 1 / R (float32) of every window, a strip of rows at a time."""
+              dtype: torch.dtype, change_out: Tensor | None = None) -> Tensor:
+        """log R (float64) or 1 / R (float32) of every window, a strip of rows at a time (and the windows' event
+        change into ``change_out``)."""
         lat = latencies.to(self.device, torch.float64).reshape(-1)
         mid = start + reference * (end - start)
         times, (a, b, r) = _distinct_times(torch.stack([start + lat, end + lat, mid + lat]))
@@ -177,17 +195,26 @@ class ContinuousIntegral:
             out = torch.empty((len(lat), 1, height, width), dtype=dtype, device=self.device)
         elif out.shape != (len(lat), 1, height, width) or out.dtype != dtype:
             raise ValueError(f"out must be {dtype} {(len(lat), 1, height, width)}, got {out.dtype} {tuple(out.shape)}")
+        if change_out is not None and (change_out.shape != out.shape or change_out.dtype != torch.float32):
+            raise ValueError(f"change_out must be float32 {tuple(out.shape)}, got {change_out.dtype} "
+                             f"{tuple(change_out.shape)}")
         # one work buffer for every strip's tables: fresh tables each strip would cost their page faults again
         work = torch.empty(2 * len(times) * rows * width, dtype=torch.float64, device=self.device)
+        slots = self._slots(times)
+        # evenly spaced candidates read evenly spaced times: rows of the tables as views, not gathered copies
+        a, b, r = (_as_rows(index) for index in (a, b, r))
         for r0 in range(0, height, rows):
             r1 = min(height, r0 + rows)
-            s_total, level = self._tables(times, r0, r1, work)
-            mean = s_total.index_select(0, b).sub_(s_total.index_select(0, a)).clamp_min_(1e-300)
+            s_total, level = self._tables(times, r0, r1, work, slots)
+            if change_out is not None:  # θC(end) − θC(start) = log of the ratio of exp(θC − peak) at the two
+                ratio = torch.div(level[b], level[a].clamp_min(1e-300))
+                torch.log(ratio, out=change_out[:, 0, r0:r1])
+            mean = torch.sub(s_total[b], s_total[a]).clamp_min_(1e-300)
             if dtype == torch.float64:
-                mean.div_(level.index_select(0, r)).div_(end - start)
+                mean.div_(level[r]).div_(end - start)
                 torch.log(mean, out=out[:, 0, r0:r1])
             else:
-                torch.div(level.index_select(0, r), mean, out=out[:, 0, r0:r1]).mul_(end - start)
+                torch.div(level[r], mean, out=out[:, 0, r0:r1]).mul_(end - start)
         return out
 
     def log_change(self, start: float, end: float, latencies: Tensor) -> Tensor:
@@ -211,6 +238,14 @@ class ContinuousIntegral:
         table = cumsum_(table.view(len(times) + 1, p)[:len(times)], 0)  # event counts: the same sums
         change = table.index_select(0, b).sub_(table.index_select(0, a))
         return change.view(len(lat), 1, *self.sensor_size)
+
+
+def _as_rows(index: Tensor) -> slice | Tensor:
+    """``index`` as a slice where it counts up by one (then ``table[index]`` is a view), else as it is."""
+    if len(index) and bool((index.diff() == 1).all()):
+        first = int(index[0])
+        return slice(first, first + len(index))
+    return index
 
 
 def _distinct_times(points: Tensor) -> tuple[Tensor, Tensor]:

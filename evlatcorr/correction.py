@@ -49,7 +49,8 @@ def correct_constant_latency(
         ``meta["latency_fallback"]`` :math:`(B,)` which frames had none and got the fallback
         (``previous_latency``, else the range's lower end); a warning names them.
         ``meta["latency_source"]`` says per frame what set the latency: ``"sharpness"``, ``"ghost"`` (a flat
-        score curve, decided by :mod:`evlatcorr.ghost`'s cue) or ``"fallback"``.
+        score curve, decided by :mod:`evlatcorr.ghost`'s cue), ``"reader"`` (no score minimum; the learned curve
+        reader's pick) or ``"fallback"``.
 
     Raises:
         ValueError: when a sample has no events in ``[exposure_start, exposure_end + exposure time)``

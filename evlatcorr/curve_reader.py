@@ -14,10 +14,12 @@ over the coarse candidates reads
 and gives a log-probability per candidate. :class:`CurveReaderEnsemble` averages a few readers trained from
 different seeds. The search refines the reader's pick with the sparsity scores at every ``T / n`` around it.
 
-The shipped weights (``checkpoints/curve-reader.safetensors``, about 20 kB) come from
-``python benchmarks/train_curve_reader.py``: constant-latency cases of the accuracy suite's generator
-(:func:`evlatcorr.benchmark.accuracy.make_cases` with ``split="train"``: the dev split's photographs, seeds
-disjoint from both dev and test), the reader trained against each case's true latency.
+The shipped weights (``checkpoints/curve-reader.safetensors``, 64 kB) come from
+``python benchmarks/train_curve_reader.py``: cases of the accuracy suite's generator
+(:data:`evlatcorr.benchmark.accuracy.TRAIN_SPLITS`: the dev split's photographs, seeds disjoint from both dev
+and test), the reader trained against each case's
+:func:`~evlatcorr.benchmark.accuracy.training_target`: the true latency of a constant one, the best constant
+shift under the photoreceptor model.
 
 Example:
     >>> reader = CurveReader()
@@ -116,7 +118,7 @@ def train_curve_reader(curves: Tensor, valid: Tensor, latencies: Tensor, targets
         curves: :func:`curve_features` of each frame :math:`(N, F, K)`.
         valid: :math:`(N, K)` bool.
         latencies: the candidates :math:`(K,)` µs (the same for every frame).
-        targets: each frame's true latency :math:`(N,)` µs.
+        targets: each frame's target latency :math:`(N,)` µs (its true one, or its best constant shift).
         members: readers in the ensemble, each from its own seed ``seed + i``.
         epochs: full-batch steps per reader.
 

@@ -81,9 +81,11 @@ class ConstantSearchResult:
             (its relative depth below the curve's median, 0 when the minimum lies on the upper edge
             of the range searched).
         fallback: :math:`(B,)` bool: the curve had no clear minimum and ``latency`` is the fallback
-            (``previous_latency`` when given, else the lower end of the range).
+            (``previous_latency`` when given, else the lower end of the range); with ``score="learned"`` only
+            where fewer than three candidates could be scored.
         source: per sample, what set ``latency``: ``"sharpness"`` (the score's minimum), ``"ghost"`` (the
-            score curve was nearly flat and :mod:`evlatcorr.ghost`'s moment crossed zero once) or
+            score curve was nearly flat and :mod:`evlatcorr.ghost`'s moment crossed zero once), ``"reader"``
+            (``score="learned"``: the scores had no minimum and the curve reader's pick, refined, stands) or
             ``"fallback"``.
         log_ratio: :math:`(B, 1, H, W)` float64 EDI ``log R`` at ``latency`` (latent image at mid-exposure
             ``blurry · exp(−log R)``), exact in continuous time (to float32 rounding when ``latency`` is a scored
@@ -414,7 +416,9 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
     top = span.reach if math.isfinite(span.reach) else -math.inf
     fine_step = min((end - start) / config.num_bins, step)
     limit = resolve_memory_budget(budget)
-    candidate_bytes = grey.numel() * continuous.BYTES_PER_CANDIDATE
+    # the learned score also keeps each candidate's event change (float32)
+    with_change = config.score == "learned"
+    candidate_bytes = grey.numel() * (continuous.BYTES_PER_CANDIDATE + 4 * with_change)
     check_memory(len(events) * continuous.BYTES_PER_EVENT + candidate_bytes, f"the continuous integral of "
                  f"{len(events)} events", "pass only the events of the exposure and the latencies searched, or a "
                  "smaller sensor crop", limit)
@@ -425,13 +429,20 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
 
     last_read: dict[str, Tensor] = {}
 
+    # the learned score reads the windows' event change (its ghost-moment feature) from the ratios' own tables
+
     def inverse_ratio(lat: Tensor) -> Tensor:
         if last_read and torch.equal(last_read["latencies"], lat.cpu()):  # e.g. the learned score's ghost moment
             return last_read["inverse"]
         out = torch.empty((len(lat), 1, *grey.shape[-2:]), dtype=torch.float32, device=events.device)
+        change = torch.empty_like(out) if with_change else None
         for k in range(0, len(lat), chunk):  # each read writes its slice: no concatenated copy
-            integral.inverse_ratio(start, end, lat[k:k + chunk], out=out[k:k + chunk])
+            integral.inverse_ratio(start, end, lat[k:k + chunk], out=out[k:k + chunk],
+                                   change_out=None if change is None else change[k:k + chunk])
+        last_read.clear()
         last_read.update(latencies=lat.cpu(), inverse=out)
+        if change is not None:
+            last_read["change"] = change
         return out
 
     def fine_of(best: float) -> Tensor:
@@ -448,6 +459,8 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
         return integral.log_ratio(start, end, torch.tensor([latency], dtype=torch.float64))
 
     def log_change(lat: Tensor) -> Tensor:
+        if "change" in last_read and torch.equal(last_read["latencies"], lat.cpu()):
+            return last_read["change"]
         return integral.log_change(start, end, lat)
 
     return _CandidateReader(coarse, top, low, lambda v: v, inverse_ratio, fine_of, final_ratio, log_change)
@@ -541,12 +554,14 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
                                                   [coarse] * len(members)))
     if config.score == "learned":  # every score refines around the reader's pick
         prior = None if prev is None else (to_us(coarse).cpu().double(), float(prev), config.sigma_us)
-        fines = [reader.fine_of(_learned_pick(reader, grey, coarse, coarse_scores, prior))] * len(members)
+        pick = _learned_pick(reader, grey, coarse, coarse_scores, prior)
+        # without refinement the pick is the estimate: every score's "fine" candidates are that one
+        fines = [reader.fine_of(pick) if config.refine else coarse[coarse == pick]] * len(members)
     else:
         fines = [reader.fine_of(float(coarse[int(torch.argmin(coarse_scores[m]))])) for m in range(len(members))]
-    fine_scores = (_score_candidates(reader, grey, members, config, prev, fines) if config.refine
-                   else [None] * len(members))
-    estimates = [_refine(coarse, coarse_scores[m], fines[m], fine_scores[m], config.refine)
+    fine_scores = (_score_candidates(reader, grey, members, config, prev, fines)
+                   if config.refine or config.score == "learned" else [None] * len(members))
+    estimates = [_refine(coarse, coarse_scores[m], fines[m], fine_scores[m], fine_scores[m] is not None)
                  for m in range(len(members))]
     confidence = sorted(e[1] for e in estimates)[len(estimates) // 2]
     ghost_wanted = config.ghost_confidence is not None and confidence <= config.ghost_confidence
@@ -558,14 +573,17 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
             latency = min(max(ghost, low), high)
             return _OneResult(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(coarse).cpu(),
                               coarse_scores[0], confidence, False, reader.final_ratio(latency), "ghost")
-    if confidence == 0.0:  # most scores have no interior minimum
+    # the learned reader was trained on such frames too: it picks the latency where three candidates could be
+    # scored (a fallback gains nothing); the other scores fall back
+    reader_only = config.score == "learned" and int(torch.isfinite(coarse_scores[0]).sum()) >= 3
+    if confidence == 0.0 and not reader_only:  # most scores have no interior minimum
         return _OneResult(fallback, to_us(coarse).cpu(), coarse_scores[0], to_us(coarse).cpu(), coarse_scores[0],
                           0.0, True, reader.final_ratio(fallback), "fallback")
     chosen = sorted(range(len(members)), key=lambda m: estimates[m][0])[len(members) // 2]  # the median
     best, _, fine, fine_score = estimates[chosen]
     latency = min(max(float(to_us(torch.tensor(best, dtype=torch.float64))), low), high)
     return _OneResult(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(fine).cpu(), fine_score, confidence, False,
-                      reader.final_ratio(latency))
+                      reader.final_ratio(latency), "reader" if confidence == 0.0 else "sharpness")
 
 
 def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor

@@ -74,6 +74,36 @@ def test_log_change_equals_a_count_of_random_events():
         torch.testing.assert_close(change[k, 0], 0.2 * count)
 
 
+def test_inverse_ratio_reads_the_event_change_from_its_own_tables(monkeypatch):
+    # the same windows' change as log_change, strip by strip (two rows a strip), with a pixel of no events
+    g = torch.Generator().manual_seed(5)
+    n, (h, w) = 3000, (5, 7)
+    t, _ = torch.sort(torch.rand(n, generator=g, dtype=torch.float64) * 1000.0)
+    x, y = torch.randint(0, w - 1, (n,), generator=g), torch.randint(0, h, (n,), generator=g)  # last column: none
+    p = torch.randint(0, 2, (n,), generator=g) * 2 - 1
+    ci = ContinuousIntegral(Events(x, y, t, p, sensor_size=(h, w)), 0.2)
+    lat = torch.tensor([0.0, 37.5, 301.25, 600.0], dtype=torch.float64)
+    monkeypatch.setattr("evlatcorr.continuous.STRIP_BYTES", 2 * w * 12 * 40)
+    change = torch.full((4, 1, h, w), math.nan)
+    inverse = ci.inverse_ratio(100.0, 350.0, lat, change_out=change)
+    torch.testing.assert_close(change, ci.log_change(100.0, 350.0, lat), atol=1e-5, rtol=0)
+    assert not bool(change[..., -1].any())
+    torch.testing.assert_close(inverse, ci.inverse_ratio(100.0, 350.0, lat))
+    with pytest.raises(ValueError, match="change_out must be float32"):
+        ci.inverse_ratio(100.0, 350.0, lat, change_out=torch.empty(4, 1, h, w, dtype=torch.float64))
+
+
+def test_event_slots_equal_a_binary_search_of_each_event():
+    # events before, on and after the times, several pixels (pixel order differs from time order)
+    t = torch.tensor([1.0, 2.0, 2.0, 3.0, 5.0, 7.5, 9.0, 12.0], dtype=torch.float64)
+    x = torch.tensor([1, 0, 1, 0, 1, 0, 0, 1])
+    ev = Events(x, torch.zeros(8, dtype=torch.long), t, torch.tensor([1, -1, 1, 1, -1, 1, -1, 1]), sensor_size=(1, 2))
+    ci = ContinuousIntegral(ev, 0.3)
+    times = torch.tensor([2.0, 3.0, 4.0, 9.0, 10.0], dtype=torch.float64)
+    expected = torch.searchsorted(times, ci.t, right=True)
+    assert torch.equal(ci._slots(times).long(), expected)
+
+
 def test_thousands_of_events_geometric_series():
     # 3000 +1 events every 2 us from t = 1 us: over [0, 6000] the level is k·θ on [2k - 1, 2k + 1) (k >= 1) and 0 on
     # [0, 1); read at the end (6000 us, after all 3000 events): R = Σ_k exp(θ(C_k − 3000)) dt_k / 6000

@@ -200,11 +200,12 @@ def test_table_over_the_budget_is_streamed_with_the_same_result(long_exposure, i
 
 
 def test_continuous_integral_reads_fewer_candidates_at_once_when_they_do_not_fit(long_exposure, monkeypatch):
-    # 4000 events keep 160 kB; a 161 728-byte cap per read leaves room for 3 candidates (72 px x 8 bytes each)
+    # 4000 events keep 192 kB; a 194 592-byte cap per read leaves room for 3 candidates (72 px x 12 bytes each:
+    # the ratio, the latent and, for the default learned score, the event change)
     ev, blurry = long_exposure
     kw = dict(num_bins=50, search_range=(0.0, 20000.0), num_candidates=11)
     whole = search_constant_latency(blurry, ev, START, LONG_END, **kw)
-    monkeypatch.setattr(evlatcorr.search, "_CONTINUOUS_READ_BYTES", 161_728)
+    monkeypatch.setattr(evlatcorr.search, "_CONTINUOUS_READ_BYTES", 194_592)
     calls = []
     original = ContinuousIntegral.inverse_ratio
     monkeypatch.setattr(ContinuousIntegral, "inverse_ratio",

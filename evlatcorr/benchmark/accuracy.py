@@ -61,6 +61,7 @@ __all__ = [
     "make_cases",
     "simulate_case",
     "case_reference",
+    "training_target",
     "evaluate_case",
     "corrector_estimator",
     "load_estimator",
@@ -83,19 +84,22 @@ DARK_BRIGHTNESS = 0.1
 DARK_PHOTOGRAPHS = ("hubble_deep_field", "moon")  # photographs with large uniform dark regions
 SCENE_FACTOR = 3  # procedural scenes are this many times the sensor's size
 
-# the learned curve reader's training cases (evlatcorr.curve_reader): constant latency only, the dev split's
-# photographs, seeds disjoint from dev and test; drawn in three batches of 200, 300 and 400 cases
-TRAIN_SPLITS = ("train", "train1", "train2")
-_NUM_CASES = {"dev": 40, "test": 48, "train": 200, "train1": 300, "train2": 400}
+# the learned curve reader's training cases (evlatcorr.curve_reader): the dev split's photographs, seeds disjoint
+# from dev and test; constant latency in four batches of 200, 300, 400 and 900 cases, then 200 photoreceptor cases
+TRAIN_SPLITS = ("train", "train1", "train2", "train3", "train_photo")
+_NUM_CASES = {"dev": 40, "test": 48, "train": 200, "train1": 300, "train2": 400, "train3": 900, "train_photo": 200}
 _PHOTOGRAPHS = {"dev": PHOTOGRAPHS_TRAIN, "test": PHOTOGRAPHS_TEST, **{s: PHOTOGRAPHS_TRAIN for s in TRAIN_SPLITS}}
 # case draws: generator seed 1000 * split seed + factor index
-_SPLIT_SEED = {"dev": 1, "test": 2, "train": 3, "train1": 4, "train2": 5}
+_SPLIT_SEED = {"dev": 1, "test": 2, "train": 3, "train1": 4, "train2": 5, "train3": 6, "train_photo": 7}
 # procedural scenes and sprites: disjoint seed ranges
-_SCENE_SEED = {"dev": 100_000, "test": 200_000, "train": 300_000, "train1": 400_000, "train2": 500_000}
-_SIM_SEED = {"dev": 10_000, "test": 20_000, "train": 30_000, "train1": 40_000, "train2": 50_000}
+_SCENE_SEED = {"dev": 100_000, "test": 200_000, "train": 300_000, "train1": 400_000, "train2": 500_000,
+               "train3": 600_000, "train_photo": 700_000}
+_SIM_SEED = {"dev": 10_000, "test": 20_000, "train": 30_000, "train1": 40_000, "train2": 50_000, "train3": 60_000,
+             "train_photo": 70_000}
 _MOTION_WEIGHTS = (0.3, 0.15, 0.2, 0.15, 0.2)
 _LATENCY_WEIGHTS = (0.5, 0.25, 0.25)
 _TRAIN_LATENCY_WEIGHTS = (1.0, 0.0, 0.0)
+_SPLIT_LATENCY_WEIGHTS = {"train_photo": (0.0, 0.0, 1.0)}
 _MOTION_TAGS = {"translation": "tr", "random": "rnd", "rotation": "rot", "zoom": "zoom", "objects": "obj"}
 _LATENCY_TAGS = {"constant": "const", "intensity_delay": "delay", "intensity": "photo"}
 
@@ -213,8 +217,8 @@ def make_cases(split: str, num: int | None = None, size: tuple[int, int] = DEFAU
     """The suite's cases of one split, the same on every machine.
 
     Args:
-        split: ``"dev"`` (40 cases), ``"test"`` (48 cases), or one of :data:`TRAIN_SPLITS` (constant latency only:
-            what the learned curve reader is trained on; never reported).
+        split: ``"dev"`` (40 cases), ``"test"`` (48 cases), or one of :data:`TRAIN_SPLITS` (constant latency, and the
+            photoreceptor model in ``"train_photo"``: what the learned curve reader is trained on; never reported).
         num: keep only the first ``num`` cases (a random subset that may miss some factors).
         size: sensor ``(H, W)``.
 
@@ -244,8 +248,8 @@ def make_cases(split: str, num: int | None = None, size: tuple[int, int] = DEFAU
     motions = _balanced(MOTION_KINDS, _MOTION_WEIGHTS, n, _generator(split, 3))
     speeds = [_log_uniform(u, 0.2, 4.0) for u in _stratified(n, _generator(split, 4))]
     directions = (torch.rand(n, generator=_generator(split, 5), dtype=torch.float64) * 360).tolist()
-    models = _balanced(LATENCY_MODELS, _TRAIN_LATENCY_WEIGHTS if split in TRAIN_SPLITS else _LATENCY_WEIGHTS, n,
-                       _generator(split, 6))
+    weights = _SPLIT_LATENCY_WEIGHTS.get(split, _TRAIN_LATENCY_WEIGHTS if split in TRAIN_SPLITS else _LATENCY_WEIGHTS)
+    models = _balanced(LATENCY_MODELS, weights, n, _generator(split, 6))
     latencies = [200.0 + u * 11_800.0 for u in _stratified(n, _generator(split, 7))]
     g = _generator(split, 8)
     ranges = [(200.0 + 800.0 * float(a), 4000.0 + 8000.0 * float(b))
@@ -388,6 +392,21 @@ def _best_shift(delayed: EventFrames, threshold: float) -> dict[str, float]:
         around = [s for s in (best[1] - step, best[1] + step) if BEST_SHIFTS_US[0] <= s <= BEST_SHIFTS_US[-1]]
         best = max([best, *((psnr_at(s), s) for s in around)])
     return {"psnr_best_shift": best[0], "best_shift_us": best[1]}
+
+
+def training_target(case: Case, delayed: EventFrames) -> float:
+    """What the learned curve reader is trained to pick for a training case, µs: the true latency of a constant
+    one, the best constant shift (:func:`case_reference`'s oracle) under the photoreceptor model, where no one
+    latency is true.
+
+    Raises:
+        ValueError: for the ``"intensity_delay"`` model (a map, with no best shift computed).
+    """
+    if case.latency_model == "constant":
+        return case.latency_us
+    if case.latency_model == "intensity":
+        return _best_shift(delayed, case.threshold)["best_shift_us"]
+    raise ValueError(f"no training target for the {case.latency_model!r} latency model")
 
 
 def _as_map(latency: Any, frames: EventFrames) -> Tensor:
