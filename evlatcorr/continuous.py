@@ -17,6 +17,8 @@ time and pixel; the constant-latency search reads all its candidates' windows th
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -95,7 +97,11 @@ class ContinuousIntegral:
         zeros = torch.zeros(self.num_pixels, dtype=torch.float64, device=self.device)
         self.peak = zeros.scatter_reduce(0, self.pixel, self.level_after, reduce="amax", include_self=True)
         top = self.peak.index_select(0, self.pixel)
-        self.rise = torch.exp(self.level_after - top) - torch.exp(self.level_before - top)
+        # exp(after − top) − exp(before − top) = exp(after − top)·(1 − exp(−θp)): one exponential per event, the
+        # factor one of two constants (p = ±1)
+        factor = torch.tensor([1.0 - math.exp(self.theta), 1.0 - math.exp(-self.theta)], dtype=torch.float64,
+                              device=self.device)
+        self.rise = torch.exp(self.level_after - top).mul_(factor.index_select(0, (polarity > 0).to(torch.int64)))
         # first event of each row (and the end): strips of rows are contiguous
         row_starts = torch.arange(height + 1, device=self.device) * width
         self.row_bounds = torch.searchsorted(self.pixel, row_starts).tolist()
