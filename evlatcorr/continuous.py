@@ -48,6 +48,9 @@ class ContinuousIntegral:
     Args:
         events: events of one sample (``batch_size == 1``), sorted by time.
         threshold: contrast threshold θ.
+        max_log_range: pixels whose level θC spans more than this over the events (a hot pixel firing one
+            polarity: no scene's log intensity spans e^15) are read as if they had no events (``ignored``: their
+            mask :math:`(H·W,)`); None: every pixel is read.
 
     Levels are kept relative to each pixel's highest level (``θC − peak ≤ 0``) so ``exp`` never
     overflows; the ratio ``R`` does not depend on that scale.
@@ -63,7 +66,7 @@ class ContinuousIntegral:
         -0.21907
     """
 
-    def __init__(self, events: Events, threshold: float) -> None:
+    def __init__(self, events: Events, threshold: float, max_log_range: float | None = None) -> None:
         if events.batch_size != 1:
             raise ValueError(f"ContinuousIntegral takes one sample, got batch_size {events.batch_size}")
         if not threshold > 0:
@@ -84,12 +87,29 @@ class ContinuousIntegral:
         self.order = order.to(torch.int32) if len(order) < 2**31 else order
         self.pixel, self.t = keys.to(torch.int64), events.t.to(torch.float64).index_select(0, order)
         polarity = events.p.index_select(0, order).to(torch.int64)
+        counts = torch.bincount(self.pixel, minlength=self.num_pixels)
+        self.run_start = torch.cumsum(counts, 0) - counts
+        self._levels(polarity)
+        # pixels whose events span more log intensity than any scene can (hot pixels firing one polarity) would
+        # dominate every latent image: they are read as if they had no events
+        self.ignored = torch.zeros(self.num_pixels, dtype=torch.bool, device=self.device)
+        if max_log_range is not None and len(polarity):
+            low = torch.zeros_like(self.peak).scatter_reduce(0, self.pixel, self.level_after, reduce="amin")
+            hot = self.peak - low > max_log_range
+            if bool(hot.any()):
+                self.ignored = hot
+                self._levels(polarity * (~hot).index_select(0, self.pixel))
+        # first event of each row (and the end): strips of rows are contiguous
+        row_starts = torch.arange(height + 1, device=self.device) * width
+        self.row_bounds = torch.searchsorted(self.pixel, row_starts).tolist()
+
+    def _levels(self, polarity: Tensor) -> None:
+        """Each event's level θC before and after it at its pixel, each pixel's peak, and each event's rise."""
         # each event's level C after it at its pixel: a cumulative sum within the pixel's run
         running = torch.cumsum(polarity, 0)
-        counts = torch.bincount(self.pixel, minlength=self.num_pixels)
-        run_start = torch.cumsum(counts, 0) - counts
         # the running sum before each pixel's run (no copy of the sums)
-        before_run = torch.where(run_start > 0, running.index_select(0, (run_start - 1).clamp_(min=0)), 0)
+        run_start = self.run_start
+        before_run = torch.where(run_start > 0, running.index_select(0, (run_start - 1).clamp(min=0)), 0)
         self.level_after = self.theta * (running - before_run.index_select(0, self.pixel)).to(torch.float64)
         self.level_before = self.level_after - self.theta * polarity.to(torch.float64)
         # levels are read relative to each pixel's highest level over the whole stream (0 before its first
@@ -98,14 +118,10 @@ class ContinuousIntegral:
         self.peak = zeros.scatter_reduce(0, self.pixel, self.level_after, reduce="amax", include_self=True)
         top = self.peak.index_select(0, self.pixel)
         # exp(after − top) − exp(before − top) = exp(after − top)·(1 − exp(−θp)): one exponential per event, the
-        # factor one of two constants (p = ±1)
-        factor = torch.tensor([1.0 - math.exp(self.theta), 1.0 - math.exp(-self.theta)], dtype=torch.float64,
+        # factor one of three constants (p = −1, 0 for an ignored pixel's event, +1)
+        factor = torch.tensor([1.0 - math.exp(self.theta), 0.0, 1.0 - math.exp(-self.theta)], dtype=torch.float64,
                               device=self.device)
-        self.rise = torch.exp(self.level_after - top).mul_(factor.index_select(0, (polarity > 0).to(torch.int64)))
-        # first event of each row (and the end): strips of rows are contiguous
-        row_starts = torch.arange(height + 1, device=self.device) * width
-        self.row_bounds = torch.searchsorted(self.pixel, row_starts).tolist()
-
+        self.rise = torch.exp(self.level_after - top).mul_(factor.index_select(0, polarity + 1))
     def at(self, times: Tensor) -> tuple[Tensor, Tensor]:
         """``S`` and ``exp(θC − peak)`` of every pixel at sorted times.
 

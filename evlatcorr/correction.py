@@ -13,7 +13,7 @@ from evlatcorr.config import DEFAULT_GHOST_CONFIDENCE, DEFAULT_SCORE, SearchConf
 from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
-from evlatcorr.search import _search_constant_latency
+from evlatcorr.search import HOT_PIXEL_LOG_RANGE, _search_constant_latency
 
 __all__ = ["EventLatencyCorrector", "ConstantLatencyCorrector", "correct_constant_latency", "SearchConfig"]
 
@@ -50,7 +50,8 @@ def correct_constant_latency(
         (``previous_latency``, else the range's lower end); a warning names them.
         ``meta["latency_source"]`` says per frame what set the latency: ``"sharpness"``, ``"ghost"`` (a flat
         score curve, decided by :mod:`evlatcorr.ghost`'s cue), ``"reader"`` (no score minimum; the learned curve
-        reader's pick) or ``"fallback"``.
+        reader's pick) or ``"fallback"``. ``meta["hot_pixels"]`` counts per frame the hot pixels the search left out
+        (a warning names them).
 
     Raises:
         ValueError: when a sample has no events in ``[exposure_start, exposure_end + exposure time)``
@@ -76,6 +77,10 @@ def correct_constant_latency(
         warnings.warn(f"samples {which}: the sharpness score has no clear minimum inside the latency range the "
                       "events cover (too few events or no texture); their latency is the fallback "
                       f"{[round(float(result.latency[i])) for i in which]} us", stacklevel=2)
+    if result.ignored_pixels and any(result.ignored_pixels):
+        warnings.warn(f"hot pixels (events spanning more than e^{HOT_PIXEL_LOG_RANGE:.0f} of intensity, which no "
+                      f"scene does) left out of the latency search, per sample: {result.ignored_pixels}; their "
+                      "events are corrected like the others", stacklevel=2)
     height, width = frames.sensor_size
     latency = result.latency.to(frames.device, torch.float32).view(-1, 1, 1, 1).expand(-1, 1, height, width)
     corrected = frames.events.shift(result.latency)
@@ -93,6 +98,7 @@ def correct_constant_latency(
     meta["latency_confidence"] = result.confidence
     meta["latency_fallback"] = result.fallback
     meta["latency_source"] = result.source
+    meta["hot_pixels"] = result.ignored_pixels
     return frames.with_outputs(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
 
 

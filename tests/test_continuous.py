@@ -104,6 +104,26 @@ def test_event_slots_equal_a_binary_search_of_each_event():
     assert torch.equal(ci._slots(times).long(), expected)
 
 
+def test_hot_pixel_is_read_as_having_no_events():
+    # pixel (0, 0): 100 ON events (θC spans 20 > 15: a hot pixel); pixel (0, 1): an ordinary +1, -1
+    hot_t = torch.linspace(1.0, 99.0, 100, dtype=torch.float64)
+    t = torch.cat([hot_t, torch.tensor([30.0, 60.0], dtype=torch.float64)])
+    x = torch.cat([torch.zeros(100, dtype=torch.long), torch.ones(2, dtype=torch.long)])
+    p = torch.cat([torch.ones(100, dtype=torch.long), torch.tensor([1, -1])])
+    events = Events(x, torch.zeros(102, dtype=torch.long), t, p, sensor_size=(1, 2), sort=True)
+    lat = torch.tensor([0.0, 10.0])
+    plain = ContinuousIntegral(events, 0.2)
+    guarded = ContinuousIntegral(events, 0.2, max_log_range=15.0)
+    assert guarded.ignored.tolist() == [True, False] and not bool(plain.ignored.any())
+    log_r = guarded.log_ratio(0.0, 80.0, lat)
+    assert torch.equal(log_r[..., 0], torch.zeros(2, 1, 1))  # no events: R = 1
+    torch.testing.assert_close(log_r[..., 1], plain.log_ratio(0.0, 80.0, lat)[..., 1])
+    change = torch.empty(2, 1, 1, 2)
+    guarded.inverse_ratio(0.0, 80.0, lat, change_out=change)
+    assert torch.equal(change[..., 0], torch.zeros(2, 1, 1))
+    torch.testing.assert_close(change[..., 1], plain.log_change(0.0, 80.0, lat)[..., 1], atol=1e-6, rtol=0)
+
+
 def test_thousands_of_events_geometric_series():
     # 3000 +1 events every 2 us from t = 1 us: over [0, 6000] the level is k·θ on [2k - 1, 2k + 1) (k >= 1) and 0 on
     # [0, 1); read at the end (6000 us, after all 3000 events): R = Σ_k exp(θ(C_k − 3000)) dt_k / 6000

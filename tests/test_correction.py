@@ -208,6 +208,24 @@ def test_learned_reader_replaces_the_fallback_of_a_frame_with_no_minimum():
     assert out.meta["latency_source"] == ["reader"]
 
 
+def test_a_hot_pixel_does_not_move_the_estimate_and_is_named():
+    # one pixel firing 300 ON events over the stream (θC spans 60): before it was left out of the search it
+    # moved this frame's estimate from 2000 to 1360 us
+    frames = simulate("camera", num_frames=1, latency="constant", latency_us=2000.0, seed=0, height=24, width=32,
+                      exposure_us=10_000.0).frames("delayed", after_us=10_000.0)
+    ev = frames.events
+    hot_t = torch.linspace(float(ev.t.min()), float(ev.t.max()), 300, dtype=torch.float64)
+    hot = Events(torch.cat([ev.x, torch.full((300,), 3)]), torch.cat([ev.y, torch.full((300,), 5)]),
+                 torch.cat([ev.t, hot_t]), torch.cat([ev.p, torch.ones(300, dtype=ev.p.dtype)]),
+                 sensor_size=ev.sensor_size, sort=True)
+    clean = EventLatencyCorrector(threshold=0.2)(frames)
+    with pytest.warns(UserWarning, match="hot pixels"):
+        out = EventLatencyCorrector(threshold=0.2)(frames.replace(events=hot))
+    assert float(out.latency.mean()) == float(clean.latency.mean())
+    assert out.meta["hot_pixels"] == [1] and clean.meta["hot_pixels"] == [0]
+    assert len(out.corrected) == len(hot)  # its events are corrected, not dropped
+
+
 # --- frames without events: the same clear error in every mode -------------------------------------------------
 def _one_empty_frame() -> EventFrames:
     """Two frames; only the first has events (its window [0, 200) us), the second none at all."""
