@@ -196,7 +196,7 @@ def _skip_warning(batch, why: str) -> None:
 
 def _latency_row(batch, out, theta, seconds: float, skipped: str = "") -> dict:
     """One CSV row: the frame, its latency (mean, min, max of the map), θ, the search's confidence and what set
-    the latency (``source``: sharpness, ghost, reader or fallback)."""
+    the latency (``source``: sharpness, ghost, reader or fallback) and the hot pixels it left out."""
     row = {"frame": batch.meta["frame"], "exposure_start_us": f"{float(batch.exposure_start):.1f}",
            "exposure_end_us": f"{float(batch.exposure_end):.1f}"}
     if out is not None and out.latency is not None:
@@ -209,11 +209,12 @@ def _latency_row(batch, out, theta, seconds: float, skipped: str = "") -> dict:
                    confidence=f"{float(out.meta['latency_confidence'][0]):.3f}"
                    if "latency_confidence" in out.meta else "",
                    fallback=int(bool(out.meta["latency_fallback"][0])) if "latency_fallback" in out.meta else "",
-                   source=out.meta["latency_source"][0] if out.meta.get("latency_source") else "")
+                   source=out.meta["latency_source"][0] if out.meta.get("latency_source") else "",
+                   hot_pixels=out.meta["hot_pixels"][0] if out.meta.get("hot_pixels") else "")
         theta = out.meta.get("threshold", theta)
     else:
         row.update(latency_us="", latency_min_us="", latency_max_us="", score="", confidence="", fallback="",
-                   source="")
+                   source="", hot_pixels="")
     theta = float(theta.flatten()[0]) if isinstance(theta, torch.Tensor) else theta
     row.update(threshold=f"{theta:.4f}" if isinstance(theta, float) else str(theta),
                events_in_window=len(batch.events), skipped=skipped, time_s=f"{seconds:.3f}")

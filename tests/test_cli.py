@@ -60,6 +60,7 @@ def test_correct_writes_events_and_report(simulated):
     assert all(abs(latency - 3000.0) < 1500.0 for latency in latencies), latencies
     assert [row["source"] for row in rows] == ["sharpness", "sharpness"] and [row["fallback"] for row in rows] == [
         "0", "0"]
+    assert [row["hot_pixels"] for row in rows] == ["0", "0"]
     with h5py.File(simulated) as f:
         original_t = f["events/t"][:]
         starts = f["frames/exposure_start"][:]
