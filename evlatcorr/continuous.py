@@ -71,6 +71,8 @@ class ContinuousIntegral:
             raise ValueError(f"ContinuousIntegral takes one sample, got batch_size {events.batch_size}")
         if not threshold > 0:
             raise ValueError(f"threshold must be positive, got {threshold}")
+        if max_log_range is not None and not max_log_range > 0:
+            raise ValueError(f"max_log_range must be positive or None, got {max_log_range}")
         height, width = events.sensor_size
         self.num_pixels = height * width
         self.sensor_size = events.sensor_size
@@ -122,6 +124,7 @@ class ContinuousIntegral:
         factor = torch.tensor([1.0 - math.exp(self.theta), 0.0, 1.0 - math.exp(-self.theta)], dtype=torch.float64,
                               device=self.device)
         self.rise = torch.exp(self.level_after - top).mul_(factor.index_select(0, polarity + 1))
+
     def at(self, times: Tensor) -> tuple[Tensor, Tensor]:
         """``S`` and ``exp(θC − peak)`` of every pixel at sorted times.
 

@@ -438,9 +438,8 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
                 // candidate_bytes)
     integral = ContinuousIntegral(events, theta, HOT_PIXEL_LOG_RANGE) if top >= low else None
 
+    # the last read's latencies, ratios and (learned score) the windows' event change, from the same tables
     last_read: dict[str, Tensor] = {}
-
-    # the learned score reads the windows' event change (its ghost-moment feature) from the ratios' own tables
 
     def inverse_ratio(lat: Tensor) -> Tensor:
         if last_read and torch.equal(last_read["latencies"], lat.cpu()):  # e.g. the learned score's ghost moment
@@ -588,18 +587,18 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
         if ghost is not None:
             latency = min(max(ghost, low), high)
             return result(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(coarse).cpu(),
-                              coarse_scores[0], confidence, False, reader.final_ratio(latency), "ghost")
+                          coarse_scores[0], confidence, False, reader.final_ratio(latency), "ghost")
     # the learned reader was trained on such frames too: it picks the latency where three candidates could be
     # scored (a fallback gains nothing); the other scores fall back
     reader_only = config.score == "learned" and int(torch.isfinite(coarse_scores[0]).sum()) >= 3
     if confidence == 0.0 and not reader_only:  # most scores have no interior minimum
         return result(fallback, to_us(coarse).cpu(), coarse_scores[0], to_us(coarse).cpu(), coarse_scores[0],
-                          0.0, True, reader.final_ratio(fallback), "fallback")
+                      0.0, True, reader.final_ratio(fallback), "fallback")
     chosen = sorted(range(len(members)), key=lambda m: estimates[m][0])[len(members) // 2]  # the median
     best, _, fine, fine_score = estimates[chosen]
     latency = min(max(float(to_us(torch.tensor(best, dtype=torch.float64))), low), high)
     return result(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(fine).cpu(), fine_score, confidence, False,
-                      reader.final_ratio(latency), "reader" if confidence == 0.0 else "sharpness")
+                  reader.final_ratio(latency), "reader" if confidence == 0.0 else "sharpness")
 
 
 def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor

@@ -175,12 +175,13 @@ def test_times_evaluated_together_or_apart_agree():
 @pytest.mark.parametrize("kwargs, match", [
     (dict(threshold=0.0), "threshold must be positive"),
     (dict(batch_size=2), "one sample"),
+    (dict(max_log_range=0.0), "max_log_range must be positive"),
 ])
 def test_bad_arguments(kwargs, match):
     ev = Events(torch.zeros(2, dtype=torch.long), torch.zeros(2, dtype=torch.long), torch.tensor([1.0, 2.0]),
                 torch.ones(2), batch=torch.tensor([0, kwargs.get("batch_size", 1) - 1]), sensor_size=(1, 1))
     with pytest.raises(ValueError, match=match):
-        ContinuousIntegral(ev, kwargs.get("threshold", 0.2))
+        ContinuousIntegral(ev, kwargs.get("threshold", 0.2), kwargs.get("max_log_range"))
 
 
 def test_edi_deblur_continuous_integral_matches_many_bins_and_takes_one_latency_per_sample():
