@@ -30,13 +30,12 @@ __all__ = ["ContinuousIntegral"]
 # Bytes per candidate latency and pixel that :meth:`ContinuousIntegral.inverse_ratio` returns (float32), plus the
 # float32 latent image its caller makes of it.
 BYTES_PER_CANDIDATE = 8
-# Bytes per event kept between calls (time, pixel, level before and after, rise, the pixel-order permutation),
-# and at the peak of a call.
-BYTES_PER_EVENT_KEPT = 48
+# Bytes per event kept between calls (time, pixel, step, rise, the pixel-order permutation), and at the peak of a
+# call.
+BYTES_PER_EVENT_KEPT = 32
 BYTES_PER_EVENT = 112
-# Bytes per time point and pixel of the tables one strip of rows is evaluated in (S and the level, float64, and
-# the gathers that read them), and the most one strip may take.
-BYTES_PER_POINT = 40
+# The most the tables of one strip of rows may take (each pixel's event count, level and interval integrals at
+# every time, and the windows' sums read from them).
 STRIP_BYTES = 64 * 2**20
 # Window ends are rounded to 1/_LATTICE µs (exact in binary) so equal times computed two ways coincide.
 _LATTICE = 1024.0
@@ -53,7 +52,10 @@ class ContinuousIntegral:
             mask :math:`(H·W,)`); None: every pixel is read.
 
     Levels are kept relative to each pixel's highest level (``θC − peak ≤ 0``) so ``exp`` never
-    overflows; the ratio ``R`` does not depend on that scale.
+    overflows; the ratio ``R`` does not depend on that scale. A window's integral is summed from the
+    integrals over the intervals between the times read, which are never negative, in blocks as long as the
+    shortest window (no difference of two large running sums): :meth:`inverse_ratio` keeps its tables in
+    float32, :meth:`log_ratio` in float64.
 
     Example:
         >>> ev = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([5.0]), torch.tensor([1]),
@@ -79,51 +81,56 @@ class ContinuousIntegral:
         self.theta = float(threshold)
         self.device = events.device
         # events in pixel order (each pixel's in time order: a stable sort), so a strip of rows is a slice
-        pixel = events.pixel_index()
         # int32 keys sort twice as fast as int64 (the same stable order); the sort returns the sorted keys, and
-        # index_select gathers about twice as fast as advanced indexing on a CPU
-        keys, order = torch.sort(pixel.to(torch.int32) if self.num_pixels < 2**31 else pixel, stable=True)
+        # index_select gathers about twice as fast as advanced indexing on a CPU (one sample: the pixel is y·W + x)
+        small = self.num_pixels < 2**31 and len(events) < 2**31
+        pixel = torch.empty(len(events), dtype=torch.int32 if small else torch.int64, device=self.device)
+        keys, order = torch.sort(torch.add(events.x, events.y, alpha=width, out=pixel), stable=True)
         # the events in time order (the input's own times, no copy) and where each pixel-order event came from: an
         # event's slot among sorted times is then a count over the time-ordered stream, not a binary search each
         self.time_ordered = events.t
-        self.order = order.to(torch.int32) if len(order) < 2**31 else order
+        self.order = order.to(torch.int32) if small else order
         self.pixel, self.t = keys.to(torch.int64), events.t.to(torch.float64).index_select(0, order)
-        polarity = events.p.index_select(0, order).to(torch.int64)
+        step = events.p.index_select(0, order)
         counts = torch.bincount(self.pixel, minlength=self.num_pixels)
         self.run_start = torch.cumsum(counts, 0) - counts
-        self._levels(polarity)
+        self._levels(step)
         # pixels whose events span more log intensity than any scene can (hot pixels firing one polarity) would
         # dominate every latent image: they are read as if they had no events
         self.ignored = torch.zeros(self.num_pixels, dtype=torch.bool, device=self.device)
-        if max_log_range is not None and len(polarity):
-            low = torch.zeros_like(self.peak).scatter_reduce(0, self.pixel, self.level_after, reduce="amin")
-            hot = self.peak - low > max_log_range
+        if max_log_range is not None and len(step):
+            low = torch.zeros_like(self.peak_count).scatter_reduce(0, self.pixel.to(torch.int64), self._count_after,
+                                                                   reduce="amin")
+            hot = self.theta * (self.peak_count - low) > max_log_range
             if bool(hot.any()):
                 self.ignored = hot
-                self._levels(polarity * (~hot).index_select(0, self.pixel))
+                self._levels(step * (~hot).index_select(0, self.pixel))
+        del self._count_after
         # first event of each row (and the end): strips of rows are contiguous
-        row_starts = torch.arange(height + 1, device=self.device) * width
+        row_starts = torch.arange(height + 1, device=self.device, dtype=self.pixel.dtype) * width
         self.row_bounds = torch.searchsorted(self.pixel, row_starts).tolist()
 
-    def _levels(self, polarity: Tensor) -> None:
-        """Each event's level θC before and after it at its pixel, each pixel's peak, and each event's rise."""
-        # each event's level C after it at its pixel: a cumulative sum within the pixel's run
-        running = torch.cumsum(polarity, 0)
-        # the running sum before each pixel's run (no copy of the sums)
+    def _levels(self, step: Tensor) -> None:
+        """Each event's step (±1, 0 for an ignored pixel's), each pixel's peak count and each event's rise of
+        ``exp(θC − peak)``.
+
+        Few event-sized tensors are made (each fresh one costs its page faults) and counts are int32.
+        """
+        self.step = step.to(torch.int8)
+        # each event's count C after it at its pixel: a running sum within the pixel's run
+        after = torch.cumsum(step, 0, dtype=torch.int32 if len(step) < 2**31 else torch.int64)
         run_start = self.run_start
-        before_run = torch.where(run_start > 0, running.index_select(0, (run_start - 1).clamp(min=0)), 0)
-        self.level_after = self.theta * (running - before_run.index_select(0, self.pixel)).to(torch.float64)
-        self.level_before = self.level_after - self.theta * polarity.to(torch.float64)
-        # levels are read relative to each pixel's highest level over the whole stream (0 before its first
-        # event), so each event's rise of exp(θC − peak) is computed once here, not once per read
-        zeros = torch.zeros(self.num_pixels, dtype=torch.float64, device=self.device)
-        self.peak = zeros.scatter_reduce(0, self.pixel, self.level_after, reduce="amax", include_self=True)
-        top = self.peak.index_select(0, self.pixel)
-        # exp(after − top) − exp(before − top) = exp(after − top)·(1 − exp(−θp)): one exponential per event, the
-        # factor one of three constants (p = −1, 0 for an ignored pixel's event, +1)
-        factor = torch.tensor([1.0 - math.exp(self.theta), 0.0, 1.0 - math.exp(-self.theta)], dtype=torch.float64,
-                              device=self.device)
-        self.rise = torch.exp(self.level_after - top).mul_(factor.index_select(0, polarity + 1))
+        before_run = torch.where(run_start > 0, after.index_select(0, (run_start - 1).clamp(min=0)), 0)
+        after.sub_(before_run.to(after.dtype).index_select(0, self.pixel))
+        # levels are read relative to each pixel's highest level over the whole stream (0 before its first event)
+        self.peak_count = torch.zeros(self.num_pixels, dtype=after.dtype, device=self.device).scatter_reduce(
+            0, self.pixel.to(torch.int64), after, reduce="amax", include_self=True)
+        self._count_after = after
+        # exp(θ·after − peak) − exp(θ·before − peak) = step·(1 − e^−θ)·exp(θ·max(before, after) − peak): one
+        # exponential per event, of the higher of its two levels (after, or after + 1 for a −1 step)
+        higher = self.peak_count.index_select(0, self.pixel)
+        torch.sub(after, higher, out=higher).add_(self.step < 0)
+        self.rise = higher.to(torch.float64).mul_(self.theta).exp_().mul_(self.step).mul_(1.0 - math.exp(-self.theta))
 
     def at(self, times: Tensor) -> tuple[Tensor, Tensor]:
         """``S`` and ``exp(θC − peak)`` of every pixel at sorted times.
@@ -138,8 +145,14 @@ class ContinuousIntegral:
         """
         times = times.to(self.device, torch.float64)
         height, width = self.sensor_size
-        work = torch.empty(2 * len(times) * height * width, dtype=torch.float64, device=self.device)
-        return self._tables(times, 0, height, work, self._slots(times))
+        num, p = len(times), self.num_pixels
+        count = torch.empty((num + 1, p), dtype=torch.float32, device=self.device)
+        level = torch.empty((num, p), dtype=torch.float64, device=self.device)
+        interval = torch.empty((num + 1, p), dtype=torch.float64, device=self.device)
+        self._tables(times, 0, height, self._slots(times), count, level, interval)
+        s_total = torch.zeros_like(level)
+        torch.cumsum(interval[1:num], 0, out=s_total[1:])
+        return s_total.view(num, height, width), level.view(num, height, width)
 
     def _slots(self, g: Tensor) -> Tensor:
         """How many of the sorted times ``g`` each event (pixel order) is at or after: ``searchsorted(g, t,
@@ -150,34 +163,38 @@ class ContinuousIntegral:
             0, first, torch.ones_like(first, dtype=torch.int32))
         return torch.cumsum(marks[:n], 0, dtype=torch.int32).index_select(0, self.order)
 
-    def _tables(self, g: Tensor, r0: int, r1: int, work: Tensor, slots: Tensor) -> tuple[Tensor, Tensor]:
-        """:meth:`at` for the rows ``[r0, r1)``: :math:`(G, r1 − r0, W)` each, written into ``work`` (float64, at
-        least ``2·G·(r1 − r0)·W`` elements, overwritten); ``slots``: :meth:`_slots` of ``g``."""
+    def _tables(self, g: Tensor, r0: int, r1: int, slots: Tensor, count: Tensor, level: Tensor,
+                interval: Tensor) -> None:
+        """Fill the tables of the rows ``[r0, r1)`` at the sorted times ``g`` (:math:`G`), ``p`` pixels each.
+
+        Row ``j`` of ``count`` :math:`(G + 1, p)` float32 gets ``C(g_j) − peak / θ`` (a whole number), row ``j``
+        of ``level`` :math:`(G, p)` ``exp(θC(g_j) − peak)``, and row ``j + 1`` of ``interval`` (at least
+        :math:`G + 1` rows) the integral of ``exp(θC − peak)`` over ``[g_j, g_{j+1}]``. An event lands in row
+        ``slot`` of both (:meth:`_slots`): rows ``G`` (events after the last time) and ``interval``'s row 0
+        (events before the first) take what no window reads, so no event is masked.
+        """
         width = self.sensor_size[1]
         num, p = len(g), (r1 - r0) * width
         lo, hi = self.row_bounds[r0], self.row_bounds[r1]
-        t, pixel = self.t[lo:hi], self.pixel[lo:hi] - r0 * width
-        after, before = self.level_after[lo:hi], self.level_before[lo:hi]
-        # events before the grid set the start level, those inside it the steps; masks as weights, not
-        # compaction, so nothing waits on the device for a count
-        slot = slots[lo:hi]
-        ahead = slot == 0
-        inside = ~ahead & (slot < num)
-        peak = self.peak[r0 * width:r1 * width]
-        # θC at g_0 (exact, in the log domain), relative to the pixel's peak
-        start_level = torch.zeros(p, dtype=torch.float64, device=self.device).index_add_(
-            0, pixel, torch.where(ahead, after - before, 0.0))
-        slot = slot.clamp(max=num - 1).to(torch.int64)  # g[slot - 1] <= t < g[slot] inside
-        # exp(level) is piecewise constant: its value at g_j is the start value plus the rises of the events
-        # before g_j, and its integral from g_0 is (g_j − g_0)·level(g_j) − Σ rise·(t − g_0) over those events
-        rise = torch.where(inside, self.rise[lo:hi], 0.0)
-        flat = slot * p + pixel
-        level = work[:num * p].zero_().index_add_(0, flat, rise)
-        held = work[num * p:2 * num * p].zero_().index_add_(0, flat, rise * (t - g[0]))
-        level = cumsum_(level.view(num, p), 0).add_(torch.exp(start_level - peak))
-        held = cumsum_(held.view(num, p), 0)
-        s_total = held.neg_().addcmul_(level, (g - g[0])[:, None])
-        return s_total.view(num, r1 - r0, width), level.view(num, r1 - r0, width)
+        slot, pixel = slots[lo:hi], self.pixel[lo:hi]
+        if (num + 1) * p >= 2**31:  # past int32's indices
+            slot, pixel = slot.to(torch.int64), pixel.to(torch.int64)
+        flat = torch.add(pixel, slot, alpha=p).sub_(r0 * width)
+        # an event counts from the first time after it on; row 0 starts from minus the pixel's peak
+        count.zero_()[0].sub_(self.peak_count[r0 * width:r1 * width].to(count.dtype))
+        count.view(-1).index_add_(0, flat, self.step[lo:hi].to(count.dtype))
+        cumsum_(count[:num], 0)
+        if level.dtype == count.dtype:
+            torch.mul(count[:num], self.theta, out=level)
+        else:  # θ times the count in float64, not rounded to float32 first
+            level.copy_(count[:num]).mul_(self.theta)
+        level.exp_()
+        # between g_j and g_{j+1} the level of g_j is held, and each event in between adds its rise from its time on
+        end = torch.cat([g, g[-1:]]).index_select(0, slot)
+        held = end.sub_(self.t[lo:hi]).mul_(self.rise[lo:hi])
+        torch.mul(level[:num - 1], (g[1:] - g[:-1]).to(level.dtype)[:, None], out=interval[1:num])
+        interval[0].zero_(), interval[num:].zero_()
+        interval.view(-1).index_add_(0, flat, held.to(interval.dtype))
 
     def log_ratio(self, start: float, end: float, latencies: Tensor, reference: float = 0.5,
                   out: Tensor | None = None) -> Tensor:
@@ -199,10 +216,10 @@ class ContinuousIntegral:
                       out: Tensor | None = None, change_out: Tensor | None = None) -> Tensor:
         """``1 / R`` of the same windows as :meth:`log_ratio`, float32: the latent image is ``blurry / R``.
 
-        What a search that scores latent images needs, without a logarithm and an exponential per pixel and
-        candidate. ``out``: optional float32 :math:`(K, 1, H, W)`. ``change_out``: optional float32
-        :math:`(K, 1, H, W)` that also receives :meth:`log_change` of the windows, from the same tables (the log
-        of the level ratio at the window's ends: no second pass over the events).
+        What a search that scores latent images needs: its tables are float32 (half the memory traffic of
+        :meth:`log_ratio`'s) and it takes no logarithm. ``out``: optional float32 :math:`(K, 1, H, W)`.
+        ``change_out``: optional float32 :math:`(K, 1, H, W)` that also receives :meth:`log_change` of the windows,
+        from the same tables (the count at the window's ends: no second pass over the events).
         """
         return self._read(start, end, latencies, reference, out, torch.float32, change_out)
 
@@ -214,8 +231,6 @@ class ContinuousIntegral:
         mid = start + reference * (end - start)
         times, (a, b, r) = _distinct_times(torch.stack([start + lat, end + lat, mid + lat]))
         height, width = self.sensor_size
-        # a strip of rows at a time: the tables of all the times stay within STRIP_BYTES
-        rows = max(1, min(height, STRIP_BYTES // (len(times) * width * BYTES_PER_POINT)))
         if out is None:
             out = torch.empty((len(lat), 1, height, width), dtype=dtype, device=self.device)
         elif out.shape != (len(lat), 1, height, width) or out.dtype != dtype:
@@ -223,23 +238,37 @@ class ContinuousIntegral:
         if change_out is not None and (change_out.shape != out.shape or change_out.dtype != torch.float32):
             raise ValueError(f"change_out must be float32 {tuple(out.shape)}, got {change_out.dtype} "
                              f"{tuple(change_out.shape)}")
-        # one work buffer for every strip's tables: fresh tables each strip would cost their page faults again
-        work = torch.empty(2 * len(times) * rows * width, dtype=torch.float64, device=self.device)
+        windows = _Windows(a, b, len(times))
+        num, padded, size = len(times), windows.rows, out.element_size()
+        extended = 1 + max(padded, num)  # interval rows: before the first time, the blocks, after the last time
+        # a strip of rows at a time: its tables and the windows' sums stay within STRIP_BYTES
+        row_bytes = width * ((num + 1) * 4 + num * size + (extended + padded) * size + 3 * len(lat) * size)
+        rows = max(1, min(height, STRIP_BYTES // row_bytes))
+        # one set of work buffers for every strip: fresh tables each strip would cost their page faults again
+        count = torch.empty((num + 1) * rows * width, dtype=torch.float32, device=self.device)
+        level = torch.empty(num * rows * width, dtype=dtype, device=self.device)
+        interval = torch.empty(extended * rows * width, dtype=dtype, device=self.device)
+        backward = torch.empty(padded * rows * width, dtype=dtype, device=self.device)
         slots = self._slots(times)
         # evenly spaced candidates read evenly spaced times: rows of the tables as views, not gathered copies
         a, b, r = (_as_rows(index) for index in (a, b, r))
         for r0 in range(0, height, rows):
             r1 = min(height, r0 + rows)
-            s_total, level = self._tables(times, r0, r1, work, slots)
-            if change_out is not None:  # θC(end) − θC(start) = log of the ratio of exp(θC − peak) at the two
-                ratio = torch.div(level[b], level[a].clamp_min(1e-300))
-                torch.log(ratio, out=change_out[:, 0, r0:r1])
-            mean = torch.sub(s_total[b], s_total[a]).clamp_min_(1e-300)
-            if dtype == torch.float64:
-                mean.div_(level[r]).div_(end - start)
-                torch.log(mean, out=out[:, 0, r0:r1])
+            p = (r1 - r0) * width
+            strip_count, strip_level = count[:(num + 1) * p].view(num + 1, p), level[:num * p].view(num, p)
+            strip_interval = interval[:extended * p].view(extended, p)
+            self._tables(times, r0, r1, slots, strip_count, strip_level, strip_interval)
+            window = windows.sums(strip_interval[1:1 + padded], backward[:padded * p].view(padded, p))
+            window = window.clamp_min_(torch.finfo(dtype).tiny).view(len(lat), r1 - r0, width)
+            if change_out is not None:  # θ (C(end) − C(start)): whole numbers of events
+                torch.sub(strip_count[b], strip_count[a], out=change_out[:, 0, r0:r1].view(len(lat), p))
+                change_out[:, 0, r0:r1].mul_(self.theta)
+            if dtype == torch.float64:  # log of the mean level over the window, relative to the level read
+                torch.sub(window.div_(end - start).log_(), strip_count[r].view(len(lat), r1 - r0, width),
+                          alpha=self.theta, out=out[:, 0, r0:r1])
             else:
-                torch.div(level[r], mean, out=out[:, 0, r0:r1]).mul_(end - start)
+                torch.div(strip_level[r].view(len(lat), r1 - r0, width), window, out=out[:, 0, r0:r1])
+                out[:, 0, r0:r1].mul_(end - start)
         return out
 
     def log_change(self, start: float, end: float, latencies: Tensor) -> Tensor:
@@ -256,13 +285,56 @@ class ContinuousIntegral:
         lat = latencies.to(self.device, torch.float64).reshape(-1)
         times, (a, b) = _distinct_times(torch.stack([start + lat, end + lat]))
         # C(g) counts the events before g: an event counts from the first time after it on (slot G: never)
-        slot = torch.searchsorted(times, self.t, right=True)
+        slot = self._slots(times).to(torch.int64)
         p = self.num_pixels
         table = torch.zeros((len(times) + 1) * p, dtype=torch.float32, device=self.device).index_add_(
-            0, slot * p + self.pixel, (self.level_after - self.level_before).to(torch.float32))
+            0, slot * p + self.pixel, self.step.to(torch.float32))
         table = cumsum_(table.view(len(times) + 1, p)[:len(times)], 0)  # event counts: the same sums
-        change = table.index_select(0, b).sub_(table.index_select(0, a))
+        change = table.index_select(0, b).sub_(table.index_select(0, a)).mul_(self.theta)
         return change.view(len(lat), 1, *self.sensor_size)
+
+
+class _Windows:
+    """Sums of interval integrals over windows of sorted times, without the cancellation of a running sum.
+
+    Window ``k`` covers the intervals ``a_k .. b_k − 1``. The intervals are cut into blocks of the shortest
+    window's length ``L``, and each block summed forwards and backwards in place; a window is then the backward
+    sum from its first interval to the end of that block, plus the forward sum of the block of its last interval
+    up to it, plus (rarely) the totals of whole blocks in between. Every sum is of non-negative terms, so
+    float32 tables keep float32's relative precision whatever the level's range (a difference of two running
+    sums from the first time loses it where the level before the window is much higher than inside it).
+    """
+
+    def __init__(self, a: Tensor, b: Tensor, num_times: int) -> None:
+        self.block = max(1, int((b - a).min()))
+        self.num_blocks = max(1, -(-(num_times - 1) // self.block))
+        self.rows = self.num_blocks * self.block
+        last = b - 1
+        first_block, last_block = a // self.block, last // self.block
+        # a window exactly one block long is that block's backward sum alone
+        whole = first_block == last_block
+        self.whole = torch.nonzero(whole).flatten() if bool(whole.any()) else None
+        self.between = (first_block + 1, last_block) if bool((last_block - first_block > 1).any()) else None
+        self.first, self.last = _as_rows(a), _as_rows(last)
+
+    def sums(self, interval: Tensor, backward: Tensor) -> Tensor:
+        """Each window's sum :math:`(K, p)` of ``interval`` :math:`(rows, p)`, overwriting it and ``backward``
+        (the same shape) with the blocks' forward and backward running sums."""
+        blocks = (self.num_blocks, self.block, -1)
+        forward, backward_blocks = interval.view(blocks), backward.view(blocks)
+        backward_blocks[:, -1] = forward[:, -1]
+        for i in range(self.block - 2, -1, -1):  # a loop over the rows of a block (tens), not over pixels
+            torch.add(forward[:, i], backward_blocks[:, i + 1], out=backward_blocks[:, i])
+        cumsum_(forward, 1)
+        total = torch.add(backward[self.first], interval[self.last])
+        if self.whole is not None:  # a window exactly one block long: its backward sum alone
+            total[self.whole] = backward[self.first][self.whole]
+        if self.between is not None:  # whole blocks inside a window: the blocks' totals, summed in float64
+            totals = backward.view(blocks)[:, 0].to(torch.float64)
+            running = torch.cat([torch.zeros_like(totals[:1]), torch.cumsum(totals, 0)])
+            lo, hi = self.between
+            total += (running[hi] - running[lo]).to(total.dtype)
+        return total
 
 
 def _as_rows(index: Tensor) -> slice | Tensor:

@@ -33,8 +33,9 @@ __all__ = ["event_histogram", "cumulative_event_grid", "sample_grid", "grid_byte
 _MIN_SPREAD_US = 1e-3
 
 
-def cumsum_(table: Tensor, dim: int) -> Tensor:
-    """Cumulative sum of ``table`` along ``dim``, in place (what :func:`torch.cumsum` gives).
+def cumsum_(table: Tensor, dim: int, reverse: bool = False) -> Tensor:
+    """Cumulative sum of ``table`` along ``dim``, in place (what :func:`torch.cumsum` gives; with ``reverse``, the
+    sums from each slice to the last).
 
     On a CPU, ``torch.cumsum`` along any dim but the last walks each line with a stride of everything after
     ``dim``; adding each slice to the next is much faster there (over EDI's 500 time bins it took
@@ -47,6 +48,7 @@ def cumsum_(table: Tensor, dim: int) -> Tensor:
     Args:
         table: a tensor of at least one dimension.
         dim: the dimension to sum along (negative counts from the end).
+        reverse: sum from the last slice towards the first.
 
     Returns:
         ``table``, overwritten with its cumulative sum.
@@ -59,6 +61,8 @@ def cumsum_(table: Tensor, dim: int) -> Tensor:
         tensor([[ 1.,  2.],
                 [ 4.,  6.],
                 [ 9., 12.]])
+        >>> cumsum_(torch.tensor([1.0, 2.0, 3.0]), 0, reverse=True)
+        tensor([6., 5., 3.])
     """
     if not isinstance(table, Tensor) or table.dim() == 0:
         raise ValueError(f"table must be a tensor of at least one dimension, got "
@@ -67,8 +71,12 @@ def cumsum_(table: Tensor, dim: int) -> Tensor:
         raise ValueError(f"dim must be an int in [{-table.dim()}, {table.dim() - 1}] for a table of shape "
                          f"{tuple(table.shape)}, got {dim!r}")
     if table.device.type != "cpu":
+        if reverse:
+            return table.copy_(torch.cumsum(table.flip(dim), dim).flip(dim))
         return table.copy_(torch.cumsum(table, dim))
     slices = table.unbind(dim)
+    if reverse:
+        slices = slices[::-1]
     for before, after in zip(slices[:-1], slices[1:]):
         after.add_(before)
     return table
