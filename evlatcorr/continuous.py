@@ -314,7 +314,9 @@ class _Windows:
         # a window exactly one block long is that block's backward sum alone
         whole = first_block == last_block
         self.whole = torch.nonzero(whole).flatten() if bool(whole.any()) else None
-        self.between = (first_block + 1, last_block) if bool((last_block - first_block > 1).any()) else None
+        # whole blocks strictly inside window k: first_block + 1 .. last_block − 1 (none for the others)
+        inner = first_block + 1
+        self.between = (inner, torch.maximum(last_block, inner)) if bool((last_block > inner).any()) else None
         self.first, self.last = _as_rows(a), _as_rows(last)
 
     def sums(self, interval: Tensor, backward: Tensor) -> Tensor:

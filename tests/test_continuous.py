@@ -49,6 +49,34 @@ def test_inverse_ratio_is_exp_of_minus_log_ratio():
     torch.testing.assert_close(inverse, torch.exp(-ci.log_ratio(100.0, 500.0, lat)).float(), rtol=1e-6, atol=0)
 
 
+def test_float32_ratio_keeps_its_precision_below_a_much_brighter_past():
+    # level 1 over [0, 100), then 60 OFF events (θ = 0.2: e^-12) and flat: a window after them has R = 1 exactly.
+    # Read with an earlier window, a running sum from the first time would hold ~90 (us at level 1) before the
+    # window's ~0.0006 and lose it in float32; the blocks of interval integrals keep float32's relative precision
+    ci = ContinuousIntegral(one_pixel_events(torch.full((60,), 100.0), [-1] * 60), 0.2)
+    lat = torch.tensor([-190.0, 0.0], dtype=torch.float64)
+    inverse = ci.inverse_ratio(200.0, 300.0, lat)
+    torch.testing.assert_close(inverse, torch.exp(-ci.log_ratio(200.0, 300.0, lat)).float(), rtol=1e-6, atol=0)
+    assert inverse[1, 0, 0, 0].item() == pytest.approx(1.0, rel=1e-6)
+
+
+def test_block_sums_equal_the_direct_sums_of_any_windows():
+    from evlatcorr.continuous import _Windows
+
+    g = torch.Generator().manual_seed(7)
+    intervals, p = 40, 3
+    values = torch.rand(intervals, p, generator=g, dtype=torch.float64)
+    # windows of 4 to 30 intervals: exactly one block, two blocks, and several whole blocks in between
+    a = torch.tensor([0, 4, 3, 0, 10, 9])
+    b = torch.tensor([4, 8, 9, 30, 40, 13])
+    windows = _Windows(a, b, intervals + 1)
+    table = torch.zeros(windows.rows, p, dtype=torch.float64)
+    table[:intervals] = values
+    sums = windows.sums(table, torch.empty_like(table))
+    expected = torch.stack([values[lo:hi].sum(0) for lo, hi in zip(a.tolist(), b.tolist())])
+    torch.testing.assert_close(sums, expected, rtol=1e-12, atol=0)
+
+
 def test_log_change_counts_each_windows_net_events():
     # +1 at 5 us, -1 at 15, +1 at 25; windows [l, l + 10): the sign of the one event inside, 0 past the last
     theta = 0.5
