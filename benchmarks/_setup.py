@@ -1,7 +1,8 @@
-"""What every script in ``benchmarks/`` does before it imports torch: the repository on ``sys.path``, 2 MB CPU pages.
+"""What every script in ``benchmarks/`` does before it imports torch: the repository on ``sys.path``, the CPU
+memory settings (2 MB pages, freed memory kept for reuse).
 
-Each script imports it first (``import _setup``: the script's own folder is on ``sys.path``), so the page
-request (:func:`evlatcorr.pages.prefer_large_pages`) comes before the process's first tensor.
+Each script imports it first (``import _setup``: the script's own folder is on ``sys.path``), so the memory
+settings (:func:`evlatcorr.pages.prefer_fast_memory`) come before the process's first tensor.
 """
 
 from __future__ import annotations
@@ -13,9 +14,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from evlatcorr.pages import prefer_large_pages  # noqa: E402
+from evlatcorr.pages import prefer_fast_memory  # noqa: E402
 
-prefer_large_pages()
+prefer_fast_memory()
 
 
 def passive_openmp() -> None:

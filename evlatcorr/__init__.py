@@ -33,8 +33,10 @@ _ORIGINS = {
     "estimate_threshold": "evlatcorr.edi",
     "etf_loss": "evlatcorr.etf",
     "event_histogram": "evlatcorr.integral",
+    "keep_freed_memory": "evlatcorr.pages",
     "local_contrast": "evlatcorr.etf",
     "polarity_to_signed": "evlatcorr.events",
+    "prefer_fast_memory": "evlatcorr.pages",
     "prefer_large_pages": "evlatcorr.pages",
     "search_constant_latency": "evlatcorr.search",
     "temporal_consistency": "evlatcorr.etf",
@@ -62,6 +64,8 @@ if TYPE_CHECKING:  # what type checkers and IDEs see (`X as X`: re-exported)
     from evlatcorr.frames import EventFrames as EventFrames
     from evlatcorr.integral import cumulative_event_grid as cumulative_event_grid
     from evlatcorr.integral import event_histogram as event_histogram
+    from evlatcorr.pages import keep_freed_memory as keep_freed_memory
+    from evlatcorr.pages import prefer_fast_memory as prefer_fast_memory
     from evlatcorr.pages import prefer_large_pages as prefer_large_pages
     from evlatcorr.search import ConstantSearchResult as ConstantSearchResult
     from evlatcorr.search import search_constant_latency as search_constant_latency

@@ -1,16 +1,16 @@
-"""The ``evlatcorr`` command and ``python -m evlatcorr``: large CPU pages asked for, then the command line."""
+"""The ``evlatcorr`` command and ``python -m evlatcorr``: CPU memory settings asked for, then the command line."""
 
 from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
 
-from evlatcorr.pages import prefer_large_pages
+from evlatcorr.pages import prefer_fast_memory
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run :func:`evlatcorr.cli.main` with 2 MB CPU pages (``THP_MEM_ALLOC_ENABLE=0`` opts out)."""
-    prefer_large_pages()  # before the command line's imports make the process's first tensor
+    """Run :func:`evlatcorr.cli.main` with 2 MB CPU pages and freed memory kept for reuse (:mod:`evlatcorr.pages`)."""
+    prefer_fast_memory()  # before the command line's imports make the process's first tensor
     from evlatcorr.cli import main as command_line
 
     return command_line(argv)

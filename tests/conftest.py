@@ -1,8 +1,8 @@
 from __future__ import annotations
 
-from evlatcorr.pages import prefer_large_pages
+from evlatcorr.pages import prefer_fast_memory
 
-prefer_large_pages()  # as the command lines and scripts do, before the first tensor
+prefer_fast_memory()  # as the command lines and scripts do, before the first tensor
 
 import pytest  # noqa: E402
 import torch  # noqa: E402

@@ -63,3 +63,16 @@ def test_the_command_asks_for_large_pages_before_its_first_import_of_torch():
             "    pass\n"
             "print(seen)")
     assert run_fresh(code).splitlines()[-1] == "['1']"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/statm; glibc's mallopt")
+@pytest.mark.parametrize(("opt_out", "expected"), [(None, "True True"), ("0", "False False")])
+def test_keep_freed_memory_keeps_a_freed_tensor_resident_unless_opted_out(opt_out, expected):
+    # 64 MB touched and freed: kept resident for the next tensor, or handed back to the system (the default)
+    env = {} if opt_out is None else {"EVLATCORR_KEEP_FREED_MEMORY": opt_out}
+    code = ("import os, torch, evlatcorr\n"
+            "kept = evlatcorr.keep_freed_memory()\n"
+            "def resident(): return int(open('/proc/self/statm').read().split()[1]) * os.sysconf('SC_PAGE_SIZE')\n"
+            "before = resident(); x = torch.ones(2**24); del x\n"
+            "print(kept, resident() - before > 2**25)")
+    assert run_fresh(code, **env) == expected

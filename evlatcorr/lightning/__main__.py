@@ -1,9 +1,9 @@
-"""Entry point of ``python -m evlatcorr.lightning``: large CPU pages asked for, then the command line."""
+"""Entry point of ``python -m evlatcorr.lightning``: CPU memory settings asked for, then the command line."""
 
-from evlatcorr.pages import prefer_large_pages
+from evlatcorr.pages import prefer_fast_memory
 
 if __name__ == "__main__":
-    prefer_large_pages()  # before lightning's import makes the process's first tensor
+    prefer_fast_memory()  # before lightning's import makes the process's first tensor
     from evlatcorr.lightning.cli import main
 
     main()
