@@ -311,9 +311,25 @@ class _Windows:
         self.rows = self.num_blocks * self.block
         last = b - 1
         first_block, last_block = a // self.block, last // self.block
-        # a window exactly one block long is that block's backward sum alone
+        # a window exactly one block long is that block's total: its backward sum at its first interval, or its
+        # forward sum at its last; the others need the backward sums of their first blocks and the forward sums of
+        # their last. Only those blocks are summed (evenly spaced candidates: half of each)
         whole = first_block == last_block
-        self.whole = torch.nonzero(whole).flatten() if bool(whole.any()) else None
+        parts = ~whole
+        backward_blocks = first_block[parts].tolist() if bool(parts.any()) else []
+        forward_blocks = last_block[parts].tolist() if backward_blocks else []
+        self.backward_range = _block_range(backward_blocks)
+        self.forward_range = _block_range(forward_blocks)
+        self.whole_forward = self.whole_backward = None
+        if bool(whole.any()):
+            rows, blocks = torch.nonzero(whole).flatten(), first_block[whole]
+            low, high = self.forward_range
+            by_forward = (blocks >= low) & (blocks < high)
+            if not bool(by_forward.all()):
+                self.backward_range = _block_range(backward_blocks + blocks[~by_forward].tolist())
+                self.whole_backward = rows[~by_forward]
+            if bool(by_forward.any()):
+                self.whole_forward = rows[by_forward]
         # whole blocks strictly inside window k: first_block + 1 .. last_block − 1 (none for the others)
         inner = first_block + 1
         self.between = (inner, torch.maximum(last_block, inner)) if bool((last_block > inner).any()) else None
@@ -321,22 +337,37 @@ class _Windows:
 
     def sums(self, interval: Tensor, backward: Tensor) -> Tensor:
         """Each window's sum :math:`(K, p)` of ``interval`` :math:`(rows, p)`, overwriting it and ``backward``
-        (the same shape) with the blocks' forward and backward running sums."""
+        (the same shape) with the blocks' forward and backward running sums where they are read."""
         blocks = (self.num_blocks, self.block, -1)
         forward, backward_blocks = interval.view(blocks), backward.view(blocks)
-        backward_blocks[:, -1] = forward[:, -1]
-        for i in range(self.block - 2, -1, -1):  # a loop over the rows of a block (tens), not over pixels
-            torch.add(forward[:, i], backward_blocks[:, i + 1], out=backward_blocks[:, i])
-        cumsum_(forward, 1)
-        total = torch.add(backward[self.first], interval[self.last])
-        if self.whole is not None:  # a window exactly one block long: its backward sum alone
-            total[self.whole] = backward[self.first][self.whole]
+        totals = None
         if self.between is not None:  # whole blocks inside a window: the blocks' totals, summed in float64
-            totals = backward.view(blocks)[:, 0].to(torch.float64)
+            totals = forward.sum(1, dtype=torch.float64)
+        low, high = self.backward_range
+        if high > low:
+            outward, inward = forward[low:high], backward_blocks[low:high]
+            inward[:, -1] = outward[:, -1]
+            for i in range(self.block - 2, -1, -1):  # a loop over the rows of a block (tens), not over pixels
+                torch.add(outward[:, i], inward[:, i + 1], out=inward[:, i])
+        low, high = self.forward_range
+        if high > low:
+            cumsum_(forward[low:high], 1)
+        # rows of blocks that were not summed hold other values: they are read only where overwritten below
+        total = torch.add(backward[self.first], interval[self.last])
+        if self.whole_backward is not None:
+            total[self.whole_backward] = backward[self.first][self.whole_backward]
+        if self.whole_forward is not None:
+            total[self.whole_forward] = interval[self.last][self.whole_forward]
+        if totals is not None:
             running = torch.cat([torch.zeros_like(totals[:1]), torch.cumsum(totals, 0)])
             lo, hi = self.between
             total += (running[hi] - running[lo]).to(total.dtype)
         return total
+
+
+def _block_range(blocks: list[int]) -> tuple[int, int]:
+    """The blocks ``[low, high)`` from the least to the greatest of ``blocks`` (empty: ``(0, 0)``)."""
+    return (min(blocks), max(blocks) + 1) if blocks else (0, 0)
 
 
 def _as_rows(index: Tensor) -> slice | Tensor:

@@ -26,7 +26,7 @@ import kornia
 import torch
 from torch import Tensor
 
-__all__ = ["ghost_moment", "ghost_root"]
+__all__ = ["ghost_moment", "ghost_root", "inverse_ratio_moment"]
 
 # σ of the high-pass, px: 1 removed the shading offset on most dev scenes; 0 (none) and 2 were worse
 HIGH_PASS_SIGMA = 1.0
@@ -69,13 +69,28 @@ def ghost_moment(grey: Tensor, log_ratio: Tensor, log_change: Tensor, sigma: flo
     # float64 unless both curves come in float32 (a correlation over the image needs no more)
     dtype = torch.float32 if log_ratio.dtype == log_change.dtype == torch.float32 else torch.float64
     log_latent = torch.log(grey.to(dtype).clamp_min(_FLOOR)) - log_ratio.to(dtype)
+    return _high_pass_correlation(log_latent, log_change.to(dtype), sigma)
+
+
+def inverse_ratio_moment(grey: Tensor, inverse: Tensor, log_change: Tensor) -> Tensor:
+    """:func:`ghost_moment` of the latents ``grey · inverse`` :math:`(K, 1, H, W)` float32 (``inverse = 1 / R``, what
+    the search reads), without a logarithm and a negation of ``R`` first; ``grey`` :math:`(1, 1, H, W)`."""
+    log_latent = torch.log(inverse).add_(torch.log(grey.to(inverse).clamp_min(_FLOOR)))
+    return _high_pass_correlation(log_latent, log_change, HIGH_PASS_SIGMA)
+
+
+def _high_pass_correlation(a: Tensor, b: Tensor, sigma: float) -> Tensor:
+    """Correlation of each image of ``a`` with its image of ``b`` :math:`(K, 1, H, W)` after a Gaussian of ``sigma``
+    is removed from both (``a`` is overwritten), from sums: no centred copies."""
     size = 2 * int(3 * sigma + 0.5) + 1
     low_pass = kornia.filters.GaussianBlur2d((size, size), (sigma, sigma))
-    a = log_latent - low_pass(log_latent)
-    b = log_change.to(dtype) - low_pass(log_change.to(dtype))
-    a = (a - a.mean(dim=(1, 2, 3), keepdim=True)).flatten(1)
-    b = (b - b.mean(dim=(1, 2, 3), keepdim=True)).flatten(1)
-    return (a * b).sum(1) / (a.norm(dim=1) * b.norm(dim=1)).clamp_min(1e-12)
+    a = a.sub_(low_pass(a)).flatten(1)
+    b = (b - low_pass(b)).flatten(1)
+    n = a.shape[1]
+    sum_a, sum_b = a.sum(1), b.sum(1)
+    covariance = torch.linalg.vecdot(a, b) - sum_a * sum_b / n
+    spread = (torch.linalg.vecdot(a, a) - sum_a**2 / n) * (torch.linalg.vecdot(b, b) - sum_b**2 / n)
+    return (covariance / spread.clamp_min(0).sqrt().clamp_min(1e-12)).clamp_(-1.0, 1.0)
 
 
 def ghost_root(latencies: Tensor, moment: Tensor) -> float | None:

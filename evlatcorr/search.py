@@ -43,7 +43,7 @@ from evlatcorr.config import DEFAULT_SCORE, SCORES, SPARSITY_SCORES, SearchConfi
 from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
 from evlatcorr.events import Events
-from evlatcorr.ghost import ghost_moment, ghost_root
+from evlatcorr.ghost import ghost_root, inverse_ratio_moment
 from evlatcorr.integral import _row_strips, cumsum_, cumulative_event_grid
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score",
@@ -318,34 +318,46 @@ def sharpness_scores(latent: Tensor, latency: Tensor, previous: Tensor | None, s
                      epsilon: float, window: int, sigma_us: float) -> Tensor:
     """Several :func:`sharpness_score` of the same images :math:`(M, K)`, sharing the work they have in common
     (the log image of each floor ``c``, the gradient term of each floor and scale)."""
+    _check_scores(scores)
+    relative = latent.clamp_min(0)
+    mean = relative.mean(dim=(1, 2, 3), keepdim=True).clamp_min_(1e-12)
+    # log(I + c·Ī) is log(I / Ī + c) plus the constant log Ī, which no gradient sees: exactly invariant to the
+    # brightness scale
+    return _scores_of(lambda floor: torch.add(relative, mean, alpha=floor).log_(), lambda: latent, latency, previous,
+                      scores, epsilon, window, sigma_us)
+
+
+def _check_scores(scores: tuple[str, ...]) -> None:
     for score in scores:
         if score != "etf" and score not in _SPARSITY:
             raise ValueError(f"score must be one of {SCORES[:-2]} here ('consensus' and 'learned' search over "
-                             "several), "
-                             f"got {score!r}")
-    # relative to each image's mean, so the score is exactly invariant to the brightness scale
-    relative = latent.clamp_min(0)
-    relative = relative.div_(relative.mean(dim=(1, 2, 3), keepdim=True).clamp_min_(1e-12))
+                             f"several), got {score!r}")
+
+
+def _scores_of(log_image: Callable[[float], Tensor], latent: Callable[[], Tensor], latency: Tensor,
+               previous: Tensor | None, scores: tuple[str, ...], epsilon: float, window: int,
+               sigma_us: float) -> Tensor:
+    """:func:`sharpness_scores` from ``log_image(c)`` (the log of the latent plus ``c`` times its mean, up to a
+    constant per image) and ``latent()`` (for the ETF only): each log image and gradient term made once."""
     terms: dict[tuple[float, int], Tensor] = {}
+    logs: dict[float, Tensor] = {}
     for score in scores:
         if score == "etf":
             continue
         floor, factors = _SPARSITY[score]
-        log_image = None
         for factor in factors:
             if (floor, factor) not in terms:
-                log_image = torch.add(relative, floor).log_() if log_image is None else log_image
-                image = log_image if factor == 1 else torch.nn.functional.avg_pool2d(log_image, factor)
+                if floor not in logs:
+                    logs[floor] = log_image(floor)
+                image = logs[floor] if factor == 1 else torch.nn.functional.avg_pool2d(logs[floor], factor)
                 terms[floor, factor] = _gradient_sparsity(image)
     out = []
     for score in scores:
         if score == "etf":
-            out.append(etf_loss(latent, latency, previous, epsilon, window, sigma_us))
+            out.append(etf_loss(latent(), latency, previous, epsilon, window, sigma_us))
             continue
         floor, factors = _SPARSITY[score]
-        value = torch.zeros(latent.shape[0], device=latent.device, dtype=latent.dtype)
-        for factor in factors:
-            value = value + terms[floor, factor]
+        value = sum(terms[floor, factor] for factor in factors)
         if previous is not None:
             value = value * torch.exp((latency - previous.to(latency)) ** 2 / (4 * sigma_us**2))
         out.append(value)
@@ -530,13 +542,21 @@ def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str
             needed = [m for m in range(len(members)) if bool(wanted[m, k0:k1].any())]
             if not needed:
                 continue
-            latent = grey * inverse[k0:k1]
-            values = sharpness_scores(latent, lat[k0:k1].float().to(latent.device), None if previous is None
-                                      else previous[k0:k1], tuple(members[m] for m in needed), config.epsilon,
-                                      config.window, config.sigma_us).double().cpu()
+            values = _latent_scores(grey, inverse[k0:k1], lat[k0:k1].float().to(grey.device),
+                                    None if previous is None else previous[k0:k1], tuple(members[m] for m in needed),
+                                    config).double().cpu()
             for value, m in zip(values, needed):
                 out[m, kept_cols[k0:k1]] = torch.where(wanted[m, k0:k1], value, math.inf)
     return [out[m, torch.searchsorted(union.cpu(), cand.cpu())] for m, cand in enumerate(requests)]
+
+
+def _latent_scores(grey: Tensor, inverse: Tensor, latency: Tensor, previous: Tensor | None, scores: tuple[str, ...],
+                   config: SearchConfig) -> Tensor:
+    """:func:`sharpness_scores` of the latent images ``grey · inverse`` :math:`(K, 1, H, W)` without making them:
+    each image's mean is one product with ``grey``, and ``log(grey · inverse + c · mean)`` one fused pass."""
+    mean = (inverse.flatten(1) @ grey.flatten().to(inverse)).div_(grey.numel()).clamp_min_(1e-12)[:, None, None, None]
+    return _scores_of(lambda floor: torch.addcmul(floor * mean, inverse, grey).log_(), lambda: grey * inverse, latency,
+                      previous, scores, config.epsilon, config.window, config.sigma_us)
 
 
 def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, config: SearchConfig,
@@ -621,7 +641,7 @@ def _candidate_moments(reader: _CandidateReader, grey: Tensor, kept: Tensor) -> 
         inverse, change = reader.inverse_ratio(kept), reader.log_change(kept)
         for k0 in range(0, len(kept), _SCORE_CHUNK):
             k1 = min(k0 + _SCORE_CHUNK, len(kept))
-            moment[k0:k1] = ghost_moment(grey, torch.log(inverse[k0:k1]).neg_(), change[k0:k1]).cpu()
+            moment[k0:k1] = inverse_ratio_moment(grey, inverse[k0:k1], change[k0:k1]).cpu()
     return moment
 
 

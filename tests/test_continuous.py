@@ -66,15 +66,16 @@ def test_block_sums_equal_the_direct_sums_of_any_windows():
     g = torch.Generator().manual_seed(7)
     intervals, p = 40, 3
     values = torch.rand(intervals, p, generator=g, dtype=torch.float64)
-    # windows of 4 to 30 intervals: exactly one block, two blocks, and several whole blocks in between
-    a = torch.tensor([0, 4, 3, 0, 10, 9])
-    b = torch.tensor([4, 8, 9, 30, 40, 13])
-    windows = _Windows(a, b, intervals + 1)
-    table = torch.zeros(windows.rows, p, dtype=torch.float64)
-    table[:intervals] = values
-    sums = windows.sums(table, torch.empty_like(table))
-    expected = torch.stack([values[lo:hi].sum(0) for lo, hi in zip(a.tolist(), b.tolist())])
-    torch.testing.assert_close(sums, expected, rtol=1e-12, atol=0)
+    # windows of 4 to 30 intervals (exactly one block, two blocks, several whole blocks in between), and evenly
+    # spaced ones of 20 (the first and the last exactly one block: one read backwards, one forwards)
+    for a, b in ((torch.tensor([0, 4, 3, 0, 10, 9]), torch.tensor([4, 8, 9, 30, 40, 13])),
+                 (torch.arange(21), torch.arange(21) + 20)):
+        windows = _Windows(a, b, intervals + 1)
+        table = torch.full((windows.rows, p), math.nan, dtype=torch.float64)  # past the intervals: never read
+        table[:intervals] = values
+        sums = windows.sums(table, torch.full_like(table, math.nan))
+        expected = torch.stack([values[lo:hi].sum(0) for lo, hi in zip(a.tolist(), b.tolist())])
+        torch.testing.assert_close(sums, expected, rtol=1e-12, atol=0)
 
 
 def test_log_change_counts_each_windows_net_events():

@@ -76,3 +76,14 @@ def test_moment_bad_input(grey, log_ratio, change, sigma, match):
 def test_root_bad_input():
     with pytest.raises(ValueError, match="1-D of one length"):
         ghost_root(torch.zeros(4), torch.zeros(3))
+
+
+def test_moment_from_the_inverse_ratio_equals_the_moment_from_log_r():
+    from evlatcorr.ghost import inverse_ratio_moment
+
+    g = torch.Generator().manual_seed(4)
+    grey = 0.05 + 0.9 * torch.rand(1, 1, 24, 32, generator=g)
+    inverse = torch.exp(0.3 * torch.randn(5, 1, 24, 32, generator=g))
+    change = 0.2 * torch.randint(-3, 4, (5, 1, 24, 32), generator=g).float()
+    expected = ghost_moment(grey.double(), -torch.log(inverse.double()), change.double())
+    torch.testing.assert_close(inverse_ratio_moment(grey, inverse, change).double(), expected, rtol=0, atol=1e-5)

@@ -11,7 +11,7 @@ import evlatcorr.checks
 import evlatcorr.search
 from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.edi import edi_deblur
-from evlatcorr.search import search_constant_latency, sharpness_score
+from evlatcorr.search import SearchConfig, search_constant_latency, sharpness_score, sharpness_scores
 from tests.conftest import random_events
 
 START, END = torch.tensor([0.0]), torch.tensor([100.0])
@@ -233,3 +233,19 @@ def test_table_whose_row_is_over_the_budget_is_refused_before_allocating(monkeyp
         with pytest.raises(ValueError, match="over the memory budget of 1000 bytes"):
             search_constant_latency(grey_frame(3, (4, 4)), ev, START, END, num_bins=20, num_candidates=5,
                                     method=method)
+
+
+def test_scores_of_the_inverse_ratio_equal_the_scores_of_the_latent_images():
+    # the search scores grey · (1 / R) without making the latents: the same values as sharpness_scores
+    from evlatcorr.search import _latent_scores
+
+    g = torch.Generator().manual_seed(6)
+    grey = torch.rand(1, 1, 20, 24, generator=g)
+    inverse = torch.exp(0.5 * torch.randn(6, 1, 20, 24, generator=g))
+    latency, names = torch.linspace(0.0, 5000.0, 6), ("sparsity", "sparsity_bright", "sparsity_multiscale", "etf")
+    config = SearchConfig()
+    for previous in (None, torch.full((6,), 1000.0)):
+        expected = sharpness_scores(grey * inverse, latency, previous, names, config.epsilon, config.window,
+                                    config.sigma_us)
+        torch.testing.assert_close(_latent_scores(grey, inverse, latency, previous, names, config), expected,
+                                   rtol=1e-5, atol=0)
