@@ -82,7 +82,8 @@ class ContinuousIntegral:
         self.device = events.device
         # events in pixel order (each pixel's in time order: a stable sort), so a strip of rows is a slice
         # int32 keys sort twice as fast as int64 (the same stable order); the sort returns the sorted keys, and
-        # index_select gathers about twice as fast as advanced indexing on a CPU (one sample: the pixel is y·W + x)
+        # index_select gathers about twice as fast as advanced indexing on a CPU (one sample: the pixel is y·W + x).
+        # The sorted pixels are kept as int64: the tables' flat indices are computed from them
         small = self.num_pixels < 2**31 and len(events) < 2**31
         pixel = torch.empty(len(events), dtype=torch.int32 if small else torch.int64, device=self.device)
         keys, order = torch.sort(torch.add(events.x, events.y, alpha=width, out=pixel), stable=True)
@@ -94,25 +95,23 @@ class ContinuousIntegral:
         step = events.p.index_select(0, order)
         counts = torch.bincount(self.pixel, minlength=self.num_pixels)
         self.run_start = torch.cumsum(counts, 0) - counts
-        self._levels(step)
+        count_after = self._levels(step)
         # pixels whose events span more log intensity than any scene can (hot pixels firing one polarity) would
         # dominate every latent image: they are read as if they had no events
         self.ignored = torch.zeros(self.num_pixels, dtype=torch.bool, device=self.device)
         if max_log_range is not None and len(step):
-            low = torch.zeros_like(self.peak_count).scatter_reduce(0, self.pixel.to(torch.int64), self._count_after,
-                                                                   reduce="amin")
+            low = torch.zeros_like(self.peak_count).scatter_reduce(0, self.pixel, count_after, reduce="amin")
             hot = self.theta * (self.peak_count - low) > max_log_range
             if bool(hot.any()):
                 self.ignored = hot
                 self._levels(step * (~hot).index_select(0, self.pixel))
-        del self._count_after
         # first event of each row (and the end): strips of rows are contiguous
         row_starts = torch.arange(height + 1, device=self.device, dtype=self.pixel.dtype) * width
         self.row_bounds = torch.searchsorted(self.pixel, row_starts).tolist()
 
-    def _levels(self, step: Tensor) -> None:
+    def _levels(self, step: Tensor) -> Tensor:
         """Each event's step (±1, 0 for an ignored pixel's), each pixel's peak count and each event's rise of
-        ``exp(θC − peak)``.
+        ``exp(θC − peak)``; returns each event's count after it at its pixel.
 
         Few event-sized tensors are made (each fresh one costs its page faults) and counts are int32.
         """
@@ -124,13 +123,13 @@ class ContinuousIntegral:
         after.sub_(before_run.to(after.dtype).index_select(0, self.pixel))
         # levels are read relative to each pixel's highest level over the whole stream (0 before its first event)
         self.peak_count = torch.zeros(self.num_pixels, dtype=after.dtype, device=self.device).scatter_reduce(
-            0, self.pixel.to(torch.int64), after, reduce="amax", include_self=True)
-        self._count_after = after
+            0, self.pixel, after, reduce="amax", include_self=True)
         # exp(θ·after − peak) − exp(θ·before − peak) = step·(1 − e^−θ)·exp(θ·max(before, after) − peak): one
         # exponential per event, of the higher of its two levels (after, or after + 1 for a −1 step)
         higher = self.peak_count.index_select(0, self.pixel)
         torch.sub(after, higher, out=higher).add_(self.step < 0)
         self.rise = higher.to(torch.float64).mul_(self.theta).exp_().mul_(self.step).mul_(1.0 - math.exp(-self.theta))
+        return after
 
     def at(self, times: Tensor) -> tuple[Tensor, Tensor]:
         """``S`` and ``exp(θC − peak)`` of every pixel at sorted times.
@@ -176,10 +175,8 @@ class ContinuousIntegral:
         width = self.sensor_size[1]
         num, p = len(g), (r1 - r0) * width
         lo, hi = self.row_bounds[r0], self.row_bounds[r1]
-        slot, pixel = slots[lo:hi], self.pixel[lo:hi]
-        if (num + 1) * p >= 2**31:  # past int32's indices
-            slot, pixel = slot.to(torch.int64), pixel.to(torch.int64)
-        flat = torch.add(pixel, slot, alpha=p).sub_(r0 * width)
+        slot = slots[lo:hi]
+        flat = torch.add(self.pixel[lo:hi], slot, alpha=p).sub_(r0 * width)  # int64: the pixels' type
         # an event counts from the first time after it on; row 0 starts from minus the pixel's peak
         count.zero_()[0].sub_(self.peak_count[r0 * width:r1 * width].to(count.dtype))
         count.view(-1).index_add_(0, flat, self.step[lo:hi].to(count.dtype))
