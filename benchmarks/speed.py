@@ -25,7 +25,9 @@ steady state of a stream of frames). Weights do not change the time; the shipped
 ``--part against --against REV`` times the default search (``search_constant_latency`` at its defaults) of this
 checkout and of the git revision ``REV`` on the same frame, each in fresh processes taken in turn for
 ``--rounds`` rounds (the machine's slow drifts hit both alike), and prints each one's median over every call and
-their ratio (``speed-up against REV: <x>``): the "old and new in one run" of a speed claim.
+their ratio (``speed-up against REV: <x>``): the "old and new in one run" of a speed claim. Both run under this
+checkout's memory settings (2 MB pages, freed memory kept; ``EVLATCORR_KEEP_FREED_MEMORY=0`` leaves glibc's
+default for both).
 
 ``--part memory`` runs one constant correction (``EventLatencyCorrector()``, the defaults) on a
 DAVIS346 frame (260x346) with ``--events`` events spread over its exposure and search window, in a
@@ -138,11 +140,17 @@ def main() -> None:
             bench_spatial(torch.device(name), args)
 
 
-# one process's timing of the default search at a source tree (argv: tree, frame file, repeats); it inherits
-# THP_MEM_ALLOC_ENABLE from this script, so both trees run on the same pages
+# one process's timing of the default search at a source tree (argv: tree, frame file, repeats, this checkout's
+# evlatcorr/pages.py); it inherits THP_MEM_ALLOC_ENABLE from this script and applies this checkout's
+# keep_freed_memory (read from its file, so the tree's own package is the one imported): both trees run under the
+# memory settings our entry points ask for
 _AGAINST_CHILD = """
-import json, sys, time
-tree, frame_file, repeats = sys.argv[1], sys.argv[2], int(sys.argv[3])
+import importlib.util, json, sys, time
+tree, frame_file, repeats, pages_file = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]
+spec = importlib.util.spec_from_file_location("_memory_settings", pages_file)
+settings = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(settings)
+settings.keep_freed_memory()
 sys.path.insert(0, tree)
 import evlatcorr
 import torch
@@ -192,8 +200,8 @@ def bench_against(args: argparse.Namespace) -> None:
               f"of {args.repeats} calls each (after 3 untimed), fresh processes in turn", flush=True)
         for k in range(args.rounds):
             for label, path in labels.items():
-                run = subprocess.run([sys.executable, "-c", _AGAINST_CHILD, str(path), str(frame), str(args.repeats)],
-                                     capture_output=True, text=True)
+                run = subprocess.run([sys.executable, "-c", _AGAINST_CHILD, str(path), str(frame), str(args.repeats),
+                                      str(root / "evlatcorr" / "pages.py")], capture_output=True, text=True)
                 if run.returncode != 0:
                     sys.exit(f"speed.py: the search of {label} failed:\n{run.stderr.strip()[-2000:]}")
                 out = json.loads(run.stdout.strip().splitlines()[-1])
