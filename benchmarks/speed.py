@@ -15,6 +15,7 @@ one-pass search, frames per second.
     python benchmarks/speed.py --part batch                    # 4 frames in one call against one frame
     python benchmarks/speed.py --part spatial                  # the spatial test-time fit, new and previous
     python benchmarks/speed.py --part against --against cfd57f4  # this checkout's default search against a revision's
+    python benchmarks/speed.py --part stages                   # where the default search's time goes
 
 ``--part adapters`` times, at the benchmark's resolution (256x336, 20 ms exposure), the constant
 corrector (``EventLatencyCorrector()``: search, shift, EDI latent) against each adapter's forward pass
@@ -105,7 +106,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="repeats of the one-pass search")
     parser.add_argument("--naive-repeats", type=int, default=3, help="repeats of the naive loop")
     parser.add_argument("--device", action="append", help="cpu and/or cuda (default: cpu, and cuda if present)")
-    parser.add_argument("--part", choices=("search", "batch", "spatial", "adapters", "memory", "against", "all"),
+    parser.add_argument("--part", choices=("search", "batch", "spatial", "adapters", "memory", "against", "stages",
+                                           "all"),
                         default="all", help="what to time; 'against' is not part of 'all' (it needs --against)")
     parser.add_argument("--against", metavar="REV", help="git revision whose default search --part against times")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of --part against")
@@ -138,6 +140,8 @@ def main() -> None:
             bench_batch(torch.device(name), args)
         if args.part in ("spatial", "all"):
             bench_spatial(torch.device(name), args)
+        if args.part in ("stages", "all"):
+            bench_stages(torch.device(name), args)
 
 
 # one process's timing of the default search at a source tree (argv: tree, frame file, repeats, this checkout's
@@ -214,6 +218,48 @@ def bench_against(args: argparse.Namespace) -> None:
           f"{len(times[args.against])} calls; estimates {latency['this checkout']:.0f} and "
           f"{latency[args.against]:.0f} us)")
     print(f"[cpu] speed-up against {args.against}: {old / new:.2f}x")
+
+
+def bench_stages(device: torch.device, args: argparse.Namespace) -> None:
+    """Where the default search's time goes on the speed frame: each stage's share of every call, medians over
+    ``--repeats`` calls (after three untimed), the stages timed by wrapping the functions that do them."""
+    import evlatcorr.continuous as continuous
+    import evlatcorr.search as search
+
+    blurry, ev, start, end = make_frame(args.height, args.width, args.exposure_us, 4000.0, device)
+    stages = {"prepare the events (sort by pixel, levels)": (continuous.ContinuousIntegral, "__init__"),
+              "read the candidates' windows": (continuous.ContinuousIntegral, "inverse_ratio"),
+              "sharpness scores": (search, "_latent_scores"),
+              "ghost moments": (search, "inverse_ratio_moment")}
+    spent: dict[str, float] = {}
+
+    def wrapped(label, fn):
+        def run(*a, **k):
+            seconds, out = timed(lambda: fn(*a, **k), device)
+            spent[label] = spent.get(label, 0.0) + seconds
+            return out
+        return run
+
+    originals = {label: getattr(owner, name) for label, (owner, name) in stages.items()}
+    per_call: dict[str, list[float]] = {label: [] for label in [*stages, "other", "total"]}
+    try:
+        for label, (owner, name) in stages.items():
+            setattr(owner, name, wrapped(label, originals[label]))
+        for k in range(WARM_UP + args.repeats):
+            spent.clear()
+            total, _ = timed(lambda: search_constant_latency(blurry, ev, start, end, num_bins=args.bins,
+                                                             num_candidates=args.candidates), device)
+            if k >= WARM_UP:
+                for label in stages:
+                    per_call[label].append(spent.get(label, 0.0))
+                per_call["other"].append(total - sum(spent.values()))
+                per_call["total"].append(total)
+    finally:
+        for label, (owner, name) in stages.items():
+            setattr(owner, name, originals[label])
+    print(f"[{device.type}] default search ({DEFAULT_SCORE}) by stage, {len(ev)} events, median of {args.repeats}:")
+    for label, values in per_call.items():
+        print(f"[{device.type}]   {label}: {statistics.median(values) * 1000:.1f} ms")
 
 
 def bench_batch(device: torch.device, args: argparse.Namespace, batch: int = 4) -> None:

@@ -40,3 +40,16 @@ def test_against_bad_arguments_exit_with_one_clear_line(args, code, message):
     run = run_speed(*args)
     assert run.returncode == code and message in run.stderr
     assert "Traceback" not in run.stderr
+
+
+def test_stages_add_up_to_the_whole_search():
+    run = subprocess.run([sys.executable, str(SCRIPT), "--part", "stages", "--height", "24", "--width", "32",
+                          "--repeats", "1"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 0, run.stderr
+    times = {line.split(": ")[0].removeprefix("[cpu]   "): float(line.split(": ")[1].split(" ms")[0])
+             for line in run.stdout.splitlines() if line.endswith(" ms") and line.startswith("[cpu]   ")}
+    assert set(times) == {"prepare the events (sort by pixel, levels)", "read the candidates' windows",
+                          "sharpness scores", "ghost moments", "other", "total"}
+    assert all(value >= 0 for value in times.values())
+    parts = sum(value for label, value in times.items() if label != "total")
+    assert parts == pytest.approx(times["total"], abs=0.5)  # each printed to 0.1 ms
