@@ -119,7 +119,8 @@ class ContinuousIntegral:
         # each event's count C after it at its pixel: a running sum within the pixel's run
         after = torch.cumsum(step, 0, dtype=torch.int32 if len(step) < 2**31 else torch.int64)
         run_start = self.run_start
-        before_run = torch.where(run_start > 0, after.index_select(0, (run_start - 1).clamp(min=0)), 0)
+        before_run = (torch.where(run_start > 0, after.index_select(0, (run_start - 1).clamp(min=0)), 0) if len(after)
+                      else torch.zeros_like(run_start))  # no events: nothing to index
         after.sub_(before_run.to(after.dtype).index_select(0, self.pixel))
         # levels are read relative to each pixel's highest level over the whole stream (0 before its first event)
         self.peak_count = torch.zeros(self.num_pixels, dtype=after.dtype, device=self.device).scatter_reduce(

@@ -133,6 +133,17 @@ def test_event_slots_equal_a_binary_search_of_each_event():
     assert torch.equal(ci._slots(times).long(), expected)
 
 
+def test_a_sample_with_no_events_reads_r_equal_to_one():
+    empty = torch.zeros(0, dtype=torch.long)
+    ci = ContinuousIntegral(Events(empty, empty, torch.zeros(0, dtype=torch.float64), empty, sensor_size=(2, 3)), 0.2,
+                            max_log_range=15.0)
+    lat = torch.tensor([0.0, 3.0, 3.0])
+    change = torch.empty(3, 1, 2, 3)
+    assert torch.equal(ci.inverse_ratio(0.0, 10.0, lat, change_out=change), torch.ones(3, 1, 2, 3))
+    assert torch.equal(ci.log_ratio(0.0, 10.0, lat), torch.zeros(3, 1, 2, 3, dtype=torch.float64))
+    assert not bool(change.any()) and not bool(ci.log_change(0.0, 10.0, lat).any())
+
+
 def test_hot_pixel_is_read_as_having_no_events():
     # pixel (0, 0): 100 ON events (θC spans 20 > 15: a hot pixel); pixel (0, 1): an ordinary +1, -1
     hot_t = torch.linspace(1.0, 99.0, 100, dtype=torch.float64)
