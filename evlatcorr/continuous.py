@@ -191,7 +191,8 @@ class ContinuousIntegral:
         end = torch.cat([g, g[-1:]]).index_select(0, slot)
         held = end.sub_(self.t[lo:hi]).mul_(self.rise[lo:hi])
         torch.mul(level[:num - 1], (g[1:] - g[:-1]).to(level.dtype)[:, None], out=interval[1:num])
-        interval[0].zero_(), interval[num:].zero_()
+        interval[0].zero_()  # rows no window reads (events before the first time, after the last, padding)
+        interval[num:].zero_()
         interval.view(-1).index_add_(0, flat, held.to(interval.dtype))
 
     def log_ratio(self, start: float, end: float, latencies: Tensor, reference: float = 0.5,

@@ -59,11 +59,7 @@ def ghost_moment(grey: Tensor, log_ratio: Tensor, log_change: Tensor, sigma: flo
         >>> bool(m[0] > 0 > m[2])
         True
     """
-    if grey.dim() != 4 or grey.shape[:2] != (1, 1):
-        raise ValueError(f"grey must be (1, 1, H, W), got {tuple(grey.shape)}")
-    if log_ratio.dim() != 4 or log_ratio.shape[1:] != grey.shape[1:] or log_change.shape != log_ratio.shape:
-        raise ValueError(f"log_ratio and log_change must both be (K, 1, H, W) with (H, W) = {tuple(grey.shape[-2:])}, "
-                         f"got {tuple(log_ratio.shape)} and {tuple(log_change.shape)}")
+    _check_moment_inputs(grey, log_ratio, log_change, "log_ratio")
     if not sigma > 0:
         raise ValueError(f"sigma must be positive, got {sigma}")
     # float64 unless both curves come in float32 (a correlation over the image needs no more)
@@ -74,9 +70,22 @@ def ghost_moment(grey: Tensor, log_ratio: Tensor, log_change: Tensor, sigma: flo
 
 def inverse_ratio_moment(grey: Tensor, inverse: Tensor, log_change: Tensor) -> Tensor:
     """:func:`ghost_moment` of the latents ``grey · inverse`` :math:`(K, 1, H, W)` float32 (``inverse = 1 / R``, what
-    the search reads), without a logarithm and a negation of ``R`` first; ``grey`` :math:`(1, 1, H, W)`."""
+    the search reads), without a logarithm and a negation of ``R`` first; ``grey`` :math:`(1, 1, H, W)`.
+
+    Raises:
+        ValueError: when the shapes do not match.
+    """
+    _check_moment_inputs(grey, inverse, log_change, "inverse")
     log_latent = torch.log(inverse).add_(torch.log(grey.to(inverse).clamp_min(_FLOOR)))
     return _high_pass_correlation(log_latent, log_change, HIGH_PASS_SIGMA)
+
+
+def _check_moment_inputs(grey: Tensor, ratio: Tensor, log_change: Tensor, name: str) -> None:
+    if grey.dim() != 4 or grey.shape[:2] != (1, 1):
+        raise ValueError(f"grey must be (1, 1, H, W), got {tuple(grey.shape)}")
+    if ratio.dim() != 4 or ratio.shape[1:] != grey.shape[1:] or log_change.shape != ratio.shape:
+        raise ValueError(f"{name} and log_change must both be (K, 1, H, W) with (H, W) = {tuple(grey.shape[-2:])}, "
+                         f"got {tuple(ratio.shape)} and {tuple(log_change.shape)}")
 
 
 def _high_pass_correlation(a: Tensor, b: Tensor, sigma: float) -> Tensor:

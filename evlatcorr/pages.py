@@ -48,10 +48,10 @@ def keep_freed_memory() -> bool:
     """Have glibc's malloc keep freed memory for the next allocation instead of handing large blocks back.
 
     Sets ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` (``mallopt``) to 2 GiB: blocks below that come from the
-    heap, and freed ones stay there, already touched. On this project's 2-core CPU, writing a freshly made 36 MB
-    tensor took 46 ms against 3.4 ms for one made after another of that size was freed, and the default latency
-    search ran in 0.35 s instead of 0.33-0.53 s. The price: the process's resident memory stays near its peak
-    instead of shrinking after it. Affects the allocations after the call (call it any time).
+    heap, and freed ones stay there, already touched. On this project's 2-core CPU the default latency search
+    took 298-306 ms with it and 310-397 ms without (``python benchmarks/speed.py --part stages``, three runs each,
+    ``EVLATCORR_KEEP_FREED_MEMORY=0`` for the second). The price: the process's resident memory stays near its
+    peak instead of shrinking after it. Affects the allocations after the call (call it any time).
     ``EVLATCORR_KEEP_FREED_MEMORY=0`` opts out.
 
     Returns:

@@ -87,3 +87,15 @@ def test_moment_from_the_inverse_ratio_equals_the_moment_from_log_r():
     change = 0.2 * torch.randint(-3, 4, (5, 1, 24, 32), generator=g).float()
     expected = ghost_moment(grey.double(), -torch.log(inverse.double()), change.double())
     torch.testing.assert_close(inverse_ratio_moment(grey, inverse, change).double(), expected, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("grey, inverse, change, match", [
+    (torch.rand(1, 3, 8, 8), torch.ones(2, 1, 8, 8), torch.zeros(2, 1, 8, 8), r"grey must be \(1, 1, H, W\)"),
+    (torch.rand(1, 1, 8, 8), torch.ones(2, 1, 8, 7), torch.zeros(2, 1, 8, 7), "inverse and log_change"),
+    (torch.rand(1, 1, 8, 8), torch.ones(2, 1, 8, 8), torch.zeros(3, 1, 8, 8), "inverse and log_change"),
+])
+def test_moment_from_the_inverse_ratio_bad_input(grey, inverse, change, match):
+    from evlatcorr.ghost import inverse_ratio_moment
+
+    with pytest.raises(ValueError, match=match):
+        inverse_ratio_moment(grey, inverse, change)
