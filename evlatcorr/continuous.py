@@ -226,7 +226,9 @@ class ContinuousIntegral:
               dtype: torch.dtype, change_out: Tensor | None = None) -> Tensor:
         """log R (float64) or 1 / R (float32) of every window, a strip of rows at a time (and the windows' event
         change into ``change_out``)."""
-        lat = latencies.to(self.device, torch.float64).reshape(-1)
+        # the plan (a few hundred times and where each window lies among them) is made on the CPU: on a GPU its
+        # small steps would each cost a kernel launch, and its decisions a wait for the device
+        lat = latencies.detach().to("cpu", torch.float64).reshape(-1)
         mid = start + reference * (end - start)
         times, (a, b, r) = _distinct_times(torch.stack([start + lat, end + lat, mid + lat]))
         height, width = self.sensor_size
@@ -237,7 +239,7 @@ class ContinuousIntegral:
         if change_out is not None and (change_out.shape != out.shape or change_out.dtype != torch.float32):
             raise ValueError(f"change_out must be float32 {tuple(out.shape)}, got {change_out.dtype} "
                              f"{tuple(change_out.shape)}")
-        windows = _Windows(a, b, len(times))
+        windows = _Windows(a, b, len(times), self.device)
         num, padded, size = len(times), windows.rows, out.element_size()
         extended = 1 + max(padded, num)  # interval rows: before the first time, the blocks, after the last time
         # a strip of rows at a time: its tables and the windows' sums stay within STRIP_BYTES
@@ -248,9 +250,10 @@ class ContinuousIntegral:
         level = torch.empty(num * rows * width, dtype=dtype, device=self.device)
         interval = torch.empty(extended * rows * width, dtype=dtype, device=self.device)
         backward = torch.empty(padded * rows * width, dtype=dtype, device=self.device)
+        times = times.to(self.device)
         slots = self._slots(times)
         # evenly spaced candidates read evenly spaced times: rows of the tables as views, not gathered copies
-        a, b, r = (_as_rows(index) for index in (a, b, r))
+        a, b, r = (_as_rows(index, self.device) for index in (a, b, r))
         for r0 in range(0, height, rows):
             r1 = min(height, r0 + rows)
             p = (r1 - r0) * width
@@ -281,8 +284,9 @@ class ContinuousIntegral:
         Returns:
             :math:`(K, 1, H, W)` float32: θ times each pixel's net signed events in ``[start + l, end + l)``.
         """
-        lat = latencies.to(self.device, torch.float64).reshape(-1)
+        lat = latencies.detach().to("cpu", torch.float64).reshape(-1)  # the plan on the CPU, as in _read
         times, (a, b) = _distinct_times(torch.stack([start + lat, end + lat]))
+        times, a, b = times.to(self.device), a.to(self.device), b.to(self.device)
         # C(g) counts the events before g: an event counts from the first time after it on (slot G: never)
         slot = self._slots(times).to(torch.int64)
         p = self.num_pixels
@@ -304,7 +308,9 @@ class _Windows:
     sums from the first time loses it where the level before the window is much higher than inside it).
     """
 
-    def __init__(self, a: Tensor, b: Tensor, num_times: int) -> None:
+    def __init__(self, a: Tensor, b: Tensor, num_times: int, device: torch.device) -> None:
+        """``a``, ``b``: the windows' first and end intervals :math:`(K,)` on the CPU; the indices the sums
+        take are kept on ``device``, the tables' own."""
         self.block = max(1, int((b - a).min()))
         self.num_blocks = max(1, -(-(num_times - 1) // self.block))
         self.rows = self.num_blocks * self.block
@@ -326,13 +332,14 @@ class _Windows:
             by_forward = (blocks >= low) & (blocks < high)
             if not bool(by_forward.all()):
                 self.backward_range = _block_range(backward_blocks + blocks[~by_forward].tolist())
-                self.whole_backward = rows[~by_forward]
+                self.whole_backward = rows[~by_forward].to(device)
             if bool(by_forward.any()):
-                self.whole_forward = rows[by_forward]
+                self.whole_forward = rows[by_forward].to(device)
         # whole blocks strictly inside window k: first_block + 1 .. last_block − 1 (none for the others)
         inner = first_block + 1
-        self.between = (inner, torch.maximum(last_block, inner)) if bool((last_block > inner).any()) else None
-        self.first, self.last = _as_rows(a), _as_rows(last)
+        self.between = ((inner.to(device), torch.maximum(last_block, inner).to(device))
+                        if bool((last_block > inner).any()) else None)
+        self.first, self.last = _as_rows(a, device), _as_rows(last, device)
 
     def sums(self, interval: Tensor, backward: Tensor) -> Tensor:
         """Each window's sum :math:`(K, p)` of ``interval`` :math:`(rows, p)`, overwriting it and ``backward``
@@ -344,10 +351,7 @@ class _Windows:
             totals = forward.sum(1, dtype=torch.float64)
         low, high = self.backward_range
         if high > low:
-            outward, inward = forward[low:high], backward_blocks[low:high]
-            inward[:, -1] = outward[:, -1]
-            for i in range(self.block - 2, -1, -1):  # a loop over the rows of a block (tens), not over pixels
-                torch.add(outward[:, i], inward[:, i + 1], out=inward[:, i])
+            cumsum_(forward[low:high], 1, reverse=True, out=backward_blocks[low:high])
         low, high = self.forward_range
         if high > low:
             cumsum_(forward[low:high], 1)
@@ -369,12 +373,13 @@ def _block_range(blocks: list[int]) -> tuple[int, int]:
     return (min(blocks), max(blocks) + 1) if blocks else (0, 0)
 
 
-def _as_rows(index: Tensor) -> slice | Tensor:
-    """``index`` as a slice where it counts up by one (then ``table[index]`` is a view), else as it is."""
+def _as_rows(index: Tensor, device: torch.device) -> slice | Tensor:
+    """``index`` (on the CPU) as a slice where it counts up by one (then ``table[index]`` is a view), else as it
+    is, on ``device``."""
     if len(index) and bool((index.diff() == 1).all()):
         first = int(index[0])
         return slice(first, first + len(index))
-    return index
+    return index.to(device)
 
 
 def _distinct_times(points: Tensor) -> tuple[Tensor, Tensor]:

@@ -256,9 +256,7 @@ def _warn_if_short(frames: EventFrames, search_range: tuple[float, float] | None
     high = frames.exposure_time if search_range is None else torch.full_like(frames.exposure_end, search_range[1])
     need = frames.exposure_end + high
     ev = frames.events
-    last = torch.full_like(need, -float("inf"))
-    if len(ev):
-        last = last.scatter_reduce(0, ev.batch, ev.t, reduce="amax", include_self=True)
+    last = ev.last_times().to(need)
     short = last < need - (frames.exposure_time / 50)  # allow one coarse bin of slack
     if bool(short.any()):
         i = int(torch.nonzero(short)[0, 0])

@@ -7,6 +7,7 @@ per-pixel reduction is one scatter.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -250,6 +251,25 @@ class Events:
     def counts(self) -> Tensor:
         """Number of events per sample :math:`(B,)`."""
         return torch.bincount(self.batch, minlength=self.batch_size)
+
+    def last_times(self) -> Tensor:
+        """Each sample's last event time :math:`(B,)` float64 µs, ``-inf`` for a sample with no events.
+
+        Events are sorted by sample and time, so it is the time just before each sample's end: one binary search
+        per sample (a max-reduction onto one value per sample would serialise its atomics on a GPU).
+
+        Example:
+            >>> ev = Events(torch.zeros(3), torch.zeros(3), torch.tensor([1.0, 4.0, 2.0]), torch.ones(3),
+            ...             sensor_size=(1, 1), batch=torch.tensor([0, 0, 2]), batch_size=3)
+            >>> ev.last_times().tolist()
+            [4.0, -inf, 2.0]
+        """
+        samples = torch.arange(self.batch_size, device=self.device, dtype=self.batch.dtype)
+        ends = torch.searchsorted(self.batch, samples, right=True)
+        starts = torch.searchsorted(self.batch, samples)
+        last = self.t.to(torch.float64).index_select(0, (ends - 1).clamp(min=0)) if len(self) else \
+            torch.zeros(self.batch_size, dtype=torch.float64, device=self.device)
+        return torch.where(ends > starts, last, -math.inf)
 
     def pixel_index(self) -> Tensor:
         """Flat index ``(b * H + y) * W + x`` of each event into a :math:`(B, H, W)` grid."""

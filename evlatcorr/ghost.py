@@ -22,6 +22,8 @@ fallback of a frame with no minimum and no previous latency (no shift, which gai
 
 from __future__ import annotations
 
+import functools
+
 import kornia
 import torch
 from torch import Tensor
@@ -91,15 +93,45 @@ def _check_moment_inputs(grey: Tensor, ratio: Tensor, log_change: Tensor, name: 
 def _high_pass_correlation(a: Tensor, b: Tensor, sigma: float) -> Tensor:
     """Correlation of each image of ``a`` with its image of ``b`` :math:`(K, 1, H, W)` after a Gaussian of ``sigma``
     is removed from both (``a`` is overwritten), from sums: no centred copies."""
-    size = 2 * int(3 * sigma + 0.5) + 1
-    low_pass = kornia.filters.GaussianBlur2d((size, size), (sigma, sigma))
-    a = a.sub_(low_pass(a)).flatten(1)
-    b = (b - low_pass(b)).flatten(1)
+    a = a.sub_(_gaussian_blur(a, sigma)).flatten(1)
+    b = (b - _gaussian_blur(b, sigma)).flatten(1)
     n = a.shape[1]
     sum_a, sum_b = a.sum(1), b.sum(1)
     covariance = torch.linalg.vecdot(a, b) - sum_a * sum_b / n
     spread = (torch.linalg.vecdot(a, a) - sum_a**2 / n) * (torch.linalg.vecdot(b, b) - sum_b**2 / n)
     return (covariance / spread.clamp_min(0).sqrt().clamp_min(1e-12)).clamp_(-1.0, 1.0)
+
+
+def _gaussian_blur(image: Tensor, sigma: float) -> Tensor:
+    """Kornia's Gaussian blur of ``image`` :math:`(K, 1, H, W)` (reflected borders, 6σ + 1 taps).
+
+    On a CPU, kornia's own fast path. Elsewhere (a GPU) the same filter as two matrix products, ``B_H · image ·
+    B_Wᵀ``, with the reflected borders folded into banded matrices made once per size: a one-channel 7-tap
+    convolution of 100 DAVIS346 images took 0.5 ms per direction there, the products a fraction of it.
+    """
+    size = 2 * int(3 * sigma + 0.5) + 1
+    if image.device.type == "cpu":
+        return kornia.filters.gaussian_blur2d(image, (size, size), (sigma, sigma))
+    height, width = image.shape[-2:]
+    along_w = _reflected_blur_matrix(width, size, sigma, image.device, image.dtype)
+    along_h = _reflected_blur_matrix(height, size, sigma, image.device, image.dtype)
+    return torch.matmul(along_h, torch.matmul(image, along_w.T))
+
+
+@functools.lru_cache(maxsize=16)
+def _reflected_blur_matrix(n: int, size: int, sigma: float, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """:math:`(n, n)` matrix ``B`` with ``B @ x`` = the Gaussian of ``size`` taps over ``x`` :math:`(n,)`, its
+    borders reflected as kornia's ``"reflect"`` does (``x[-1] = x[1]``)."""
+    radius = size // 2
+    if n <= radius:
+        raise ValueError(f"a {size}-tap blur with reflected borders needs at least {radius + 1} pixels, got {n}")
+    kernel = kornia.filters.get_gaussian_kernel1d(size, sigma, dtype=torch.float64)[0]
+    source = torch.arange(n)[:, None] + torch.arange(-radius, radius + 1)[None, :]  # (n, size): x index read
+    source = torch.where(source < 0, -source, source)
+    source = torch.where(source > n - 1, 2 * (n - 1) - source, source)
+    matrix = torch.zeros(n, n, dtype=torch.float64)
+    matrix.scatter_add_(1, source, kernel.expand(n, size).contiguous())
+    return matrix.to(device, dtype)
 
 
 def ghost_root(latencies: Tensor, moment: Tensor) -> float | None:

@@ -65,8 +65,18 @@ _CONTINUOUS_READ_BYTES = 256 * 2**20
 # events. One such pixel of 300 events moved a dev estimate by 11 ms; the suite's and the real recordings'
 # pixels span at most 5.3 and 5.7.
 HOT_PIXEL_LOG_RANGE = 15.0
-# Candidates scored at once (their latent images and score work arrays).
+# Candidates scored at once on a CPU (their latent images and score work arrays stay in cache).
 _SCORE_CHUNK = 16
+# Elsewhere (a GPU), as many as fit in this many bytes of score work arrays (about 8 float32 images each): there
+# each kernel launch costs more than the memory, and 101 candidates at DAVIS346 size take about 290 MB
+_DEVICE_SCORE_BYTES = 2**30
+
+
+def _score_chunk(image: Tensor) -> int:
+    """Candidates of the image ``image`` :math:`(1, 1, H, W)` to score at once on its device."""
+    if image.device.type == "cpu":
+        return _SCORE_CHUNK
+    return max(1, _DEVICE_SCORE_BYTES // (8 * 4 * image.numel()))
 # Peak bytes per grid point and pixel while one strip of the table is built (the integral's work
 # arrays, θC in float64, its exponential and prefix sum).
 _BUILD_BYTES = 64
@@ -243,16 +253,15 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
     grey = kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
     # a candidate's window [start + l, end + l] must not run past the sample's last event: past it
     # the EDI sees "no change" where the events were merely cut off, which looks sharp to any score
-    last = torch.full((b,), -math.inf, dtype=torch.float64, device=events.device)
-    if len(events):
-        last = last.scatter_reduce(0, events.batch, events.t.to(torch.float64), reduce="amax", include_self=True)
-    reach = (last - end).cpu()
+    reach = events.last_times() - end
+    # every sample's bounds in one copy to the host (one wait for a GPU, not five per sample)
+    spans = torch.stack([start, end, lows.to(start), highs.to(start), reach]).T.cpu().tolist()
+    thetas = theta.cpu().tolist()
     results = []
     for i in range(b):
         ev = events.sample(i)
-        span = _Window(float(start[i]), float(end[i]), float(lows[i]), float(highs[i]), float(reach[i]))
         results.append(_search_one(
-            grey[i:i + 1], ev, span, float(theta[i]), config, None if prev is None else prev[i:i + 1], integral,
+            grey[i:i + 1], ev, _Window(*spans[i]), thetas[i], config, None if prev is None else prev[i:i + 1], integral,
             budget, method))
     return ConstantSearchResult(
         latency=torch.tensor([r.latency for r in results], dtype=torch.float64, device=blurry.device),
@@ -537,8 +546,9 @@ def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str
         inverse = reader.inverse_ratio(kept)  # (K, 1, H, W): the latents at mid-exposure are grey times it
         previous = None if prev is None else prev.expand(len(kept)).float()
         # a few candidates' latent images at a time: scoring all at once held ~7 (K, H, W) arrays
-        for k0 in range(0, len(kept), _SCORE_CHUNK):
-            k1 = min(k0 + _SCORE_CHUNK, len(kept))
+        chunk = _score_chunk(grey)
+        for k0 in range(0, len(kept), chunk):
+            k1 = min(k0 + chunk, len(kept))
             needed = [m for m in range(len(members)) if bool(wanted[m, k0:k1].any())]
             if not needed:
                 continue
@@ -635,12 +645,13 @@ def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse
 
 def _candidate_moments(reader: _CandidateReader, grey: Tensor, kept: Tensor) -> Tensor:
     """:func:`~evlatcorr.ghost.ghost_moment` of candidates whose windows hold events, float64 :math:`(K,)` on the
-    CPU: in float32, a few candidates at a time (their images stay in cache)."""
+    CPU: in float32, a few candidates at a time on a CPU (their images stay in cache)."""
     moment = torch.zeros(len(kept), dtype=torch.float64)
     if len(kept):
         inverse, change = reader.inverse_ratio(kept), reader.log_change(kept)
-        for k0 in range(0, len(kept), _SCORE_CHUNK):
-            k1 = min(k0 + _SCORE_CHUNK, len(kept))
+        chunk = _score_chunk(grey)
+        for k0 in range(0, len(kept), chunk):
+            k1 = min(k0 + chunk, len(kept))
             moment[k0:k1] = inverse_ratio_moment(grey, inverse[k0:k1], change[k0:k1]).cpu()
     return moment
 

@@ -60,7 +60,7 @@ def test_float32_ratio_keeps_its_precision_below_a_much_brighter_past():
     assert inverse[1, 0, 0, 0].item() == pytest.approx(1.0, rel=1e-6)
 
 
-def test_block_sums_equal_the_direct_sums_of_any_windows():
+def test_block_sums_equal_the_direct_sums_of_any_windows(device):
     from evlatcorr.continuous import _Windows
 
     g = torch.Generator().manual_seed(7)
@@ -70,10 +70,11 @@ def test_block_sums_equal_the_direct_sums_of_any_windows():
     # spaced ones of 20 (the first and the last exactly one block: one read backwards, one forwards)
     for a, b in ((torch.tensor([0, 4, 3, 0, 10, 9]), torch.tensor([4, 8, 9, 30, 40, 13])),
                  (torch.arange(21), torch.arange(21) + 20)):
-        windows = _Windows(a, b, intervals + 1)
-        table = torch.full((windows.rows, p), math.nan, dtype=torch.float64)  # past the intervals: never read
-        table[:intervals] = values
-        sums = windows.sums(table, torch.full_like(table, math.nan))
+        windows = _Windows(a, b, intervals + 1, device)
+        # past the intervals: never read
+        table = torch.full((windows.rows, p), math.nan, dtype=torch.float64, device=device)
+        table[:intervals] = values.to(device)
+        sums = windows.sums(table, torch.full_like(table, math.nan)).cpu()
         expected = torch.stack([values[lo:hi].sum(0) for lo, hi in zip(a.tolist(), b.tolist())])
         torch.testing.assert_close(sums, expected, rtol=1e-12, atol=0)
 

@@ -1,10 +1,11 @@
 from __future__ import annotations
 
+import kornia
 import pytest
 import torch
 
 from evlatcorr.config import SearchConfig
-from evlatcorr.ghost import ghost_moment, ghost_root
+from evlatcorr.ghost import _gaussian_blur, _reflected_blur_matrix, ghost_moment, ghost_root
 
 
 def test_moment_sign_follows_the_ghost():
@@ -99,3 +100,27 @@ def test_moment_from_the_inverse_ratio_bad_input(grey, inverse, change, match):
 
     with pytest.raises(ValueError, match=match):
         inverse_ratio_moment(grey, inverse, change)
+
+
+def test_high_pass_blur_is_kornias_gaussian_blur_on_every_device(device):
+    x = torch.randn(3, 1, 20, 24, generator=torch.Generator().manual_seed(4))
+    want = kornia.filters.gaussian_blur2d(x, (7, 7), (1.0, 1.0))  # kornia's own CPU path
+    got = _gaussian_blur(x.to(device), 1.0)
+    assert got.device.type == device.type
+    torch.testing.assert_close(got.cpu(), want, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("size", [(20, 24), (4, 5), (1, 1)])
+def test_blur_matrices_are_kornias_reflected_gaussian_blur(size):
+    # what a GPU computes (two matrix products), here in float64 on the CPU
+    height, width = size
+    x = torch.randn(2, 1, height, width, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    cpu = torch.device("cpu")
+    if min(size) <= 3:  # fewer pixels than the radius: neither can reflect
+        with pytest.raises(ValueError, match="needs at least 4 pixels"):
+            _reflected_blur_matrix(min(size), 7, 1.0, cpu, torch.float64)
+        return
+    along_w = _reflected_blur_matrix(width, 7, 1.0, cpu, torch.float64)
+    along_h = _reflected_blur_matrix(height, 7, 1.0, cpu, torch.float64)
+    torch.testing.assert_close(along_h @ x @ along_w.T, kornia.filters.gaussian_blur2d(x, (7, 7), (1.0, 1.0)),
+                               rtol=1e-12, atol=1e-12)

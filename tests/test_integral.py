@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from hypothesis import given, settings
@@ -146,6 +148,17 @@ def test_cumsum_in_place_is_torch_cumsum_bit_for_bit(dim, dtype):
     assert out is table and torch.equal(out, want)
 
 
+@pytest.mark.parametrize("reverse", [False, True])
+def test_cumsum_into_out_leaves_the_table(device, reverse):
+    g = torch.Generator().manual_seed(1)
+    table = torch.randint(-3, 4, (4, 30, 6), generator=g).float().to(device)
+    kept, out = table.clone(), torch.full_like(table, math.nan)
+    want = torch.cumsum(table.flip(1), 1).flip(1) if reverse else torch.cumsum(table, 1)
+    assert cumsum_(table, 1, reverse=reverse, out=out) is out
+    assert torch.equal(out, want) and torch.equal(table, kept)
+    assert torch.equal(cumsum_(table.clone(), 1, reverse=reverse), want)  # in place, the same sums
+
+
 @pytest.mark.parametrize("table, dim, match", [
     (torch.tensor(1.0), 0, "at least one dimension"),
     ([1.0, 2.0], 0, "got list"),
@@ -155,6 +168,11 @@ def test_cumsum_in_place_is_torch_cumsum_bit_for_bit(dim, dtype):
 def test_cumsum_in_place_bad_arguments(table, dim, match):
     with pytest.raises(ValueError, match=match):
         cumsum_(table, dim)
+
+
+def test_cumsum_out_of_another_shape():
+    with pytest.raises(ValueError, match=r"out must be a tensor of table's shape \(2, 3\), got \(3, 2\)"):
+        cumsum_(torch.zeros(2, 3), 0, out=torch.zeros(3, 2))
 
 
 def test_cumsum_in_place_negative_dim_and_a_known_answer():

@@ -249,3 +249,23 @@ def test_scores_of_the_inverse_ratio_equal_the_scores_of_the_latent_images():
                                     config.sigma_us)
         torch.testing.assert_close(_latent_scores(grey, inverse, latency, previous, names, config), expected,
                                    rtol=1e-5, atol=0)
+
+
+@pytest.mark.parametrize("score", ["learned", "consensus"])
+def test_scores_are_the_same_whatever_the_candidates_scored_at_once(score, monkeypatch):
+    # a CPU scores 16 candidates at a time (cache), a GPU all of them (kernel launches): the same scores
+    ev = random_events(6000, (12, 14), (0.0, 260.0), seed=5)
+    blurry = grey_frame(5, (12, 14))
+    kw = dict(num_bins=50, num_candidates=40, score=score)
+    chunked = search_constant_latency(blurry, ev, START, END, **kw)
+    monkeypatch.setattr(evlatcorr.search, "_score_chunk", lambda image: 1000)
+    at_once = search_constant_latency(blurry, ev, START, END, **kw)
+    torch.testing.assert_close(at_once.etf, chunked.etf, rtol=1e-6, atol=0)
+    assert at_once.latency.item() == chunked.latency.item()
+
+
+def test_score_chunk_fills_a_device_budget():
+    assert evlatcorr.search._score_chunk(torch.zeros(1, 1, 260, 346)) == evlatcorr.search._SCORE_CHUNK
+    on_device = torch.zeros(1, 1, 260, 346, device="meta")  # a device other than the CPU, with no memory
+    assert evlatcorr.search._score_chunk(on_device) == 2**30 // (8 * 4 * 260 * 346)  # 372 candidates
+    assert evlatcorr.search._score_chunk(torch.zeros(1, 1, 2**14, 2**14, device="meta")) == 1
