@@ -35,8 +35,11 @@ BYTES_PER_CANDIDATE = 8
 BYTES_PER_EVENT_KEPT = 32
 BYTES_PER_EVENT = 112
 # The most the tables of one strip of rows may take (each pixel's event count, level and interval integrals at
-# every time, and the windows' sums read from them).
+# every time, and the windows' sums read from them) on a CPU, where strips that fit its caches and reuse freed
+# pages are faster; and elsewhere (a GPU), where each strip costs two dozen kernel launches and a DAVIS346 frame's
+# 200 times take about 400 MB in one strip.
 STRIP_BYTES = 64 * 2**20
+DEVICE_STRIP_BYTES = 2**30
 # Window ends are rounded to 1/_LATTICE µs (exact in binary) so equal times computed two ways coincide.
 _LATTICE = 1024.0
 
@@ -242,9 +245,10 @@ class ContinuousIntegral:
         windows = _Windows(a, b, len(times), self.device)
         num, padded, size = len(times), windows.rows, out.element_size()
         extended = 1 + max(padded, num)  # interval rows: before the first time, the blocks, after the last time
-        # a strip of rows at a time: its tables and the windows' sums stay within STRIP_BYTES
+        # a strip of rows at a time: its tables and the windows' sums stay within STRIP_BYTES (on a CPU)
         row_bytes = width * ((num + 1) * 4 + num * size + (extended + padded) * size + 3 * len(lat) * size)
-        rows = max(1, min(height, STRIP_BYTES // row_bytes))
+        strip_bytes = STRIP_BYTES if self.device.type == "cpu" else DEVICE_STRIP_BYTES
+        rows = max(1, min(height, strip_bytes // row_bytes))
         # one set of work buffers for every strip: fresh tables each strip would cost their page faults again
         count = torch.empty((num + 1) * rows * width, dtype=torch.float32, device=self.device)
         level = torch.empty(num * rows * width, dtype=dtype, device=self.device)
