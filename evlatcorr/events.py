@@ -267,8 +267,9 @@ class Events:
         samples = torch.arange(self.batch_size, device=self.device, dtype=self.batch.dtype)
         ends = torch.searchsorted(self.batch, samples, right=True)
         starts = torch.searchsorted(self.batch, samples)
-        last = self.t.to(torch.float64).index_select(0, (ends - 1).clamp(min=0)) if len(self) else \
-            torch.zeros(self.batch_size, dtype=torch.float64, device=self.device)
+        if not len(self):
+            return torch.full((self.batch_size,), -math.inf, dtype=torch.float64, device=self.device)
+        last = self.t.to(torch.float64).index_select(0, (ends - 1).clamp(min=0))
         return torch.where(ends > starts, last, -math.inf)
 
     def pixel_index(self) -> Tensor:

@@ -70,13 +70,6 @@ _SCORE_CHUNK = 16
 # Elsewhere (a GPU), as many as fit in this many bytes of score work arrays (about 8 float32 images each): there
 # each kernel launch costs more than the memory, and 101 candidates at DAVIS346 size take about 290 MB
 _DEVICE_SCORE_BYTES = 2**30
-
-
-def _score_chunk(image: Tensor) -> int:
-    """Candidates of the image ``image`` :math:`(1, 1, H, W)` to score at once on its device."""
-    if image.device.type == "cpu":
-        return _SCORE_CHUNK
-    return max(1, _DEVICE_SCORE_BYTES // (8 * 4 * image.numel()))
 # Peak bytes per grid point and pixel while one strip of the table is built (the integral's work
 # arrays, θC in float64, its exponential and prefix sum).
 _BUILD_BYTES = 64
@@ -545,7 +538,7 @@ def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str
         lat = reader.to_us(kept).to(torch.float64)
         inverse = reader.inverse_ratio(kept)  # (K, 1, H, W): the latents at mid-exposure are grey times it
         previous = None if prev is None else prev.expand(len(kept)).float()
-        # a few candidates' latent images at a time: scoring all at once held ~7 (K, H, W) arrays
+        # on a CPU a few candidates' latent images at a time: scoring all at once held ~7 (K, H, W) arrays
         chunk = _score_chunk(grey)
         for k0 in range(0, len(kept), chunk):
             k1 = min(k0 + chunk, len(kept))
@@ -558,6 +551,13 @@ def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str
             for value, m in zip(values, needed):
                 out[m, kept_cols[k0:k1]] = torch.where(wanted[m, k0:k1], value, math.inf)
     return [out[m, torch.searchsorted(union.cpu(), cand.cpu())] for m, cand in enumerate(requests)]
+
+
+def _score_chunk(image: Tensor) -> int:
+    """Candidates of the image ``image`` :math:`(1, 1, H, W)` to score at once on its device."""
+    if image.device.type == "cpu":
+        return _SCORE_CHUNK
+    return max(1, _DEVICE_SCORE_BYTES // (8 * 4 * image.numel()))
 
 
 def _latent_scores(grey: Tensor, inverse: Tensor, latency: Tensor, previous: Tensor | None, scores: tuple[str, ...],

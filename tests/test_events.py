@@ -123,6 +123,15 @@ class TestEvents:
         assert ev.t.device.type == device.type
         assert len(ev.shift(1.0)) == 20
 
+    @pytest.mark.parametrize("num", [0, 1, 500])
+    def test_last_times_are_each_samples_latest_event(self, device, num):
+        ev = random_events(num, (4, 5), (0.0, 100.0), batch_size=4, seed=num).to(device)
+        last = ev.last_times()
+        assert last.device.type == device.type and last.dtype == torch.float64
+        for b in range(4):
+            times = ev.t[ev.batch == b]
+            assert last[b].item() == (times.max().item() if len(times) else -float("inf"))
+
 
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 10_000), num=st.integers(0, 200), batch_size=st.integers(1, 3))
