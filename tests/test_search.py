@@ -269,3 +269,13 @@ def test_score_chunk_fills_a_device_budget():
     on_device = torch.zeros(1, 1, 260, 346, device="meta")  # a device other than the CPU, with no memory
     assert evlatcorr.search._score_chunk(on_device) == 2**30 // (8 * 4 * 260 * 346)  # 372 candidates
     assert evlatcorr.search._score_chunk(torch.zeros(1, 1, 2**14, 2**14, device="meta")) == 1
+
+
+@pytest.mark.parametrize("shape", [(5, 1, 20, 24), (3, 1, 1, 7), (3, 1, 6, 1), (2, 1, 1, 1), (2, 1, 2, 2)])
+def test_padded_gradient_sparsity_equals_the_piecewise_one(shape, device):
+    # a GPU takes the padded form (fewer kernel launches), a CPU the piecewise one (no image-sized copies)
+    image = torch.rand(*shape, generator=torch.Generator().manual_seed(9)).log()
+    want = evlatcorr.search._gradient_sparsity(image)
+    torch.testing.assert_close(evlatcorr.search._padded_gradient_sparsity(image), want, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(evlatcorr.search._gradient_sparsity(image.to(device)).cpu(), want, rtol=1e-5,
+                               atol=1e-7)
