@@ -213,7 +213,7 @@ def check_has_events(frames: Any) -> None:
     start = frames.exposure_start.to(ev.device, torch.float64)
     end = (frames.exposure_end + frames.exposure_time).to(ev.device, torch.float64)
     # events are sorted by sample, then time: two binary searches per sample, no pass over the events
-    bounds = torch.searchsorted(ev.batch, torch.arange(ev.batch_size + 1, device=ev.device)).tolist()
+    bounds = ev.sample_bounds().tolist()
     counts = torch.stack([torch.searchsorted(ev.t[lo:hi], torch.stack([start[i], end[i]])).diff()[0]
                           for i, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))])
     if bool((counts == 0).any()):

@@ -264,13 +264,25 @@ class Events:
             >>> ev.last_times().tolist()
             [4.0, -inf, 2.0]
         """
-        samples = torch.arange(self.batch_size, device=self.device, dtype=self.batch.dtype)
-        ends = torch.searchsorted(self.batch, samples, right=True)
-        starts = torch.searchsorted(self.batch, samples)
         if not len(self):
             return torch.full((self.batch_size,), -math.inf, dtype=torch.float64, device=self.device)
+        bounds = self.sample_bounds()
+        starts, ends = bounds[:-1], bounds[1:]
         last = self.t.to(torch.float64).index_select(0, (ends - 1).clamp(min=0))
         return torch.where(ends > starts, last, -math.inf)
+
+    def sample_bounds(self) -> Tensor:
+        """Where each sample's events start, and the end :math:`(B + 1,)`: sample ``b`` is
+        ``[bounds[b], bounds[b + 1])`` (events are sorted by sample: one binary search per sample).
+
+        Example:
+            >>> ev = Events(torch.zeros(3), torch.zeros(3), torch.tensor([1.0, 4.0, 2.0]), torch.ones(3),
+            ...             sensor_size=(1, 1), batch=torch.tensor([0, 0, 2]), batch_size=3)
+            >>> ev.sample_bounds().tolist()
+            [0, 2, 2, 3]
+        """
+        samples = torch.arange(self.batch_size + 1, device=self.device, dtype=self.batch.dtype)
+        return torch.searchsorted(self.batch, samples)
 
     def pixel_index(self) -> Tensor:
         """Flat index ``(b * H + y) * W + x`` of each event into a :math:`(B, H, W)` grid."""
