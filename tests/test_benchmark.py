@@ -4,9 +4,11 @@ import math
 
 import lightning as L
 import pytest
+import torch
 
 from evlatcorr import EventLatencyCorrector
 from evlatcorr.adapters.edi import EDIAdapter
+from evlatcorr.adapters.refid import refid_inputs
 from evlatcorr.benchmark import (
     CONST,
     GT,
@@ -17,6 +19,7 @@ from evlatcorr.benchmark import (
     SceneDataModule,
     diff_percent,
     format_table,
+    pair_with_latency,
 )
 from evlatcorr.simulate import simulate
 
@@ -49,3 +52,27 @@ def test_edi_rows_on_a_lightning_test_loop():
     assert results["latency_error"][CONST]["mae_us"] < 4000.0  # better than not correcting
     table = format_table(results)
     assert "Diff (%) const." in table and "| EDI interpolation | GT input |" in table
+
+
+def test_pairs_corrected_with_the_true_latency_give_refid_the_ideal_input():
+    # REFID's voxel grid starts half a sharp-frame interval before the exposure, where the ideal pairs
+    # have no events: corrected events moved there would give it an input the ideal events never do
+    seq = simulate("coffee", num_frames=2, height=16, width=20, latency="constant", latency_us=4000.0, seed=0,
+                   exposure_us=10000.0, frame_interval_us=12000.0)
+    ideal, delayed = seq.pairs("ideal"), seq.pairs("delayed")
+    latency = torch.full((1,), 4000.0, dtype=torch.float64)
+    window = pair_with_latency(delayed, latency, latency, delayed.exposure_start)
+    assert bool((window.corrected.t >= delayed.exposure_start[0]).all())
+    x_ideal, event_ideal = refid_inputs(ideal, m=4, n=1)
+    x_window, event_window = refid_inputs(window, m=4, n=1)
+    torch.testing.assert_close(event_window, event_ideal, atol=1e-4, rtol=0)
+    torch.testing.assert_close(x_window, x_ideal, atol=1e-4, rtol=0)
+    _, event_uncut = refid_inputs(pair_with_latency(delayed, latency, latency), m=4, n=1)
+    assert not torch.allclose(event_uncut, event_ideal, atol=1e-4)
+
+
+def test_pair_with_latency_rejects_a_window_start_of_the_wrong_shape():
+    delayed = scene(0).pairs_delayed
+    latency = torch.zeros(1, dtype=torch.float64)
+    with pytest.raises(ValueError, match="window_start"):
+        pair_with_latency(delayed, latency, latency, torch.zeros(3))

@@ -23,6 +23,7 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset, Subset
 
 from evlatcorr.benchmark.metrics import ImageQuality, LatencyError
+from evlatcorr.checks import check_batch_vector
 from evlatcorr.frames import EventFrames
 
 __all__ = [
@@ -51,6 +52,8 @@ class BenchmarkScene:
             (the interpolation rows are then n/a).
         pairs_delayed: the same pairs with delayed events (``None`` with ``pairs_ideal``).
         true_latency: (F, 1, H, W) µs.
+        events_before_us: how long before each exposure start the events of both inputs begin (the
+            frames' and the pairs'); corrected pairs are cut to the same window in corrected time.
     """
 
     name: str
@@ -60,6 +63,7 @@ class BenchmarkScene:
     pairs_delayed: EventFrames | None
     true_latency: Tensor
     extra: dict[str, Any] = field(default_factory=dict)
+    events_before_us: float = 0.0
 
     def to(self, device: torch.device | str) -> BenchmarkScene:
         def move(frames: EventFrames | None) -> EventFrames | None:
@@ -67,7 +71,7 @@ class BenchmarkScene:
 
         return BenchmarkScene(self.name, self.frames_ideal.to(device), self.frames_delayed.to(device),
                               move(self.pairs_ideal), move(self.pairs_delayed), self.true_latency.to(device),
-                              self.extra)
+                              self.extra, self.events_before_us)
 
 
 @dataclass
@@ -79,11 +83,30 @@ class Method:
     task: str
 
 
-def pair_with_latency(pairs: EventFrames, latency_first: Tensor, latency_second: Tensor) -> EventFrames:
+def pair_with_latency(pairs: EventFrames, latency_first: Tensor, latency_second: Tensor,
+                      window_start: Tensor | None = None) -> EventFrames:
     """Correct the events of interpolation pairs with the latencies estimated on their two frames.
 
     Events up to the midpoint between the two exposures take the first frame's latency map, later
     ones the second's (for a constant latency both are the same).
+
+    Args:
+        pairs: the interpolation batch, its events as stamped.
+        latency_first: latency of each pair's first frame, :math:`(B,)` or :math:`(B, 1, H, W)` µs.
+        latency_second: the same for the second frame.
+        window_start: :math:`(B,)` µs, where the stamped events were cut: corrected events earlier
+            than it are dropped, so the corrected input spans the same window (in corrected time) as
+            ideal events cut there would. Without it, a correction moves events from after the cut to
+            before it, which inputs that read before the exposure (REFID's first bin) would see and
+            ideal events would not.
+
+    Example:
+        >>> from evlatcorr.simulate import simulate
+        >>> pairs = simulate("camera", num_frames=2, height=8, width=8, exposure_us=2000.0,
+        ...                  latency_us=500.0).pairs("delayed")
+        >>> out = pair_with_latency(pairs, torch.tensor([500.0]), torch.tensor([500.0]), pairs.exposure_start)
+        >>> bool((out.corrected.t >= pairs.exposure_start[0]).all())
+        True
     """
     assert pairs.exposure_end_next is not None and pairs.exposure_start_next is not None
     split = (pairs.exposure_end + pairs.exposure_start_next) / 2
@@ -96,6 +119,9 @@ def pair_with_latency(pairs: EventFrames, latency_first: Tensor, latency_second:
     batch = torch.cat([first.batch, second.batch])
     merged = Events(merged.x, merged.y, merged.t, merged.p, batch, sensor_size=ev.sensor_size,
                     batch_size=ev.batch_size, sort=True)
+    if window_start is not None:
+        start = check_batch_vector(window_start, ev.batch_size, "window_start").to(merged.t)
+        merged = merged.select(merged.t >= start[merged.batch])
     return pairs.replace(corrected=merged)
 
 
@@ -153,7 +179,8 @@ class BenchmarkModule(L.LightningModule):
             outputs["latency"][name] = latency
             self.latency_error[_key("latency", name)].update(latency, scene.true_latency.expand_as(latency))
             if scene.pairs_delayed is not None:
-                pairs[name] = pair_with_latency(scene.pairs_delayed, latency[:-1], latency[1:])
+                start = scene.pairs_delayed.exposure_start - scene.events_before_us
+                pairs[name] = pair_with_latency(scene.pairs_delayed, latency[:-1], latency[1:], start)
             outputs.setdefault("meta", {})[name] = corrected.meta
         for method in self.methods:
             for name in self.inputs:
