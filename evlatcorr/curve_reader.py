@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 from pathlib import Path
 
 import torch
@@ -66,18 +67,17 @@ def curve_features(scores: Tensor, moment: Tensor, valid: Tensor) -> Tensor:
     if scores.dim() != 2 or moment.shape != scores.shape[1:] or valid.shape != moment.shape:
         raise ValueError(f"scores must be (M, K) with moment and valid (K,), got {tuple(scores.shape)}, "
                          f"{tuple(moment.shape)} and {tuple(valid.shape)}")
-    scores, moment, valid = scores.double().cpu(), moment.double().cpu(), valid.cpu()
-    rows = []
-    for curve in scores:
-        kept = curve[valid]
-        if len(kept) >= 2:
-            spread = (kept.max() - kept.min()).clamp_min(1e-12)
-            rows.append(torch.where(valid, (curve - kept.median()) / spread, 0.0))
-        else:
-            rows.append(torch.zeros_like(curve))
-    rows.append(torch.where(valid, moment, 0.0))
-    rows.append(valid.double())
-    return torch.stack(rows).float()
+    # every curve at once and on the curves' device (no per-curve host sync); the same values as each curve's
+    # median and range over its valid candidates
+    scores, moment = scores.double(), moment.double().to(scores.device)
+    valid = valid.to(scores.device)
+    masked = scores.masked_fill(~valid, math.nan)
+    median = masked.nanmedian(dim=1, keepdim=True).values
+    spread = (scores.masked_fill(~valid, -math.inf).amax(1, keepdim=True)
+              - scores.masked_fill(~valid, math.inf).amin(1, keepdim=True))
+    usable = valid & (valid.sum() >= 2)
+    rows = torch.where(usable, (scores - median) / spread.clamp_min(1e-12), 0.0)
+    return torch.cat([rows, torch.where(valid, moment, 0.0)[None], valid.double()[None]]).float()
 
 
 class CurveReader(nn.Module):

@@ -22,6 +22,8 @@ chosen is the one its candidate was scored on (no further read of the events).
 
 from __future__ import annotations
 
+import copy
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -650,27 +652,38 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
 
 def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor
                   ) -> tuple[Tensor, Tensor]:
-    """:func:`~evlatcorr.curve_reader.curve_features` of one frame's coarse candidates, and which are valid."""
+    """:func:`~evlatcorr.curve_reader.curve_features` of one frame's coarse candidates, and which are valid, on
+    the frame's device."""
     from evlatcorr.curve_reader import curve_features
 
     valid = torch.isfinite(coarse_scores[0])
     kept = coarse[coarse <= reader.top]  # the valid candidates: a prefix of the sorted coarse ones
-    moment = torch.zeros(len(coarse), dtype=torch.float64)
+    moment = torch.zeros(len(coarse), dtype=torch.float64, device=grey.device)
     moment[:len(kept)] = _candidate_moments(reader, grey, kept)
-    return curve_features(coarse_scores, moment, valid), valid.cpu()
+    return curve_features(coarse_scores, moment, valid), valid
 
 
 def _candidate_moments(reader: _CandidateReader, grey: Tensor, kept: Tensor) -> Tensor:
     """:func:`~evlatcorr.ghost.ghost_moment` of candidates whose windows hold events, float64 :math:`(K,)` on the
-    CPU: in float32, a few candidates at a time on a CPU (their images stay in cache)."""
-    moment = torch.zeros(len(kept), dtype=torch.float64)
+    frame's device: in float32, a few candidates at a time on a CPU (their images stay in cache)."""
+    moment = torch.zeros(len(kept), dtype=torch.float64, device=grey.device)
     if len(kept):
         inverse, change = reader.inverse_ratio(kept), reader.log_change(kept)
         chunk = _score_chunk(grey)
         for k0 in range(0, len(kept), chunk):
             k1 = min(k0 + chunk, len(kept))
-            moment[k0:k1] = inverse_ratio_moment(grey, inverse[k0:k1], change[k0:k1]).cpu()
+            moment[k0:k1] = inverse_ratio_moment(grey, inverse[k0:k1], change[k0:k1])
     return moment
+
+
+@functools.lru_cache(maxsize=4)
+def _curve_reader_on(device: torch.device) -> torch.nn.Module:
+    """The shipped curve reader on ``device``: float32 on a CPU, as trained; float64 elsewhere, where a GPU's
+    convolutions may otherwise round through TF32 and pick another candidate than a CPU on near ties."""
+    from evlatcorr.curve_reader import load_curve_reader
+
+    ensemble = load_curve_reader()
+    return ensemble if device.type == "cpu" else copy.deepcopy(ensemble).to(device, torch.float64)
 
 
 def _learned_pick(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor,
@@ -680,14 +693,13 @@ def _learned_pick(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse
     ``prior``: ``(candidates in µs, previous latency, σ)``: the temporal prior of the sparsity scores,
     ``exp((l − l')² / 4σ²)`` on a score, enters as ``−(l − l')² / 4σ²`` on the reader's log-probability.
     """
-    from evlatcorr.curve_reader import load_curve_reader
-
     curves, valid = _curve_inputs(reader, grey, coarse, coarse_scores)
+    ensemble = _curve_reader_on(curves.device)
     with torch.no_grad():
-        log_p = load_curve_reader()(curves[None], valid[None])[0].double()
+        log_p = ensemble(curves[None].to(next(ensemble.parameters()).dtype), valid[None])[0].double()
     if prior is not None:
         latencies, previous, sigma = prior
-        log_p = log_p - (latencies - previous) ** 2 / (4 * sigma**2)
+        log_p = log_p - (latencies.to(log_p.device) - previous) ** 2 / (4 * sigma**2)
     return float(coarse[int(torch.argmax(log_p))])
 
 
@@ -715,7 +727,7 @@ def candidate_curves(blurry: Tensor, events: Events, exposure_start: float, expo
     coarse_scores = torch.stack(_score_candidates(reader, grey, tuple(_SPARSITY), config, None,
                                                   [reader.coarse] * len(_SPARSITY)))
     curves, valid = _curve_inputs(reader, grey, reader.coarse, coarse_scores)
-    return reader.coarse.cpu(), curves, valid
+    return reader.coarse.cpu(), curves.cpu(), valid.cpu()
 
 
 def _ghost_latency(reader: _CandidateReader, grey: Tensor, coarse: Tensor) -> float | None:
@@ -723,7 +735,7 @@ def _ghost_latency(reader: _CandidateReader, grey: Tensor, coarse: Tensor) -> fl
     kept = coarse[coarse <= reader.top]
     if len(kept) < 3:
         return None
-    return ghost_root(reader.to_us(kept).cpu(), _candidate_moments(reader, grey, kept))
+    return ghost_root(reader.to_us(kept).cpu(), _candidate_moments(reader, grey, kept).cpu())
 
 
 def _aligned_candidates(low: float, high: float, num: int, exposure: float) -> tuple[Tensor, float]:

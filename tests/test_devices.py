@@ -58,3 +58,24 @@ def test_spatial_corrector_matches_the_cpu(device, delayed):
     assert out.latency.device.type == device.type and out.latency.shape == reference.latency.shape
     torch.testing.assert_close(out.latency.cpu(), reference.latency, rtol=0, atol=150.0)
     assert (out.latency.median() - LATENCY_US).abs().item() < 1500.0
+
+
+def test_curve_reader_inputs_and_pick_stay_on_the_device(device):
+    from evlatcorr.curve_reader import curve_features
+    from evlatcorr.search import _curve_reader_on
+
+    generator = torch.Generator().manual_seed(0)
+    scores = torch.rand(3, 101, generator=generator, dtype=torch.float64)
+    valid = torch.arange(101) < 80
+    scores[:, ~valid] = float("inf")
+    moment = torch.randn(101, generator=generator, dtype=torch.float64)
+    on_cpu = curve_features(scores, moment, valid)
+    on_device = curve_features(scores.to(device), moment.to(device), valid.to(device))
+    assert on_device.device.type == device.type
+    torch.testing.assert_close(on_device.cpu(), on_cpu, rtol=0, atol=0)
+    assert float(on_cpu[0, valid].median()) == 0.0  # each curve relative to its median over the valid candidates
+    ensemble = _curve_reader_on(torch.device(device))
+    log_p = ensemble(on_device[None].to(next(ensemble.parameters()).dtype), valid[None].to(device))[0]
+    reference = _curve_reader_on(torch.device("cpu"))(on_cpu[None], valid[None])[0]
+    torch.testing.assert_close(log_p.cpu().float(), reference, rtol=1e-4, atol=1e-4)
+    assert int(log_p.argmax()) == int(reference.argmax()) < 80  # never an invalid candidate
