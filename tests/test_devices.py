@@ -75,7 +75,8 @@ def test_curve_reader_inputs_and_pick_stay_on_the_device(device):
     torch.testing.assert_close(on_device.cpu(), on_cpu, rtol=0, atol=0)
     assert float(on_cpu[0, valid].median()) == 0.0  # each curve relative to its median over the valid candidates
     ensemble = _curve_reader_on(torch.device(device))
-    log_p = ensemble(on_device[None].to(next(ensemble.parameters()).dtype), valid[None].to(device))[0]
-    reference = _curve_reader_on(torch.device("cpu"))(on_cpu[None], valid[None])[0]
+    with torch.no_grad():  # as the search calls it (an earlier test may have loaded it in inference mode)
+        log_p = ensemble(on_device[None].to(next(ensemble.parameters()).dtype), valid[None].to(device))[0]
+        reference = _curve_reader_on(torch.device("cpu"))(on_cpu[None], valid[None])[0]
     torch.testing.assert_close(log_p.cpu().float(), reference, rtol=1e-4, atol=1e-4)
     assert int(log_p.argmax()) == int(reference.argmax()) < 80  # never an invalid candidate
