@@ -436,6 +436,8 @@ def _restore_frames(run: _Restoration, frames, batch):
     if run.corrector is not None:
         if has_events(frames):
             out = run.corrector(frames)
+            if run.pairs:  # REFID reads before the exposure: the corrected events start where the stamped ones do
+                out = out.replace(corrected=out.corrected.since(frames.exposure_start - run.rec.before_us))
             with torch.no_grad():
                 corrected = run.model(out).output
         else:

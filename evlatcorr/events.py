@@ -290,6 +290,18 @@ class Events:
         return (self.batch * height + self.y) * width + self.x
 
     # time operations -----------------------------------------------------------------------
+    def since(self, start: Tensor | float) -> Events:
+        """Events with ``t >= start[b]`` for their sample ``b`` (µs, a scalar or :math:`(B,)`).
+
+        Example:
+            >>> ev = Events(torch.zeros(3), torch.zeros(3), torch.tensor([0.0, 5.0, 10.0]),
+            ...             torch.ones(3), sensor_size=(1, 1))
+            >>> ev.since(5.0).t.tolist()
+            [5.0, 10.0]
+        """
+        start = check_batch_vector(start, self.batch_size, "start").to(self.device, torch.float64)
+        return self.select(self.t >= start[self.batch])
+
     def window(self, start: Tensor | float, end: Tensor | float) -> Events:
         """Events with ``start[b] <= t < end[b]`` for their sample ``b`` (µs, scalars or :math:`(B,)`).
 

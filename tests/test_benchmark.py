@@ -74,5 +74,5 @@ def test_pairs_corrected_with_the_true_latency_give_refid_the_ideal_input():
 def test_pair_with_latency_rejects_a_window_start_of_the_wrong_shape():
     delayed = scene(0).pairs_delayed
     latency = torch.zeros(1, dtype=torch.float64)
-    with pytest.raises(ValueError, match="window_start"):
+    with pytest.raises(ValueError, match="start"):
         pair_with_latency(delayed, latency, latency, torch.zeros(3))

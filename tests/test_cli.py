@@ -258,3 +258,37 @@ def test_correct_estimates_the_recordings_threshold_by_default(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "c.csv")))
     thresholds = {float(row["threshold"]) for row in rows}
     assert len(thresholds) == 1 and abs(thresholds.pop() - 0.5) < 0.075  # one θ per recording, within 15 %
+
+
+def test_corrected_pairs_start_where_the_stamped_events_do():
+    # REFID reads events before the first exposure: a correction must not move events there that the stamped
+    # input (read from before_us ahead of the exposure) cannot have
+    from types import SimpleNamespace
+
+    from evlatcorr.cli import _Restoration, _restore_frames
+
+    seq = simulate("astronaut", num_frames=2, height=32, width=40, exposure_us=4000.0, latency_us=1500.0, seed=0)
+    seen = []
+
+    class Spy(torch.nn.Module):
+        def forward(self, frames):
+            seen.append(frames.corrected if frames.corrected is not None else frames.events)
+            return SimpleNamespace(output=torch.zeros(1))
+
+    class ShiftBy(torch.nn.Module):
+        def forward(self, frames):
+            return frames.replace(corrected=frames.events.shift(torch.full((1,), 1500.0, dtype=torch.float64)))
+
+    for before_us, is_pair in ((0.0, True), (500.0, True), (0.0, False)):
+        seen.clear()
+        pairs = seq.pairs("delayed", before_us=before_us)
+        run = _Restoration(SimpleNamespace(before_us=before_us), Spy(), ShiftBy(), 0.2, is_pair, torch.device("cpu"))
+        _restore_frames(run, pairs, 0)
+        stamped, corrected = seen
+        start = float(pairs.exposure_start[0]) - before_us
+        assert float(stamped.t.min()) >= start
+        if is_pair:
+            assert float(corrected.t.min()) >= start
+            assert len(corrected) < len(stamped)  # those moved before the start are left out
+        else:  # single frames keep every corrected event (the deblurring networks read inside the exposure)
+            assert float(corrected.t.min()) < start

@@ -67,6 +67,16 @@ class TestEvents:
         out = ev.window(torch.tensor([0.0, 10.0]), torch.tensor([10.0, 30.0]))
         assert out.t.tolist() == [0.0, 20.0] and out.batch.tolist() == [0, 1]
 
+    def test_since_per_sample(self):
+        ev = Events(torch.zeros(4), torch.zeros(4), torch.tensor([0.0, 10.0, 5.0, 20.0]), torch.ones(4),
+                    batch=torch.tensor([0, 0, 1, 1]), sensor_size=(1, 1))
+        out = ev.since(torch.tensor([10.0, 0.0]))
+        assert out.t.tolist() == [10.0, 5.0, 20.0] and out.batch.tolist() == [0, 1, 1]
+        with pytest.raises(ValueError, match="start"):
+            ev.since(torch.zeros(3))
+        with pytest.raises(ValueError, match="start"):
+            ev.since(float("nan"))
+
     def test_shift_scalar_and_map(self):
         ev = Events(torch.tensor([0, 1, 0]), torch.tensor([0, 0, 0]), torch.tensor([10.0, 20.0, 30.0]),
                     torch.ones(3), batch=torch.tensor([0, 0, 1]), sensor_size=(1, 2))

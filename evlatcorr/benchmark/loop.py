@@ -23,7 +23,6 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset, Subset
 
 from evlatcorr.benchmark.metrics import ImageQuality, LatencyError
-from evlatcorr.checks import check_batch_vector
 from evlatcorr.frames import EventFrames
 
 __all__ = [
@@ -120,8 +119,7 @@ def pair_with_latency(pairs: EventFrames, latency_first: Tensor, latency_second:
     merged = Events(merged.x, merged.y, merged.t, merged.p, batch, sensor_size=ev.sensor_size,
                     batch_size=ev.batch_size, sort=True)
     if window_start is not None:
-        start = check_batch_vector(window_start, ev.batch_size, "window_start").to(merged.t)
-        merged = merged.select(merged.t >= start[merged.batch])
+        merged = merged.since(window_start)
     return pairs.replace(corrected=merged)
 
 
