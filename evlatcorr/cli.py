@@ -388,7 +388,7 @@ class _Restoration(NamedTuple):
 
 def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _Restoration:
     """The model (weights loaded before any reading), the recording, θ and the corrector."""
-    from evlatcorr.restore import build_model, needs_pairs, pair_reach_us
+    from evlatcorr.restore import build_model, needs_pairs, pair_lead_us, pair_reach_us
 
     model = build_model(args.model, task, args.ckpt, 0.2, args.num_bins).to(device)  # loads the weights first
     high = args.search_us[1] if args.search_us else None
@@ -400,6 +400,7 @@ def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _
     pairs = needs_pairs(args.model, task)
     if pairs:  # the first frame's events must reach the next exposure's end, plus the latency searched
         rec.after_us = pair_reach_us(rec, high)
+        rec.before_us = max(rec.before_us, pair_lead_us(rec))  # and REFID reads before the first exposure
     return _Restoration(rec, model, corrector, theta, pairs, device)
 
 

@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from evlatcorr.frames import EventFrames
 
 __all__ = ["MODELS", "INTERPOLATION_MODELS", "build_model", "needs_pairs", "pair_frames", "between_times",
-           "has_events", "pair_reach_us", "recording_threshold", "to_uint8", "side_by_side"]
+           "has_events", "pair_reach_us", "pair_lead_us", "recording_threshold", "to_uint8", "side_by_side"]
 
 MODELS = ("edi", "efnet", "gem", "refid")
 INTERPOLATION_MODELS = ("edi", "refid")
@@ -131,6 +131,12 @@ def pair_reach_us(rec, search_high_us: float | None = None) -> float:
     reach = max((b[1] - a[1] for a, b in zip(times, times[1:]) if a[2] == b[2]), default=0.0)
     high = search_high_us if search_high_us is not None else max((e - s for s, e, _ in times), default=0.0)
     return reach + high
+
+
+def pair_lead_us(rec) -> float:
+    """How far before a pair's first exposure its events must start: the longest exposure (REFID's voxel
+    grid starts a fraction of a sharp-frame interval before it, and a correction moves events back)."""
+    return max((e - s for s, e, _ in rec.frame_times()), default=0.0)
 
 
 def recording_threshold(rec, search_range: tuple[float, float] | None = None, num_bins: int = 200,

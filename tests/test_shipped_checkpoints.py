@@ -74,7 +74,7 @@ def test_shipped_weights_beat_the_blurry_input(name):
                    latency="none", seed=3)
     with torch.no_grad():
         if name.startswith("refid"):
-            pairs = seq.pairs("ideal")
+            pairs = seq.pairs("ideal", before_us=20000.0)  # the events before the exposure, as trained
             out = adapter(pairs)
             times = out.meta["output_times"]
             index = int((times[0] - pairs.target_times[0, 0]).abs().argmin())

@@ -500,3 +500,18 @@ def test_cli_data_on_a_real_davis346_recording(tmp_path):
     shipped = EFNetAdapter(checkpoint="default", clamp=False).state_dict()
     assert all(torch.equal(state[f"adapter.{k}"], v) for k, v in shipped.items())
     assert state["latency_model.coefficients"].abs().max() > 1e-3
+
+
+def test_validation_metrics_are_float32_under_mixed_precision():
+    # bf16 autocast would run SSIM's Gaussian convolutions in bf16: the card's val SSIM must not depend on it
+    module = RestorationModule("efnet")
+    batch = _sim_batch()
+    output = batch.replace(output=(batch.sharp + 0.05 * torch.rand_like(batch.sharp)).clamp(0, 1))
+
+    def ssim(autocast: bool) -> float:
+        module.val_ssim.reset()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+            module._validate(batch, output)
+        return float(module.val_ssim.compute())
+
+    assert ssim(True) == ssim(False)

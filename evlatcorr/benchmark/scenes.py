@@ -18,9 +18,14 @@ __all__ = ["scene_from_sequence", "prepare_data", "data_sources"]
 
 
 def scene_from_sequence(name: str, seq) -> BenchmarkScene:
-    """A :class:`BenchmarkScene` of a simulated (or stored) sequence: its ideal and delayed frames and pairs."""
-    return BenchmarkScene(name, seq.frames("ideal"), seq.frames("delayed"), seq.pairs("ideal"),
-                          seq.pairs("delayed"), seq.true_latency)
+    """A :class:`BenchmarkScene` of a simulated (or stored) sequence: its ideal and delayed frames and pairs.
+
+    The pairs' events start one exposure time before the first exposure (REFID's voxel grid starts before
+    it, as a camera's stream has events there), the same for both inputs.
+    """
+    lead = float((seq.exposure_end - seq.exposure_start).max())
+    return BenchmarkScene(name, seq.frames("ideal"), seq.frames("delayed"), seq.pairs("ideal", before_us=lead),
+                          seq.pairs("delayed", before_us=lead), seq.true_latency, events_before_us=lead)
 
 
 def prepare_data(args: argparse.Namespace) -> list[Any]:

@@ -46,13 +46,15 @@ class _RestorationBase(EventFramesModule):
             return
         pred, target = pair
         pred, target = pred.float().clamp(0, 1).flatten(0, -4), target.float().flatten(0, -4)
-        self.val_psnr.update(pred, target)
-        self.val_ssim.update(pred, target)
-        # the blurry frame itself (the left one for interpolation) as a baseline
-        blurry = batch.blurry.float()
-        if target.shape[0] != blurry.shape[0]:
-            blurry = blurry.repeat_interleave(target.shape[0] // blurry.shape[0], 0)
-        self.val_input_psnr.update(blurry, target)
+        # in float32 also under bf16 mixed precision, whose autocast would run SSIM's convolutions in bf16
+        with torch.autocast(self.device.type, enabled=False):
+            self.val_psnr.update(pred, target)
+            self.val_ssim.update(pred, target)
+            # the blurry frame itself (the left one for interpolation) as a baseline
+            blurry = batch.blurry.float()
+            if target.shape[0] != blurry.shape[0]:
+                blurry = blurry.repeat_interleave(target.shape[0] // blurry.shape[0], 0)
+            self.val_input_psnr.update(blurry, target)
         kw = dict(batch_size=batch.batch_size, on_epoch=True, sync_dist=True)
         self.log("val/psnr", self.val_psnr, prog_bar=True, **kw)
         self.log("val/ssim", self.val_ssim, **kw)

@@ -111,7 +111,10 @@ class SimulatedRestorationData(_RestorationLoaders):
                 if self.task == "deblur":
                     both = seq.frames("ideal"), seq.frames("delayed")
                 else:
-                    both = seq.pairs("ideal"), seq.pairs("delayed")
+                    # REFID's voxel grid starts before the first exposure: give it the events there, as a
+                    # camera's stream (and REFID's official data) has them
+                    lead = self.exposure_us
+                    both = seq.pairs("ideal", before_us=lead), seq.pairs("delayed", before_us=lead)
                     if self.target_times is not None:
                         times = self.target_times(both[0]).to(torch.float64)
                         frames = seq.render(times.flatten()).view(*times.shape, *seq.blurry.shape[1:])
@@ -211,7 +214,7 @@ class RecordingRestorationData(_RestorationLoaders):
                 sensor, or fewer usable samples than training and validation need.
         """
         from evlatcorr.io import open_recording
-        from evlatcorr.restore import pair_reach_us
+        from evlatcorr.restore import pair_lead_us, pair_reach_us
 
         if self.recording is not None:
             return
@@ -222,6 +225,7 @@ class RecordingRestorationData(_RestorationLoaders):
                              "pass a smaller --crop")
         if self.pairs:  # the first frame's events reach the next exposure's end plus the latency searched
             rec.after_us = pair_reach_us(rec)
+            rec.before_us = pair_lead_us(rec)  # REFID reads before the first exposure
         frames = list(itertools.islice(rec, self.max_frames))
         samples, no_next, no_events, cut = self._usable(frames)
         self.has_truth = bool(samples) and all(has_truth(s, self.task) for s in samples)

@@ -348,7 +348,7 @@ def _card(args: argparse.Namespace, trainer: L.Trainer, info: dict[str, Any], se
         "val_psnr": _metric(final, "val/psnr", 3), "val_ssim": _metric(final, "val/ssim", 4),
         "val_blurry_psnr": _metric(final, "val/blurry_psnr", 3), "events": info["events"], "data": info["data"],
         "world_size": trainer.world_size, "precision": str(trainer.precision),
-        "device": torch.cuda.get_device_name() if torch.cuda.is_available() and trainer.on_gpu else
+        "device": torch.cuda.get_device_name() if trainer.strategy.root_device.type == "cuda" else
         f"CPU, {torch.get_num_threads()} threads", "torch": torch.__version__,
     }
     if args.model == "refid":
