@@ -292,3 +292,18 @@ def test_corrected_pairs_start_where_the_stamped_events_do():
             assert len(corrected) < len(stamped)  # those moved before the start are left out
         else:  # single frames keep every corrected event (the deblurring networks read inside the exposure)
             assert float(corrected.t.min()) < start
+
+
+def test_pair_reach_and_lead_cover_refids_window(simulated):
+    from evlatcorr.adapters.refid import refid_window
+    from evlatcorr.restore import pair_frames, pair_lead_us, pair_reach_us
+
+    rec = H5Recording(simulated)
+    exposure = max(e - s for s, e, _ in rec.frame_times())
+    assert pair_lead_us(rec) == exposure
+    rec.after_us, rec.before_us = pair_reach_us(rec), pair_lead_us(rec)
+    pair = next(p for _, p in pair_frames(iter(rec)) if p is not None)
+    start, end, _ = refid_window(pair, m=4, n=1)
+    # the window REFID reads lies inside the events read, with room for a correction of up to half an exposure
+    assert float(pair.events.t.min()) <= float(start[0]) - exposure / 2
+    assert float(pair.events.t.max()) >= float(end[0])
