@@ -51,8 +51,8 @@ class BenchmarkScene:
             (the interpolation rows are then n/a).
         pairs_delayed: the same pairs with delayed events (``None`` with ``pairs_ideal``).
         true_latency: (F, 1, H, W) µs.
-        events_before_us: how long before each exposure start the events of both inputs begin (the
-            frames' and the pairs'); corrected pairs are cut to the same window in corrected time.
+        events_before_us: how long before the first exposure the pairs' events begin (ideal and
+            delayed alike); corrected pairs are cut to the same window in corrected time.
     """
 
     name: str
