@@ -9,6 +9,7 @@ model the share of the best constant shift's gain.
 
     python benchmarks/accuracy.py --split test --mode constant              # 48 cases, 96x128
     python benchmarks/accuracy.py --split dev --num 8 --mode both           # constant and spatial (test-time fit)
+    python benchmarks/accuracy.py --split tuning                            # dev + dev_wide: 160 cases to tune on
     python benchmarks/accuracy.py --cases 'test-0*' --estimator mypkg.latency:estimate
     python benchmarks/accuracy.py --estimator path/to/file.py:estimate --mode none
 
@@ -51,7 +52,7 @@ from evlatcorr.config import SCORES  # noqa: E402
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    _setup.add_case_options(p, "test", ("test", "dev", "both"))
+    _setup.add_case_options(p, "test", ("test", "dev", "dev_wide", "tuning", "both"))
     p.add_argument("--mode", choices=("constant", "spatial", "both", "none"), default="constant",
                    help="built-in EventLatencyCorrector modes to evaluate ('none': only --estimator)")
     p.add_argument("--estimator", action="append", default=[], metavar="MODULE:FUNCTION",
@@ -73,7 +74,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
 
-    splits = ("dev", "test") if args.split == "both" else (args.split,)
+    splits = {"both": ("dev", "test"), "tuning": ("dev", "dev_wide")}.get(args.split, (args.split,))
     cases: list[Case] = [c for s in splits for c in make_cases(s, args.num, tuple(args.size))]
     if args.cases:
         cases = [c for c in cases if any(fnmatch.fnmatchcase(c.name, pat) for pat in args.cases)]

@@ -50,8 +50,11 @@ def correct_constant_latency(
         (``previous_latency``, else the range's lower end); a warning names them.
         ``meta["latency_source"]`` says per frame what set the latency: ``"sharpness"``, ``"ghost"`` (a flat
         score curve, decided by :mod:`evlatcorr.ghost`'s cue), ``"reader"`` (no score minimum; the learned curve
-        reader's pick) or ``"fallback"``. ``meta["hot_pixels"]`` counts per frame the hot pixels the search left out
-        (a warning names them).
+        reader's estimate) or ``"fallback"``. ``meta["hot_pixels"]`` counts per frame the hot pixels the search left
+        out (a warning names them). ``meta["latency_spread_us"]`` :math:`(B,)` is, for the learned reader (the
+        default score), the standard deviation of its probability over the candidates: how unsure it is (NaN for
+        other scores). On the suite's tuning cases a spread above about 3.5 ms marks most of the estimates that are
+        off by milliseconds; below about 1 ms none was off by more than 1.6 ms.
 
     Raises:
         ValueError: when a sample has no events in ``[exposure_start, exposure_end + exposure time)``
@@ -99,6 +102,7 @@ def correct_constant_latency(
     meta["latency_fallback"] = result.fallback
     meta["latency_source"] = result.source
     meta["hot_pixels"] = result.ignored_pixels
+    meta["latency_spread_us"] = result.latency_spread
     return frames.with_outputs(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
 
 
@@ -172,7 +176,8 @@ class EventLatencyCorrector(nn.Module):
         num_bins: sub-intervals of the exposure used by EDI (paper: 500).
         search_range: ``(low, high)`` µs, finite, ``high > low``; default 0 to each frame's exposure time.
         num_candidates: coarse candidates over the search range (default 100).
-        refine: refine the best candidate below the candidate spacing.
+        refine: refine the best candidate below the candidate spacing (the learned reader: the centre of its
+            probability around its pick).
         epsilon: ETF edge amplifier ε.
         window: ETF local-contrast window.
         sigma_us: σ of the ETF temporal prior (used when ``frames.meta["previous_latency"]`` is set).

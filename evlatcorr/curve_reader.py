@@ -12,7 +12,8 @@ over the coarse candidates reads
 - which candidates could be scored (their window holds events),
 
 and gives a log-probability per candidate. :class:`CurveReaderEnsemble` averages a few readers trained from
-different seeds. The search refines the reader's pick with the sparsity scores at every ``T / n`` around it.
+different seeds. The search's estimate is the centre of the ensemble's probability over its likeliest candidate
+and two neighbours on each side, a latency between candidates.
 
 The shipped weights (``checkpoints/curve-reader.safetensors``, 64 kB) come from
 ``python benchmarks/train_curve_reader.py``: cases of the accuracy suite's generator

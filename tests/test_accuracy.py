@@ -12,6 +12,7 @@ from evlatcorr.benchmark.accuracy import (
     MOTION_KINDS,
     Case,
     case_reference,
+    corrector_estimator,
     evaluate_case,
     load_estimator,
     make_cases,
@@ -182,6 +183,40 @@ def test_summary_and_files(tiny, tmp_path):
     data = json.loads(paths["json"].read_text())
     assert len(data["results"]) == 4 and data["summary"]["groups"]
     assert paths["csv"].read_text().count("\n") == 5
+
+
+def test_the_learned_readers_spread_is_reported_and_banded(tiny):
+    case, simulated, ref = tiny
+    # the built-in corrector returns its frames: the suite reads the latency and the reader's spread
+    row = evaluate_case(case, corrector_estimator("constant", threshold=case.threshold), simulated=simulated,
+                        reference=ref)
+    assert row["latency_spread_us"] > 0.0
+    # a bare latency map has no spread
+    assert math.isnan(evaluate_case(case, lambda f: f.meta["true_latency"], simulated=simulated,
+                                    reference=ref)["latency_spread_us"])
+    # six cases of known spread and error: three bands of two, from the least spread on
+    rows = [dict(row, estimator="e", latency_spread_us=float(k), latency_abs_error_us=float(e))
+            for k, e in enumerate([100.0, 300.0, 900.0, 700.0, 5000.0, 2500.0])]
+    bands = summarize(rows)["spread_bands"]
+    assert [(b["band"], b["cases"], b["spread_low_us"], b["spread_high_us"]) for b in bands] == [
+        (1, 2, 0.0, 1.0), (2, 2, 2.0, 3.0), (3, 2, 4.0, 5.0)]
+    assert [b["median_abs_error_us"] for b in bands] == [200.0, 800.0, 3750.0]
+    assert [b["over_2ms"] for b in bands] == [0, 0, 2] and bands[2]["worst_abs_error_us"] == 5000.0
+    assert "spread against the error" in to_markdown(rows, summarize(rows))
+
+
+def test_the_estimate_on_ideal_events_is_reported(tiny):
+    case, simulated, ref = tiny
+    # an estimator that returns the true latency gives 0 on the ideal events (their true latency is 0)
+    row = evaluate_case(case, lambda f: f.meta["true_latency"], simulated=simulated, reference=ref)
+    assert row["ideal_estimate_us"] == 0.0
+    late = evaluate_case(case, lambda f: torch.full((1, 1, *TINY), 300.0), simulated=simulated, reference=ref)
+    assert late["ideal_estimate_us"] == 300.0
+    group = next(g for g in summarize([dict(row, estimator="e"), dict(late, estimator="e")])["groups"]
+                 if g["latency_model"] == "all")
+    assert (group["ideal_cases"], group["ideal_within_150us"], group["worst_ideal_estimate_us"]) == (2, 1, 300.0)
+    assert group["median_ideal_estimate_us"] == 150.0
+    assert "Ideal events (no latency)" in to_markdown([dict(row, estimator="e")])
 
 
 def test_an_estimator_that_raises_fails_its_case_not_the_suite(tiny, tmp_path):

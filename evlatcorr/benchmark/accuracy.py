@@ -4,6 +4,9 @@ Two splits of one-frame cases, each drawn from its own fixed seed:
 
 - ``"dev"``: :data:`~evlatcorr.simulate.PHOTOGRAPHS_TRAIN` photographs and procedural scenes with
   one set of seeds; tune on it.
+- ``"dev_wide"``: 120 more cases of the dev split's distribution (its photographs, seeds of their own): tune on
+  it with ``"dev"`` where 40 cases cannot tell two estimators apart (their medians move by about 100 µs
+  between draws, and one case decides a worst figure).
 - ``"test"``: :data:`~evlatcorr.simulate.PHOTOGRAPHS_TEST` photographs and procedural scenes with
   disjoint seeds; report on it.
 
@@ -73,7 +76,7 @@ __all__ = [
 
 Estimator = Callable[[EventFrames], Tensor]
 
-SPLITS = ("dev", "test")
+SPLITS = ("dev", "dev_wide", "test")
 LATENCY_MODELS = ("constant", "intensity_delay", "intensity")
 MOTION_KINDS = ("translation", "random", "rotation", "zoom", "objects")
 DEFAULT_SIZE = (96, 128)
@@ -87,15 +90,17 @@ SCENE_FACTOR = 3  # procedural scenes are this many times the sensor's size
 # the learned curve reader's training cases (evlatcorr.curve_reader): the dev split's photographs, seeds disjoint
 # from dev and test; constant latency in four batches of 200, 300, 400 and 900 cases, then 200 photoreceptor cases
 TRAIN_SPLITS = ("train", "train1", "train2", "train3", "train_photo")
-_NUM_CASES = {"dev": 40, "test": 48, "train": 200, "train1": 300, "train2": 400, "train3": 900, "train_photo": 200}
-_PHOTOGRAPHS = {"dev": PHOTOGRAPHS_TRAIN, "test": PHOTOGRAPHS_TEST, **{s: PHOTOGRAPHS_TRAIN for s in TRAIN_SPLITS}}
+_NUM_CASES = {"dev": 40, "dev_wide": 120, "test": 48, "train": 200, "train1": 300, "train2": 400, "train3": 900,
+              "train_photo": 200}
+_PHOTOGRAPHS = {"dev": PHOTOGRAPHS_TRAIN, "dev_wide": PHOTOGRAPHS_TRAIN, "test": PHOTOGRAPHS_TEST,
+                **{s: PHOTOGRAPHS_TRAIN for s in TRAIN_SPLITS}}
 # case draws: generator seed 1000 * split seed + factor index
-_SPLIT_SEED = {"dev": 1, "test": 2, "train": 3, "train1": 4, "train2": 5, "train3": 6, "train_photo": 7}
+_SPLIT_SEED = {"dev": 1, "test": 2, "train": 3, "train1": 4, "train2": 5, "train3": 6, "train_photo": 7, "dev_wide": 11}
 # procedural scenes and sprites: disjoint seed ranges
 _SCENE_SEED = {"dev": 100_000, "test": 200_000, "train": 300_000, "train1": 400_000, "train2": 500_000,
-               "train3": 600_000, "train_photo": 700_000}
+               "train3": 600_000, "train_photo": 700_000, "dev_wide": 1_100_000}
 _SIM_SEED = {"dev": 10_000, "test": 20_000, "train": 30_000, "train1": 40_000, "train2": 50_000, "train3": 60_000,
-             "train_photo": 70_000}
+             "train_photo": 70_000, "dev_wide": 110_000}
 _MOTION_WEIGHTS = (0.3, 0.15, 0.2, 0.15, 0.2)
 _LATENCY_WEIGHTS = (0.5, 0.25, 0.25)
 _TRAIN_LATENCY_WEIGHTS = (1.0, 0.0, 0.0)
@@ -111,7 +116,7 @@ class Case:
     Attributes:
         name: readable unique name, e.g. ``test-07-camera-b0.05-rot1.3-const4200`` (procedural
             scenes as ``proc-<kind>``).
-        split: ``"dev"`` or ``"test"``.
+        split: one of :data:`SPLITS` (or :data:`TRAIN_SPLITS`).
         scene: a photograph name, or a procedural kind (:data:`~evlatcorr.scenes.PROCEDURAL_SCENES`)
             when ``scene_seed`` is set (``"text"`` is both).
         scene_seed: seed of a procedural scene; None for a photograph.
@@ -217,8 +222,9 @@ def make_cases(split: str, num: int | None = None, size: tuple[int, int] = DEFAU
     """The suite's cases of one split, the same on every machine.
 
     Args:
-        split: ``"dev"`` (40 cases), ``"test"`` (48 cases), or one of :data:`TRAIN_SPLITS` (constant latency, and the
-            photoreceptor model in ``"train_photo"``: what the learned curve reader is trained on; never reported).
+        split: ``"dev"`` (40 cases), ``"dev_wide"`` (120), ``"test"`` (48 cases), or one of :data:`TRAIN_SPLITS`
+            (constant latency, and the photoreceptor model in ``"train_photo"``: what the learned curve reader is
+            trained on; never reported).
         num: keep only the first ``num`` cases (a random subset that may miss some factors).
         size: sensor ``(H, W)``.
 
@@ -449,7 +455,9 @@ def evaluate_case(case: Case, estimate: Estimator, *,
         ``latency_error_us`` (constant: estimate − true; maps: mean |map − true| over pixels),
         ``latency_abs_error_us``, ``latency_bias_us`` (mean estimate − mean truth), ``psnr_corrected``,
         ``recovery`` (NaN when there is no gap), ``no_gap``, ``best_shift_share`` (the share of the best
-        constant shift's PSNR gain; NaN for ``"intensity_delay"``), ``time_s`` (the estimate's wall time) and
+        constant shift's PSNR gain; NaN for ``"intensity_delay"``), ``latency_spread_us`` (the learned reader's,
+        when ``estimate`` returns the corrector's frames; else NaN), ``ideal_estimate_us`` (the estimator's
+        latency on the case's ideal events, where 0 is right), ``time_s`` (the estimate's wall time) and
         ``warnings`` (messages raised by it) and ``error`` (empty; when the estimator raised, its exception as
         ``"Type: message"``, with NaN estimates and scores: one case's failure does not stop a suite).
     """
@@ -467,14 +475,28 @@ def evaluate_case(case: Case, estimate: Estimator, *,
         elapsed = time.perf_counter() - t0
     scores = dict.fromkeys(_ESTIMATE_COLUMNS, math.nan) if error else _estimate_columns(case, delayed, ref, raw)
     return {
-        **_case_columns(case), **ref, **scores,
+        **_case_columns(case), **ref, **scores, "ideal_estimate_us": _ideal_estimate(case, estimate, simulated[1]),
         "no_gap": not ref["psnr_ideal"] > ref["psnr_uncorrected"] + NO_GAP_DB, "time_s": elapsed,
         "warnings": sorted({str(w.message) for w in caught}), "error": error,
     }
 
 
+def _ideal_estimate(case: Case, estimate: Estimator, ideal: EventFrames) -> float:
+    """The estimator's mean latency on the case's ideal events (no latency: 0 is right), µs; NaN if it raises."""
+    # the ideal events' own latency is 0 (their meta carries the case's, for the delayed events)
+    true = torch.zeros_like(ideal.meta["true_latency"])
+    frames = ideal.replace(meta={**ideal.meta, "threshold": case.threshold, "true_latency": true})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the main estimate's warnings are the case's
+        try:
+            return float(_as_map(estimate(frames), ideal).mean())
+        except Exception:  # noqa: BLE001 - reported as NaN; the main estimate's failure is the case's error
+            return math.nan
+
+
 _ESTIMATE_COLUMNS = ("est_latency_us", "est_latency_min_us", "est_latency_max_us", "latency_error_us",
-                     "latency_abs_error_us", "latency_bias_us", "psnr_corrected", "recovery", "best_shift_share")
+                     "latency_abs_error_us", "latency_bias_us", "psnr_corrected", "recovery", "best_shift_share",
+                     "latency_spread_us")
 
 
 def _estimate_columns(case: Case, delayed: EventFrames, ref: Mapping[str, Any], raw: Any) -> dict[str, float]:
@@ -493,7 +515,14 @@ def _estimate_columns(case: Case, delayed: EventFrames, ref: Mapping[str, Any], 
         "latency_bias_us": float(latency.mean() - true.mean()), "psnr_corrected": psnr_corrected,
         "recovery": _gain_ratio(psnr_corrected, ref["psnr_uncorrected"], ref["psnr_ideal"]),
         "best_shift_share": _gain_ratio(psnr_corrected, ref["psnr_uncorrected"], ref["psnr_best_shift"]),
+        "latency_spread_us": _spread(raw),
     }
+
+
+def _spread(raw: Any) -> float:
+    """The learned reader's ``meta["latency_spread_us"]`` of an estimator's answer (NaN where it has none)."""
+    spread = raw.meta.get("latency_spread_us") if isinstance(raw, EventFrames) else None
+    return math.nan if spread is None else float(spread.double().mean())
 
 
 def _case_columns(case: Case) -> dict[str, Any]:
@@ -507,7 +536,8 @@ def _case_columns(case: Case) -> dict[str, Any]:
 
 # --- estimators ------------------------------------------------------------------------------------------------------
 def corrector_estimator(mode: str = "constant", threshold: float | str = 0.2, **kwargs: Any) -> Estimator:
-    """``EventLatencyCorrector(mode, threshold, **kwargs)`` as an estimator (returns its latency map).
+    """``EventLatencyCorrector(mode, threshold, **kwargs)`` as an estimator (returns its output frames: the suite
+    reads their latency map and ``meta["latency_spread_us"]``).
 
     Example:
         >>> estimate = corrector_estimator("constant", threshold=0.25)
@@ -516,8 +546,8 @@ def corrector_estimator(mode: str = "constant", threshold: float | str = 0.2, **
 
     corrector = EventLatencyCorrector(mode=mode, threshold=threshold, **kwargs)
 
-    def estimate(frames: EventFrames) -> Tensor:
-        return corrector(frames).latency
+    def estimate(frames: EventFrames) -> EventFrames:
+        return corrector(frames)
 
     return estimate
 
@@ -602,6 +632,7 @@ def _group_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     # how far EDI's own PSNR optimum lies from the truth: the floor of a latency error that still buys image quality
     oracle = [abs(r["best_shift_us"] - r["true_latency_us"]) for r in const]
     recovery = _finite(r["recovery"] for r in gap)
+    ideal = _finite(r.get("ideal_estimate_us", math.nan) for r in rows)
     return {
         "cases": len(rows),
         "median_abs_error_us": _median(errors), "worst_abs_error_us": max(errors, default=math.nan),
@@ -613,6 +644,9 @@ def _group_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "median_const_best_shift_share": _median(r["best_shift_share"] for r in const),
         "median_time_s": _median(r["time_s"] for r in rows),
         "failed": sum(bool(r.get("error")) for r in rows),
+        "median_ideal_estimate_us": _median(abs(v) for v in ideal),
+        "worst_ideal_estimate_us": max((abs(v) for v in ideal), default=math.nan),
+        "ideal_within_150us": sum(abs(v) <= 150.0 for v in ideal), "ideal_cases": len(ideal),
     }
 
 
@@ -625,9 +659,12 @@ def summarize(results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "median_const_best_shift_share" (constant cases), "median_map_error_us" (map cases), "median_recovery",
         "worst_recovery" (constant and intensity_delay cases with a gap), "no_gap",
         "median_best_shift_share" (intensity), "median_time_s", "failed" (cases whose estimator raised; left out
-        of the other figures)}, ...], "spatial_vs_constant": [...]}``;
+        of the other figures), "median_ideal_estimate_us", "worst_ideal_estimate_us", "ideal_within_150us",
+        "ideal_cases" (the estimates on ideal events, whose right answer is 0)}, ...], "spatial_vs_constant": [...],
+        "spread_bands": [...]}``;
         the second lists, for map cases evaluated by both ``"constant"`` and ``"spatial"``, their
-        map errors and whether spatial's is lower.
+        map errors and whether spatial's is lower; the third, the constant-latency cases in three bands of the
+        learned reader's spread (``latency_spread_us``) with their errors.
     """
     groups = []
     keys = sorted({(r["estimator"], r["split"]) for r in results}, key=lambda k: (k[0], SPLITS.index(k[1])))
@@ -649,7 +686,28 @@ def summarize(results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                                "map_error_spatial_us": s, "spatial_better": s < c,
                                "psnr_constant": rows["constant"]["psnr_corrected"],
                                "psnr_spatial": rows["spatial"]["psnr_corrected"]})
-    return {"groups": groups, "spatial_vs_constant": comparison}
+    return {"groups": groups, "spatial_vs_constant": comparison, "spread_bands": _spread_bands(results, keys)}
+
+
+def _spread_bands(results: Sequence[Mapping[str, Any]], keys: Sequence[tuple[str, str]]) -> list[dict[str, Any]]:
+    """Per estimator and split, the constant-latency cases with a spread (:func:`_spread`) in three bands of as many
+    cases, from the least to the most spread: does the spread tell a good estimate from a bad one?"""
+    bands = []
+    for estimator, split in keys:
+        rows = sorted((r for r in results if r["estimator"] == estimator and r["split"] == split
+                       and r["latency_model"] == "constant" and not math.isnan(r.get("latency_spread_us", math.nan))),
+                      key=lambda r: r["latency_spread_us"])
+        if len(rows) < 3:
+            continue
+        for band in range(3):
+            part = rows[band * len(rows) // 3:(band + 1) * len(rows) // 3]
+            errors = [r["latency_abs_error_us"] for r in part]
+            bands.append({"estimator": estimator, "split": split, "band": band + 1, "cases": len(part),
+                          "spread_low_us": part[0]["latency_spread_us"],
+                          "spread_high_us": part[-1]["latency_spread_us"],
+                          "median_abs_error_us": _median(errors), "worst_abs_error_us": max(errors),
+                          "over_2ms": sum(e > 2000.0 for e in errors)})
+    return bands
 
 
 def _pct(v: float) -> str:
@@ -694,6 +752,25 @@ def to_markdown(results: Sequence[Mapping[str, Any]], summary: Mapping[str, Any]
             lines.append(f"| {c['name']} | {c['latency_model']} | {_num(c['map_error_constant_us'])} | "
                          f"{_num(c['map_error_spatial_us'])} | {'yes' if c['spatial_better'] else 'no'} | "
                          f"{_num(c['psnr_constant'], 2)} | {_num(c['psnr_spatial'], 2)} |")
+    ideal = [g for g in summary["groups"] if g["latency_model"] == "all" and g.get("ideal_cases")]
+    if ideal:
+        lines += ["", "## Ideal events (no latency): the estimate should be 0", "",
+                  "| estimator | split | cases | median abs estimate µs | worst µs | within 150 µs |",
+                  "|" + " --- |" * 6]
+        for g in ideal:
+            lines.append(f"| {g['estimator']} | {g['split']} | {g['ideal_cases']} | "
+                         f"{_num(g['median_ideal_estimate_us'])} | {_num(g['worst_ideal_estimate_us'])} | "
+                         f"{g['ideal_within_150us']} |")
+    if summary.get("spread_bands"):
+        lines += ["", "## The learned reader's spread against the error (constant latency)", "",
+                  "`meta[\"latency_spread_us\"]`: the standard deviation of the reader's probability over the "
+                  "candidates; the cases in three bands of as many cases each.", "",
+                  "| estimator | split | band | cases | spread µs | median abs error µs | worst abs error µs | "
+                  "error > 2 ms |", "|" + " --- |" * 8]
+        for b in summary["spread_bands"]:
+            lines.append(f"| {b['estimator']} | {b['split']} | {b['band']} | {b['cases']} | "
+                         f"{_num(b['spread_low_us'])}-{_num(b['spread_high_us'])} | {_num(b['median_abs_error_us'])} | "
+                         f"{_num(b['worst_abs_error_us'])} | {b['over_2ms']} |")
     lines += ["", "## Cases", "",
               "Error: estimate − true for constant latency, mean |map − true| for the intensity models. "
               "Recovery: (corr − uncorr) / (ideal − uncorr) of EDI PSNR (dB) against the sharp frame. "
