@@ -11,6 +11,7 @@ import argparse
 import contextlib
 import csv
 import itertools
+import math
 import signal
 import sys
 import time
@@ -54,7 +55,8 @@ def _parser() -> argparse.ArgumentParser:
                        description="Deblur every frame with --model and write into OUTDIR: PNGs per frame (blurry, "
                                    "the model's output with the stamped events and, with --correct, with the "
                                    "corrected events), side_by_side.gif (blurry | uncorrected | corrected) and "
-                                   "frames.csv (latency, threshold, confidence, events, time per frame). OUTDIR is "
+                                   "frames.csv (latency, threshold, confidence, the learned reader's spread, "
+                                   "events, time per frame). OUTDIR is "
                                    "written under a temporary name and appears only when every frame is done.")
     d.add_argument("input", type=Path)
     d.add_argument("outdir", type=Path)
@@ -196,7 +198,8 @@ def _skip_warning(batch, why: str) -> None:
 
 def _latency_row(batch, out, theta, seconds: float, skipped: str = "") -> dict:
     """One CSV row: the frame, its latency (mean, min, max of the map), θ, the search's confidence and what set
-    the latency (``source``: sharpness, ghost, reader or fallback) and the hot pixels it left out."""
+    the latency (``source``: sharpness, ghost, reader or fallback), the learned reader's spread and the hot pixels
+    it left out."""
     row = {"frame": batch.meta["frame"], "exposure_start_us": f"{float(batch.exposure_start):.1f}",
            "exposure_end_us": f"{float(batch.exposure_end):.1f}"}
     if out is not None and out.latency is not None:
@@ -210,15 +213,23 @@ def _latency_row(batch, out, theta, seconds: float, skipped: str = "") -> dict:
                    if "latency_confidence" in out.meta else "",
                    fallback=int(bool(out.meta["latency_fallback"][0])) if "latency_fallback" in out.meta else "",
                    source=out.meta["latency_source"][0] if out.meta.get("latency_source") else "",
+                   spread_us=_spread_of(out),
                    hot_pixels=out.meta["hot_pixels"][0] if out.meta.get("hot_pixels") else "")
         theta = out.meta.get("threshold", theta)
     else:
         row.update(latency_us="", latency_min_us="", latency_max_us="", score="", confidence="", fallback="",
-                   source="", hot_pixels="")
+                   source="", spread_us="", hot_pixels="")
     theta = float(theta.flatten()[0]) if isinstance(theta, torch.Tensor) else theta
     row.update(threshold=f"{theta:.4f}" if isinstance(theta, float) else str(theta),
                events_in_window=len(batch.events), skipped=skipped, time_s=f"{seconds:.3f}")
     return row
+
+
+def _spread_of(out) -> str:
+    """The learned reader's spread (µs) of a corrected frame, empty where it has none (other scores)."""
+    spread = out.meta.get("latency_spread_us")
+    value = float(spread[0]) if spread is not None else math.nan
+    return "" if math.isnan(value) else f"{value:.0f}"
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:

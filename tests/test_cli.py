@@ -61,6 +61,7 @@ def test_correct_writes_events_and_report(simulated):
     assert [row["source"] for row in rows] == ["sharpness", "sharpness"] and [row["fallback"] for row in rows] == [
         "0", "0"]
     assert [row["hot_pixels"] for row in rows] == ["0", "0"]
+    assert all(float(row["spread_us"]) > 0 for row in rows)  # the learned reader's, µs
     with h5py.File(simulated) as f:
         original_t = f["events/t"][:]
         starts = f["frames/exposure_start"][:]
