@@ -53,8 +53,8 @@ def correct_constant_latency(
         reader's estimate) or ``"fallback"``. ``meta["hot_pixels"]`` counts per frame the hot pixels the search left
         out (a warning names them). ``meta["latency_spread_us"]`` :math:`(B,)` is, for the learned reader (the
         default score), the standard deviation of its probability over the candidates: how unsure it is (NaN for
-        other scores). On the suite's tuning cases a spread above about 3.5 ms marks most of the estimates that are
-        off by milliseconds; below about 1 ms none was off by more than 1.6 ms.
+        other scores). On the suite's tuning cases (20 ms exposures) the highest third of spreads (above about
+        2.4 ms) held most of the estimates off by more than 2 ms, the lowest third (below about 1 ms) none.
 
     Raises:
         ValueError: when a sample has no events in ``[exposure_start, exposure_end + exposure time)``

@@ -46,3 +46,17 @@ def test_recording_threshold_recovers_theta_and_keeps_the_latency(pairs_theta_05
     auto = EventLatencyCorrector(threshold=joint)(pairs_theta_05).latency.mean(dim=(1, 2, 3))
     error_known, error_auto = (known - 3000.0).abs(), (auto - 3000.0).abs()
     assert float(error_auto.median()) <= float(error_known.median()) + 100.0
+
+
+def test_short_exposures_far_apart_fit_the_memory_budget(monkeypatch):
+    # a 2 ms exposure read 9 ms away: the grids reach the gap's middle in steps of exposure / num_bins. Under a
+    # 40 MB budget the former grids asked for about 130 MB each and stopped (as a 5 ms DAVIS346
+    # exposure 20 ms away did under the default 2 GiB); the points now fit half the budget each
+    import evlatcorr.checks
+
+    seq = simulate("astronaut", num_frames=3, height=64, width=80, exposure_us=2000.0, frame_interval_us=20000.0,
+                   threshold=0.5, latency_us=1000.0, seed=1)
+    pairs = seq.pairs("delayed", after_us=5000.0)
+    monkeypatch.setattr(evlatcorr.checks, "MEMORY_BUDGET_BYTES", 40 * 2**20)
+    theta = estimate_recording_threshold(pairs, latency=1000.0)
+    assert 0.3 < theta < 0.8
