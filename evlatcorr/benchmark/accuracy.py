@@ -74,7 +74,7 @@ __all__ = [
     "write_results",
 ]
 
-Estimator = Callable[[EventFrames], Tensor]
+Estimator = Callable[[EventFrames], "Tensor | EventFrames"]  # a latency map, or frames holding one
 
 SPLITS = ("dev", "dev_wide", "test")
 LATENCY_MODELS = ("constant", "intensity_delay", "intensity")
