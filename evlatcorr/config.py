@@ -48,7 +48,8 @@ class SearchConfig:
         num_bins: sub-intervals ``n`` of the exposure (paper: 500): the refinement step is ``T / n``.
         search_range: ``(low, high)`` µs, finite, ``high > low``; None: 0 to each frame's exposure time.
         num_candidates: coarse candidates over the range (at least 2).
-        refine: search every sub-interval around the best candidate.
+        refine: search every sub-interval around the best candidate (``score="learned"``: take the centre of
+            the reader's probability around its pick instead of the pick itself).
         score: one of :data:`SCORES` (see :func:`~evlatcorr.search.search_constant_latency`).
         epsilon: ETF edge amplifier ε.
         window: ETF local-contrast window.
