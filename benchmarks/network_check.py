@@ -29,7 +29,7 @@ from evlatcorr.restore import build_model  # noqa: E402
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    _setup.add_case_options(p, "test", num_help="first N cases of the split")
+    _setup.add_case_options(p, "test", ("test", "dev", "dev_wide"), num_help="first N cases of the split")
     p.add_argument("--models", nargs="+", choices=LATENCY_MODELS, default=list(LATENCY_MODELS),
                    help="latency models of the cases kept")
     p.add_argument("--network", choices=("efnet", "gem"), default="efnet", help="shipped weights")
@@ -43,21 +43,32 @@ def main(argv: list[str] | None = None) -> None:
     extra = {}
     for spec in args.estimator:
         try:
-            extra[Path(spec.rpartition(":")[0]).stem or spec] = load_estimator(spec)
+            fn = load_estimator(spec)
         except (ValueError, ImportError) as err:
             p.error(f"--estimator {spec}: {err}")
+        name = Path(spec.rpartition(":")[0]).stem or spec
+        while name in extra or name == "constant":  # two estimators of one module each keep their column
+            name += "'"
+        extra[name] = fn
     network = build_model(args.network)
-    rows = []
+    rows, skipped = [], []
     t0 = time.perf_counter()
     for i, case in enumerate(cases, 1):
         estimators = {"constant": corrector_estimator("constant", case.threshold), **extra}
-        rows.append(check_case(case, estimators, network))
+        try:
+            rows.append(check_case(case, estimators, network))
+        except ValueError as err:  # e.g. a case with no events in its window: nothing to estimate
+            skipped.append(case.name)
+            print(f"[{i}/{len(cases)}] {case.name}: skipped ({err})", flush=True)
+            continue
         r = rows[-1]
         print(f"[{i}/{len(cases)}] {case.name}: {args.network} PSNR ideal {r['psnr_ideal']:.2f} delayed "
               f"{r['psnr_delayed']:.2f}; " + ", ".join(f"{n} {e['latency_us']:.0f} us {e['psnr']:.2f}"
                                                       for n, e in r["estimators"].items()), flush=True)
-    text = (f"# {args.network} recovery with corrected events ({args.split} split, {len(cases)} cases, "
-            f"{time.perf_counter() - t0:.0f} s)\n\n" + checks_to_markdown(rows, args.network))
+    text = (f"# {args.network} recovery with corrected events ({args.split} split, {len(rows)} cases, "
+            f"{time.perf_counter() - t0:.0f} s)\n\n"
+            + (f"Skipped (an estimator could not estimate): {', '.join(skipped)}.\n\n" if skipped else "")
+            + checks_to_markdown(rows, args.network))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     print("\n" + text + f"\nwrote {args.out}")

@@ -36,3 +36,27 @@ def test_summary_and_markdown(row):
 def test_an_estimator_with_a_wrong_shape_is_refused():
     with pytest.raises(ValueError, match=r"latency map of shape \(1, 1, 32, 40\)"):
         check_case(tiny_case(), {"bad": lambda frames: torch.zeros(2, 3)}, build_model("efnet"))
+
+
+def test_the_script_skips_a_case_it_cannot_estimate_and_keeps_every_estimator(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    module = tmp_path / "refuses.py"
+    module.write_text("def estimate(frames):\n    raise ValueError('no events in its window')\n\n\n"
+                      "def none(frames):\n    return 0.0\n")
+    out = tmp_path / "check.md"
+    script = [sys.executable, str(root / "benchmarks" / "network_check.py"), "--split", "dev", "--size", "32", "40"]
+    run = subprocess.run([*script, "--num", "1", "--estimator", f"{module}:estimate", "--out", str(out)],
+                         capture_output=True, text=True, cwd=root, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "skipped (no events in its window)" in run.stdout
+    assert "Skipped (an estimator could not estimate): dev-00-" in out.read_text()
+    # two estimators from one module each keep their own column
+    run = subprocess.run([*script, "--num", "2", "--models", "intensity", "--estimator", f"{module}:none",
+                          "--estimator", f"{module}:none", "--out", str(out)],
+                         capture_output=True, text=True, cwd=root, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "| refuses: µs / PSNR / recovery | refuses': µs / PSNR / recovery |" in out.read_text()
