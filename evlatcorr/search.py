@@ -729,7 +729,7 @@ def _learned_pick(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse
     # as many neighbours on each side (the valid candidates are a prefix): a pick at the range's edge, e.g. no
     # latency, stays there instead of being pulled inwards by the one-sided neighbours
     half = min(_CENTRE_HALF_WIDTH, k, int(valid.sum()) - 1 - k)
-    near = slice(k - half, k + half + 1) if half > 0 else slice(k, k + 1)
+    near = slice(k - half, k + half + 1)
     centre = float((torch.softmax(log_p[near], 0) * candidates[near]).sum())
     probability, latencies = torch.softmax(log_p, 0), reader.to_us(candidates).double()
     mean = (probability * latencies).sum()
