@@ -24,7 +24,6 @@ latent image there takes one more read of the events' window.
 
 from __future__ import annotations
 
-import copy
 import functools
 import math
 from collections.abc import Callable
@@ -696,12 +695,15 @@ def _candidate_moments(reader: _CandidateReader, grey: Tensor, kept: Tensor) -> 
 
 @functools.lru_cache(maxsize=4)
 def _curve_reader_on(device: torch.device) -> torch.nn.Module:
-    """The shipped curve reader on ``device``: float32 on a CPU, as trained; float64 elsewhere, where a GPU's
-    convolutions may otherwise round through TF32 and pick another candidate than a CPU on near ties."""
-    from evlatcorr.curve_reader import load_curve_reader
+    """The shipped curve reader on ``device``, its members fused into grouped convolutions (a fifth of the calls,
+    each a fixed cost far above the arithmetic of one frame's curves): float32 on a CPU, as trained; float64
+    elsewhere, where a GPU's convolutions may otherwise round through TF32 and pick another candidate than a CPU on
+    near ties. The search itself reads its curves on the CPU (their scores come to the host anyway) on any
+    device."""
+    from evlatcorr.curve_reader import FusedCurveReaderEnsemble, load_curve_reader
 
-    ensemble = load_curve_reader()
-    return ensemble if device.type == "cpu" else copy.deepcopy(ensemble).to(device, torch.float64)
+    fused = FusedCurveReaderEnsemble(load_curve_reader()).eval()
+    return fused if device.type == "cpu" else fused.to(device, torch.float64)
 
 
 def _learned_pick(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor,

@@ -1,3 +1,4 @@
+import copy
 import dataclasses
 import json
 import math
@@ -10,6 +11,7 @@ from evlatcorr.curve_reader import (
     NUM_FEATURES,
     WEIGHTS_NAME,
     CurveReader,
+    FusedCurveReaderEnsemble,
     curve_features,
     load_curve_reader,
     save_curve_reader,
@@ -47,6 +49,34 @@ def test_reader_never_picks_a_candidate_that_could_not_be_scored():
     valid[0, :5] = True
     logits = CurveReader()(torch.randn(1, NUM_FEATURES, 21), valid)
     assert int(logits.argmax()) < 5
+
+
+def test_fused_ensemble_is_the_ensemble():
+    # the shipped weights in float64 (as on a GPU), on frames with candidates past the last event
+    ensemble = copy.deepcopy(load_curve_reader()).double()  # the loaded one is cached: a copy to convert
+    fused = FusedCurveReaderEnsemble(ensemble)
+    g = torch.Generator().manual_seed(0)
+    curves = torch.randn(4, NUM_FEATURES, 101, generator=g, dtype=torch.float64)
+    valid = torch.ones(4, 101, dtype=torch.bool)
+    valid[1, 60:] = False
+    valid[2, 2:] = False
+    out = fused(curves, valid)
+    torch.testing.assert_close(out, ensemble(curves, valid), rtol=0, atol=1e-9)
+    assert torch.equal(out.argmax(1), ensemble(curves, valid).argmax(1))
+    assert fused.num_members == len(ensemble.members)
+    assert len(list(fused.modules())) - 2 == 4  # four convolutions in all, whatever the number of members
+    # float32 on a CPU, as the search runs it
+    ensemble32 = load_curve_reader()
+    with torch.no_grad():
+        out32 = FusedCurveReaderEnsemble(ensemble32)(curves.float(), valid)
+        reference32 = ensemble32(curves.float(), valid)
+    torch.testing.assert_close(out32, reference32, rtol=1e-5, atol=1e-4)  # masked ones are about -1e4
+    assert torch.equal(out32.argmax(1), reference32.argmax(1))
+
+
+def test_fused_ensemble_refuses_anything_but_an_ensemble():
+    with pytest.raises(ValueError, match="takes a CurveReaderEnsemble"):
+        FusedCurveReaderEnsemble(CurveReader())
 
 
 def _planted(n, generator):
