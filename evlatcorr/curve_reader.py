@@ -32,6 +32,7 @@ Example:
 
 from __future__ import annotations
 
+import copy
 import functools
 import json
 import math
@@ -129,28 +130,26 @@ class FusedCurveReaderEnsemble(nn.Module):
             raise ValueError(f"FusedCurveReaderEnsemble takes a CurveReaderEnsemble, got {type(ensemble).__name__}")
         super().__init__()
         self.num_members = len(ensemble.members)
-        self.layers = nn.ModuleList()
+        # the members' layers in their order (activations as they are), each convolution fused across members
+        layers: list[nn.Module] = []
         for i, layer in enumerate(ensemble.members[0].net):
             if not isinstance(layer, nn.Conv1d):
+                layers.append(copy.deepcopy(layer))
                 continue
             convs = [member.net[i] for member in ensemble.members]
-            # the first layer reads the shared input (one group); the others each member's own channels
-            groups = 1 if i == 0 else self.num_members
-            fused = nn.Conv1d(layer.in_channels * (1 if i == 0 else self.num_members),
+            # the first convolution reads the shared input (one group); the others each member's own channels
+            first = not any(isinstance(m, nn.Conv1d) for m in layers)
+            fused = nn.Conv1d(layer.in_channels * (1 if first else self.num_members),
                               layer.out_channels * self.num_members, layer.kernel_size, padding=layer.padding,
-                              dilation=layer.dilation, groups=groups)
+                              dilation=layer.dilation, groups=1 if first else self.num_members)
             with torch.no_grad():
                 fused.weight.copy_(torch.cat([c.weight for c in convs]))
                 fused.bias.copy_(torch.cat([c.bias for c in convs]))
-            self.layers.append(fused.to(layer.weight.device, layer.weight.dtype))
+            layers.append(fused.to(layer.weight.device, layer.weight.dtype))
+        self.net = nn.Sequential(*layers)
 
     def forward(self, curves: Tensor, valid: Tensor) -> Tensor:
-        x = curves
-        for k, layer in enumerate(self.layers):
-            x = layer(x)
-            if k < len(self.layers) - 1:
-                x = torch.relu(x)
-        logits = x.masked_fill(~valid[:, None], _MASKED)  # (B, members, K)
+        logits = self.net(curves).masked_fill(~valid[:, None], _MASKED)  # (B, members, K)
         return torch.log_softmax(logits, 2).mean(1)
 
 

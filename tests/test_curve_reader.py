@@ -64,7 +64,8 @@ def test_fused_ensemble_is_the_ensemble():
     torch.testing.assert_close(out, ensemble(curves, valid), rtol=0, atol=1e-9)
     assert torch.equal(out.argmax(1), ensemble(curves, valid).argmax(1))
     assert fused.num_members == len(ensemble.members)
-    assert len(list(fused.modules())) - 2 == 4  # four convolutions in all, whatever the number of members
+    # four convolutions in all, whatever the number of members
+    assert sum(isinstance(m, torch.nn.Conv1d) for m in fused.modules()) == 4
     # float32 on a CPU, as the search runs it
     ensemble32 = load_curve_reader()
     with torch.no_grad():
