@@ -669,15 +669,17 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
 
 def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor
                   ) -> tuple[Tensor, Tensor]:
-    """:func:`~evlatcorr.curve_reader.curve_features` of one frame's coarse candidates, and which are valid, on
-    the frame's device."""
+    """:func:`~evlatcorr.curve_reader.curve_features` of one frame's coarse candidates on the frame's device, and
+    which are valid (on the scores' device, the host)."""
     from evlatcorr.curve_reader import curve_features
 
     valid = torch.isfinite(coarse_scores[0])
     kept = coarse[coarse <= reader.top]  # the valid candidates: a prefix of the sorted coarse ones
     moment = torch.zeros(len(coarse), dtype=torch.float64, device=grey.device)
     moment[:len(kept)] = _candidate_moments(reader, grey, kept)
-    return curve_features(coarse_scores, moment, valid), valid
+    # the features are made where the moments are: on a GPU the moments are not waited for, and the reader runs
+    # there too (on a many-core host its few tiny convolutions cost milliseconds of thread wake-ups)
+    return curve_features(coarse_scores.to(grey.device), moment, valid.to(grey.device)), valid
 
 
 def _candidate_moments(reader: _CandidateReader, grey: Tensor, kept: Tensor) -> Tensor:
@@ -698,8 +700,7 @@ def _curve_reader_on(device: torch.device) -> torch.nn.Module:
     """The shipped curve reader on ``device``, its members fused into grouped convolutions (a fifth of the calls,
     each a fixed cost far above the arithmetic of one frame's curves): float32 on a CPU, as trained; float64
     elsewhere, where a GPU's convolutions may otherwise round through TF32 and pick another candidate than a CPU on
-    near ties. The search itself reads its curves on the CPU (their scores come to the host anyway) on any
-    device."""
+    near ties. The search reads its curves on the frame's device."""
     from evlatcorr.curve_reader import FusedCurveReaderEnsemble, load_curve_reader
 
     fused = FusedCurveReaderEnsemble(load_curve_reader()).eval()
@@ -722,11 +723,12 @@ def _learned_pick(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse
     curves, valid = _curve_inputs(reader, grey, coarse, coarse_scores)
     ensemble = _curve_reader_on(curves.device)
     with torch.no_grad():
-        log_p = ensemble(curves[None].to(next(ensemble.parameters()).dtype), valid[None])[0].double()
+        log_p = ensemble(curves[None].to(next(ensemble.parameters()).dtype), valid[None].to(curves.device))[0]
+    log_p = log_p.double().cpu()  # the one wait for the device: the pick and its centre are a few host operations
     if prior is not None:
         latencies, previous, sigma = prior
-        log_p = log_p - (latencies.to(log_p.device) - previous) ** 2 / (4 * sigma**2)
-    log_p, candidates = log_p.cpu(), coarse.cpu().double()
+        log_p = log_p - (latencies.double() - previous) ** 2 / (4 * sigma**2)
+    candidates = coarse.cpu().double()
     k = int(torch.argmax(log_p))
     # as many neighbours on each side (the valid candidates are a prefix): a pick at the range's edge, e.g. no
     # latency, stays there instead of being pulled inwards by the one-sided neighbours
