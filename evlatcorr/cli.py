@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from evlatcorr.restore import INTERPOLATION_MODELS, MODELS
+from evlatcorr.temporal import DEFAULT_FUSED_FRAMES
 
 __all__ = ["main"]
 
@@ -49,6 +50,10 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--report", type=Path, help="per-frame CSV report (default: OUT with the suffix .csv)")
     c.add_argument("--mode", choices=("constant", "spatial"), default="constant")
     c.add_argument("--curve", type=Path, help="trained latency curve checkpoint (mode spatial)")
+    c.add_argument("--fuse-frames", type=int, default=DEFAULT_FUSED_FRAMES, metavar="N",
+                   help="constant mode: each frame's latency from the learned reader's evidence of N frames either "
+                        f"side too (a recording's latency changes slowly; default {DEFAULT_FUSED_FRAMES}, 0: each "
+                        "frame alone); the report keeps each frame's own estimate as frame_latency_us")
     _common(c)
 
     d = sub.add_parser("deblur", help="deblur every frame with EDI or a network; PNGs, a side-by-side GIF, a CSV",
@@ -251,6 +256,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
     if report.resolve() == args.output.resolve():
         raise ValueError(f"the report {report} would replace the corrected recording {args.output}: name the "
                          "output .h5 or pass --report")
+    if args.fuse_frames < 0:
+        raise ValueError(f"--fuse-frames must be 0 or more, got {args.fuse_frames}")
     check_outputs([args.input], files=[args.output, report])
     device = _device(args.device)
     _threshold(args.threshold)  # a bad value fails before any reading
@@ -259,6 +266,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     theta = _recording_threshold(args, rec, device)
     corrector = _corrector(args, args.mode, args.curve, theta)
     rows, latencies, starts, ends, images = [], [], [], [], []
+    evidence: list[tuple[Any, Any]] = []  # per frame: its candidates and the reader's log-probability (or None)
     previous = 0.0
     for batch in _progress(rec, len(rec), "correct"):
         t0 = time.perf_counter()
@@ -269,9 +277,12 @@ def cmd_correct(args: argparse.Namespace) -> int:
                                  f"frame's latency ({previous:.0f} us)")
             out = batch.replace(latency=torch.full((1, 1, h, w), previous, dtype=torch.float64, device=device))
             rows.append(_latency_row(batch, out, theta, time.perf_counter() - t0, skipped="no events"))
+            evidence.append((None, None))
         else:
             out = corrector(batch)
             rows.append(_latency_row(batch, out, theta, time.perf_counter() - t0))
+            log_p = out.meta.get("latency_log_probability")
+            evidence.append((out.meta["etf_curve"][0][0], None if log_p is None else log_p[0]))
         lat_map = out.latency[0, 0].cpu()
         previous = float(lat_map.mean())
         latencies.append(lat_map)
@@ -280,6 +291,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
         images.append(batch.blurry[0].cpu().numpy())
     if not rows:
         raise ValueError(f"{args.input}: no frames")
+    if args.mode == "constant" and args.fuse_frames > 0:
+        latencies = _fused(rows, latencies, evidence, args.fuse_frames)
     corrected = _corrected_stream(rec, np.array(starts), latencies)
     with contextlib.ExitStack() as stack:  # both files appear only when both are complete
         report_tmp = stack.enter_context(atomic_path(report))
@@ -309,6 +322,23 @@ def cmd_correct(args: argparse.Namespace) -> int:
           f"{np.median([float(r['latency_us']) for r in rows]):.0f} us"
           + (f", {skipped} without events kept the previous latency" if skipped else "") + ")")
     return EXIT_OK
+
+
+def _fused(rows: list[dict], latencies: list[torch.Tensor], evidence: list[tuple[Any, Any]],
+           frames: int) -> list[torch.Tensor]:
+    """Each frame's constant latency fused with its neighbours' evidence (:func:`evlatcorr.temporal.fuse_latencies`);
+    a frame without events keeps the fused latency before it. The rows get ``frame_latency_us`` (the frame's own
+    estimate) and the fused ``latency_us``."""
+    from evlatcorr.temporal import fuse_latencies
+
+    own = torch.tensor([float(m.mean()) for m in latencies], dtype=torch.float64)
+    fused = fuse_latencies(own, [c for c, _ in evidence], [p for _, p in evidence], frames, frames)
+    for k, row in enumerate(rows):
+        if row["skipped"]:
+            fused[k] = fused[k - 1] if k else 0.0
+        row["frame_latency_us"] = row["latency_us"]
+        row["latency_us"] = row["latency_min_us"] = row["latency_max_us"] = f"{float(fused[k]):.1f}"
+    return [torch.full_like(m, float(v)) for m, v in zip(latencies, fused)]
 
 
 def _corrected_stream(rec, starts: np.ndarray, latencies: list[torch.Tensor]):

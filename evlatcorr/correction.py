@@ -55,6 +55,9 @@ def correct_constant_latency(
         default score), the standard deviation of its probability over the candidates: how unsure it is (NaN for
         other scores). On the suite's tuning cases (20 ms exposures) the highest third of spreads (above about
         2.4 ms) held most of the estimates off by more than 2 ms, the lowest third (below about 1 ms) none.
+        ``meta["latency_log_probability"]`` :math:`(B, K)` is the reader's log-probability of each candidate of
+        ``meta["etf_curve"][0]`` from the frame alone (None for other scores): consecutive frames of a recording
+        share their latency, and :func:`evlatcorr.temporal.fuse_latencies` combines their evidence.
 
     Raises:
         ValueError: when a sample has no events in ``[exposure_start, exposure_end + exposure time)``
@@ -103,6 +106,7 @@ def correct_constant_latency(
     meta["latency_source"] = result.source
     meta["hot_pixels"] = result.ignored_pixels
     meta["latency_spread_us"] = result.latency_spread
+    meta["latency_log_probability"] = result.log_probability
     return frames.with_outputs(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
 
 

@@ -42,7 +42,7 @@ import torch
 from torch import Tensor, nn
 
 __all__ = ["NUM_FEATURES", "CurveReader", "CurveReaderEnsemble", "FusedCurveReaderEnsemble", "curve_features",
-           "train_curve_reader", "load_curve_reader", "WEIGHTS_NAME"]
+           "probability_centre", "train_curve_reader", "load_curve_reader", "WEIGHTS_NAME", "CENTRE_HALF_WIDTH"]
 
 # three sparsity curves, the ghost moment, the valid mask
 NUM_FEATURES = 5
@@ -52,6 +52,40 @@ TARGET_SIGMA_US = 300.0
 # noise added to the normalised curves while training (they span about 1)
 TRAIN_NOISE = 0.02
 _MASKED = -1e4
+# The estimate is the centre of the probability over the likeliest candidate and this many either side (±400 µs at
+# 20 ms). On 159 cases of the dev distribution (the dev split and a second draw, never the test split) it beat
+# refining the pick with the sparsity scores at every T / 500: constant latency median error 690 -> 587 µs,
+# photoreceptor share 88 -> 92 %, a higher EDI PSNR on 82 cases and a lower on 49.
+CENTRE_HALF_WIDTH = 2
+
+
+def probability_centre(log_p: Tensor, candidates: Tensor, num_valid: int,
+                       half_width: int = CENTRE_HALF_WIDTH) -> tuple[float, float]:
+    """The likeliest candidate and the centre of the probability over it and ``half_width`` neighbours each side.
+
+    Args:
+        log_p: log-probabilities (up to a constant) of the candidates :math:`(K,)`.
+        candidates: the candidate latencies :math:`(K,)`, sorted.
+        num_valid: how many candidates could be scored; they are the first ones (a window past the last event is
+            never scored), and ``log_p`` of the others must be far below the valid ones'.
+        half_width: neighbours on each side.
+
+    Returns:
+        ``(pick, centre)`` in the candidates' unit. As many neighbours on each side (fewer at the edges of the valid
+        candidates): a pick at an edge, e.g. no latency, stays there instead of being pulled inwards.
+
+    Example:
+        >>> probability_centre(torch.tensor([0.0, 2.0, 2.0, 0.0]), torch.tensor([0.0, 1.0, 2.0, 3.0]), 4, 1)
+        (1.0, 1.4049...)
+    """
+    if log_p.shape != candidates.shape or log_p.dim() != 1 or not 1 <= num_valid <= len(log_p):
+        raise ValueError(f"log_p and candidates must both be (K,) with 1 <= num_valid <= K, got {tuple(log_p.shape)}, "
+                         f"{tuple(candidates.shape)} and {num_valid}")
+    log_p, candidates = log_p.double(), candidates.double()
+    k = int(torch.argmax(log_p))
+    half = max(0, min(half_width, k, num_valid - 1 - k))
+    near = slice(k - half, k + half + 1)
+    return float(candidates[k]), float((torch.softmax(log_p[near], 0) * candidates[near]).sum())
 
 
 def curve_features(scores: Tensor, moment: Tensor, valid: Tensor) -> Tensor:

@@ -68,11 +68,6 @@ _CONTINUOUS_READ_BYTES = 256 * 2**20
 # events. One such pixel of 300 events moved a dev estimate by 11 ms; the suite's and the real recordings'
 # pixels span at most 5.3 and 5.7.
 HOT_PIXEL_LOG_RANGE = 15.0
-# The learned reader's sub-candidate estimate: the centre of its probability over the likeliest candidate and this
-# many either side (±400 µs at 20 ms). On 159 cases of the dev distribution (the dev split and a second draw,
-# never the test split) it beat refining the pick with the sparsity scores at every T / 500: constant latency
-# median error 690 -> 587 µs, photoreceptor share 88 -> 92 %, a higher EDI PSNR on 82 cases and a lower on 49.
-_CENTRE_HALF_WIDTH = 2
 # Candidates scored at once on a CPU (their latent images and score work arrays stay in cache).
 _SCORE_CHUNK = 16
 # Elsewhere (a GPU), as many as fit in this many bytes of score work arrays (about 8 float32 images each): there
@@ -108,6 +103,10 @@ class ConstantSearchResult:
         latency_spread: :math:`(B,)` µs, ``score="learned"``: the standard deviation of the curve reader's
             probability over the candidates, how unsure it is (NaN for the other scores, or where nothing could be
             scored). On the suite's tuning cases the estimate's error grows with it (see the README).
+        log_probability: :math:`(B, K)` float64, ``score="learned"``: the curve reader's log-probability of each
+            coarse candidate (``candidates``) from the frame alone (no temporal prior), normalised over the candidates
+            that could be scored (−inf elsewhere); NaN rows for samples where the reader did not run, None when no
+            sample has one. :func:`evlatcorr.temporal.fuse_latencies` combines consecutive frames' rows.
         log_ratio: :math:`(B, 1, H, W)` float64 EDI ``log R`` at ``latency`` (latent image at mid-exposure
             ``blurry · exp(−log R)``), exact in continuous time (to float32 rounding when ``latency`` is a scored
             candidate: the ratio its score saw); None with ``method="binned"`` or when a sample had no window to
@@ -125,6 +124,7 @@ class ConstantSearchResult:
     source: list[str] | None = None
     ignored_pixels: list[int] | None = None
     latency_spread: Tensor | None = None
+    log_probability: Tensor | None = None
 
 
 def default_search_range(exposure_time: Tensor) -> tuple[Tensor, Tensor]:
@@ -282,7 +282,16 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
         source=[r.source for r in results],
         ignored_pixels=[r.ignored_pixels for r in results],
         latency_spread=torch.tensor([r.spread_us for r in results], dtype=torch.float64, device=blurry.device),
+        log_probability=_stack_log_probability([r.log_probability for r in results], blurry.device),
     )
+
+
+def _stack_log_probability(rows: list[Tensor | None], device: torch.device) -> Tensor | None:
+    """The samples' reader log-probabilities as :math:`(B, K)`, NaN rows where a sample has none; None if none has."""
+    if all(r is None for r in rows):
+        return None
+    missing = torch.full((next(len(r) for r in rows if r is not None),), math.nan, dtype=torch.float64)
+    return torch.stack([missing if r is None else r for r in rows]).to(device)
 
 
 @dataclass
@@ -298,6 +307,7 @@ class _OneResult:
     source: str = "sharpness"
     ignored_pixels: int = 0
     spread_us: float = math.nan  # the learned reader's standard deviation, µs
+    log_probability: Tensor | None = None  # (K,) the learned reader's, without the prior (−inf: not scored)
 
 
 def sharpness_score(latent: Tensor, latency: Tensor, previous: Tensor | None, score: str, epsilon: float,
@@ -617,10 +627,11 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
               else _binned_reader(events, span, theta, config, integral, budget))
     coarse, to_us = reader.coarse, reader.to_us
 
-    spread = math.nan
+    spread, log_probability = math.nan, None
 
     def result(*args, **kwargs) -> _OneResult:
-        return _OneResult(*args, **kwargs, ignored_pixels=reader.ignored_pixels, spread_us=spread)
+        return _OneResult(*args, **kwargs, ignored_pixels=reader.ignored_pixels, spread_us=spread,
+                          log_probability=log_probability)
 
     fallback = low if prev is None else min(max(float(prev), low), high)
     if reader.top < reader.floor:  # no candidate window holds events: nothing to score
@@ -633,7 +644,7 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
                                                   [coarse] * len(members)))
     if config.score == "learned":  # the reader refines its own pick: no fine candidates to score
         prior = None if prev is None else (to_us(coarse).cpu().double(), float(prev), config.sigma_us)
-        pick, centre, spread = _learned_pick(reader, grey, coarse, coarse_scores, prior)
+        pick, centre, spread, log_probability = _learned_pick(reader, grey, coarse, coarse_scores, prior)
         estimates = [_refine(coarse, coarse_scores[m], coarse, None, False) for m in range(len(members))]
     else:
         fines = [reader.fine_of(float(coarse[int(torch.argmin(coarse_scores[m]))])) for m in range(len(members))]
@@ -708,37 +719,39 @@ def _curve_reader_on(device: torch.device) -> torch.nn.Module:
 
 
 def _learned_pick(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor,
-                  prior: tuple[Tensor, float, float] | None = None) -> tuple[float, float, float]:
+                  prior: tuple[Tensor, float, float] | None = None) -> tuple[float, float, float, Tensor]:
     """The coarse candidate :mod:`evlatcorr.curve_reader`'s shipped ensemble finds likeliest and the centre of
-    its probability over that candidate's neighbours (both in reader units), and the standard deviation of its
-    probability over all candidates (µs).
+    its probability over that candidate's neighbours (both in reader units), the standard deviation of its
+    probability over all candidates (µs), and the reader's log-probability of each candidate without the prior
+    :math:`(K,)` (normalised over the scored candidates, −inf elsewhere).
 
-    The centre is the probability-weighted mean of the likeliest candidate and :data:`_CENTRE_HALF_WIDTH` valid
+    The centre is the probability-weighted mean of the likeliest candidate and
+    :data:`~evlatcorr.curve_reader.CENTRE_HALF_WIDTH` valid
     candidates either side (fewer at the edges, as many on both sides): a latency between candidates, the
     sub-candidate estimate of ``refine=True``.
 
     ``prior``: ``(candidates in µs, previous latency, σ)``: the temporal prior of the sparsity scores,
     ``exp((l − l')² / 4σ²)`` on a score, enters as ``−(l − l')² / 4σ²`` on the reader's log-probability.
     """
+    from evlatcorr.curve_reader import probability_centre
+
     curves, valid = _curve_inputs(reader, grey, coarse, coarse_scores)
     ensemble = _curve_reader_on(curves.device)
     with torch.no_grad():
         log_p = ensemble(curves[None].to(next(ensemble.parameters()).dtype), valid[None].to(curves.device))[0]
     log_p = log_p.double().cpu()  # the one wait for the device: the pick and its centre are a few host operations
+    # what the frame alone says, for fusing frames (evlatcorr.temporal): normalised over the scored candidates
+    own = torch.full_like(log_p, -math.inf)
+    own[valid] = torch.log_softmax(log_p[valid], 0)
     if prior is not None:
         latencies, previous, sigma = prior
         log_p = log_p - (latencies.double() - previous) ** 2 / (4 * sigma**2)
     candidates = coarse.cpu().double()
-    k = int(torch.argmax(log_p))
-    # as many neighbours on each side (the valid candidates are a prefix): a pick at the range's edge, e.g. no
-    # latency, stays there instead of being pulled inwards by the one-sided neighbours
-    half = min(_CENTRE_HALF_WIDTH, k, int(valid.sum()) - 1 - k)
-    near = slice(k - half, k + half + 1)
-    centre = float((torch.softmax(log_p[near], 0) * candidates[near]).sum())
+    pick, centre = probability_centre(log_p, candidates, int(valid.sum()))
     probability, latencies = torch.softmax(log_p, 0), reader.to_us(candidates).double()
     mean = (probability * latencies).sum()
     spread = float((probability * (latencies - mean) ** 2).sum().sqrt())
-    return float(candidates[k]), centre, spread
+    return pick, centre, spread, own
 
 
 def candidate_curves(blurry: Tensor, events: Events, exposure_start: float, exposure_end: float,

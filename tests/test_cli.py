@@ -62,6 +62,9 @@ def test_correct_writes_events_and_report(simulated):
         "0", "0"]
     assert [row["hot_pixels"] for row in rows] == ["0", "0"]
     assert all(float(row["spread_us"]) > 0 for row in rows)  # the learned reader's, µs
+    # the latency of each frame is fused with its neighbour's evidence; the report keeps each frame's own estimate
+    own = [float(row["frame_latency_us"]) for row in rows]
+    assert all(abs(latency - 3000.0) < 1500.0 for latency in own), own
     with h5py.File(simulated) as f:
         original_t = f["events/t"][:]
         starts = f["frames/exposure_start"][:]
@@ -157,6 +160,21 @@ def first_frame_empty(tmp_path_factory):
     path = tmp_path_factory.mktemp("empty") / "empty.h5"
     write_sequence(path, seq)
     return path
+
+
+def test_correct_fuses_frames_unless_told_not_to(simulated, tmp_path):
+    fused, alone = tmp_path / "fused.h5", tmp_path / "alone.h5"
+    assert run("correct", str(simulated), str(fused), "--num-bins", "100", cwd=tmp_path).returncode == 0
+    r = run("correct", str(simulated), str(alone), "--num-bins", "100", "--fuse-frames", "0", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    fused_rows = list(csv.DictReader(open(fused.with_suffix(".csv"))))
+    alone_rows = list(csv.DictReader(open(alone.with_suffix(".csv"))))
+    assert "frame_latency_us" not in alone_rows[0]
+    # each frame alone gives what the fused run reports as the frame's own estimate
+    assert [row["latency_us"] for row in alone_rows] == [row["frame_latency_us"] for row in fused_rows]
+    bad = run("correct", str(simulated), str(tmp_path / "bad.h5"), "--fuse-frames", "-1", cwd=tmp_path)
+    assert bad.returncode == 2 and "--fuse-frames must be 0 or more" in bad.stderr
+    assert not (tmp_path / "bad.h5").exists()
 
 
 def test_correct_keeps_going_past_a_frame_without_events(first_frame_empty, tmp_path):

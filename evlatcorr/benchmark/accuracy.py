@@ -323,18 +323,26 @@ def _object_specs(case: Case) -> list[ObjectSpec]:
     return specs
 
 
-def simulate_case(case: Case) -> tuple[EventFrames, EventFrames, SimulatedSequence]:
+def simulate_case(case: Case, num_frames: int = 1) -> tuple[EventFrames, EventFrames, SimulatedSequence]:
     """Simulate a case.
 
+    Args:
+        case: the case.
+        num_frames: frames of the case's scene and motion, back to back (each exposure starts where the previous
+            one ends): a sequence of one recording, for :mod:`evlatcorr.temporal`. Its first frame is not the
+            one-frame case's: the simulator draws noise and random motion over the whole sequence.
+
     Returns:
-        ``(delayed, ideal, seq)``: one-frame :class:`EventFrames` of the delayed and the ideal
+        ``(delayed, ideal, seq)``: :class:`EventFrames` of ``num_frames`` samples of the delayed and the ideal
         events of ``[exposure_start, exposure_end + case.after_us)`` (``sharp`` and
-        ``meta["true_latency"]`` :math:`(1, 1, H, W)` filled) and the :class:`SimulatedSequence`.
+        ``meta["true_latency"]`` :math:`(F, 1, H, W)` filled) and the :class:`SimulatedSequence`.
     """
     if not isinstance(case, Case):
         raise ValueError(f"case must be a Case, got {type(case).__name__}")
+    if isinstance(num_frames, bool) or not isinstance(num_frames, int) or num_frames < 1:
+        raise ValueError(f"num_frames must be a whole number >= 1, got {num_frames!r}")
     kwargs: dict[str, Any] = dict(
-        num_frames=1, height=case.size[0], width=case.size[1], exposure_us=case.exposure_us,
+        num_frames=num_frames, height=case.size[0], width=case.size[1], exposure_us=case.exposure_us,
         frame_interval_us=case.exposure_us, latency=case.latency_model, latency_us=case.latency_us,
         latency_range_us=tuple(case.latency_range_us), threshold=case.threshold,
         threshold_sigma=case.threshold_sigma, noise_rate_hz=case.noise_rate_hz, leak_rate_hz=case.leak_rate_hz,

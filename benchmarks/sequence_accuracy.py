@@ -1,0 +1,89 @@
+"""Latency over sequences of frames: each frame's own estimate against the estimate fused with its neighbours'.
+
+The accuracy suite's cases (:mod:`evlatcorr.benchmark.accuracy`) simulated as ``--frames`` back-to-back frames of
+one recording (:mod:`evlatcorr.benchmark.sequences`). Every frame is estimated with the default corrector, then
+:func:`evlatcorr.temporal.fuse_latencies` combines the learned reader's evidence of 2 frames either side
+(``fused ±2``, for a whole recording) or of the 2 frames before (a stream). Each frame is scored as the suite
+scores one: latency error (constant latency), EDI PSNR recovery.
+
+    python benchmarks/sequence_accuracy.py --split tuning              # dev + dev_wide: 160 sequences
+    python benchmarks/sequence_accuracy.py --split test --frames 6     # report only
+
+Writes ``results.md``, ``results.csv`` and ``results.json`` under ``--out``.
+"""
+
+from __future__ import annotations
+
+import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU pages, before torch loads
+
+# isort: split
+
+_setup.passive_openmp()
+
+import argparse  # noqa: E402
+import csv  # noqa: E402
+import json  # noqa: E402
+import shlex  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from tqdm import tqdm  # noqa: E402
+
+from evlatcorr.benchmark.accuracy import make_cases  # noqa: E402
+from evlatcorr.benchmark.sequences import evaluate_sequence, summarize_sequences  # noqa: E402
+
+MODELS = {"constant": "constant latency", "intensity": "photoreceptor low-pass", "intensity_delay": "per-pixel delay"}
+
+
+def to_markdown(summary: dict, command: str, seconds: float) -> str:
+    lines = [f"`{command}` ({seconds / 60:.1f} min)", "",
+             "| estimate | latency model | frames (with a gap) | abs. error: median / p90 / worst | "
+             "recovery: median / p10 / worst | frames recovering < 50 % |", "| --- | --- | --- | --- | --- | --- |"]
+    for estimate, models in summary.items():
+        for model, s in models.items():
+            error = (f"{s['median_abs_error_us']:.0f} / {s['p90_abs_error_us']:.0f} / {s['worst_abs_error_us']:.0f} µs"
+                     if "median_abs_error_us" in s else "")
+            gain = (f"{s['median_recovery']:.0%} / {s['p10_recovery']:.0%} / {s['worst_recovery']:.0%}"
+                    if "median_recovery" in s else "")
+            below = f"{s['below_half']} of {s['frames_with_gap']}" if "below_half" in s else ""
+            lines.append(f"| {estimate} | {MODELS.get(model, model)} | {s['frames']} ({s['frames_with_gap']}) | "
+                         f"{error} | {gain} | {below} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    _setup.add_case_options(p, "tuning", ("test", "dev", "dev_wide", "tuning"), num_help="first N cases of each split")
+    p.add_argument("--frames", type=int, default=6, help="frames per sequence (default: 6)")
+    p.add_argument("--models", nargs="+", choices=tuple(MODELS), default=list(MODELS),
+                   help="latency models to run (default: all)")
+    p.add_argument("--out", type=Path, default=Path("outputs/sequences"))
+    args = p.parse_args(argv)
+    if args.frames < 1:
+        p.error(f"--frames must be at least 1, got {args.frames}")
+    splits = {"tuning": ("dev", "dev_wide")}.get(args.split, (args.split,))
+    cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size)) if c.latency_model in args.models]
+    t0 = time.perf_counter()
+    rows = []
+    for case in tqdm(cases, desc="sequences", unit="case"):
+        rows += evaluate_sequence(case, args.frames)
+    seconds = time.perf_counter() - t0
+    if not rows:
+        sys.exit("no frame had events: nothing to report")
+    summary = summarize_sequences(rows)
+    command = shlex.join(["python", "benchmarks/sequence_accuracy.py", *(sys.argv[1:] if argv is None else argv)])
+    table = to_markdown(summary, command, seconds)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "results.md").write_text(table)
+    (args.out / "results.json").write_text(json.dumps({"command": command, "summary": summary}, indent=1))
+    with open(args.out / "results.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    print(table)
+    print(f"wrote {args.out}/results.md, results.csv, results.json")
+
+
+if __name__ == "__main__":
+    main()

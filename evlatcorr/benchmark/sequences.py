@@ -1,0 +1,111 @@
+"""The accuracy suite's cases as sequences of frames: each frame's own latency against the fused one.
+
+A recording's frames share their latency, and :func:`evlatcorr.temporal.fuse_latencies` combines neighbouring
+frames' evidence. :func:`evaluate_sequence` simulates a case as ``num_frames`` back-to-back frames, estimates each
+frame with the default corrector, fuses the estimates over windows of frames, and scores every frame as the
+suite scores one (latency error, EDI PSNR recovery); :func:`summarize_sequences` aggregates per latency model.
+
+Example:
+    >>> from evlatcorr.benchmark.accuracy import make_cases
+    >>> case = make_cases("dev")[17]
+    >>> rows = evaluate_sequence(case, num_frames=3, windows={"fused ±1": (1, 1)})  # doctest: +SKIP
+    >>> sorted({r["estimate"] for r in rows})  # doctest: +SKIP
+    ['fused ±1', 'per frame']
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import warnings
+from typing import Any
+
+import numpy as np
+import torch
+
+from evlatcorr.benchmark.accuracy import NO_GAP_DB, Case, simulate_case
+from evlatcorr.benchmark.compare import edi_psnr, recovery
+from evlatcorr.temporal import fuse_latencies
+
+__all__ = ["evaluate_sequence", "summarize_sequences", "DEFAULT_WINDOWS"]
+
+# the fused estimates scored: (frames before, frames after)
+DEFAULT_WINDOWS = {"fused ±2": (2, 2), "fused, past 2 (stream)": (2, 0)}
+
+
+def evaluate_sequence(case: Case, num_frames: int = 6,
+                      windows: dict[str, tuple[int, int]] | None = None) -> list[dict[str, Any]]:
+    """Every frame of a case simulated as a sequence, scored with its own latency and with each fused one.
+
+    Args:
+        case: the suite's case (its scene, motion, latency and noise models).
+        num_frames: frames in the sequence (at least 1).
+        windows: name -> ``(before, after)`` frames for :func:`~evlatcorr.temporal.fuse_latencies`; default
+            :data:`DEFAULT_WINDOWS`.
+
+    Returns:
+        one row per frame and estimate (``"per frame"`` and each window): ``case``, ``model``, ``frame``,
+        ``estimate``, ``latency_us``, ``true_latency_us`` (mean of the map), ``error_us`` (estimate − mean truth),
+        ``psnr_ideal``, ``psnr_uncorrected``, ``psnr_corrected`` and ``recovery`` (NaN without a gap). A frame
+        with no events gets no rows.
+    """
+    from evlatcorr.correction import EventLatencyCorrector
+
+    windows = DEFAULT_WINDOWS if windows is None else windows
+    delayed, ideal, _ = simulate_case(case, num_frames)
+    frames, ideal_frames = delayed.split(), ideal.split()
+    corrector = EventLatencyCorrector(threshold=case.threshold)
+    own, candidates, log_p, kept = [], [], [], []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # fallbacks are counted in the figures, not printed per frame
+        for i, frame in enumerate(frames):
+            if len(frame.events) == 0:
+                continue
+            out = corrector(frame)
+            own.append(float(out.latency.mean()))
+            candidates.append(out.meta["etf_curve"][0][0].double().cpu())
+            row = out.meta.get("latency_log_probability")
+            log_p.append(torch.full_like(candidates[-1], math.nan) if row is None else row[0].double().cpu())
+            kept.append(i)
+    if not kept:
+        return []
+    latency = torch.tensor(own, dtype=torch.float64)
+    estimates = {"per frame": latency}
+    cand, lp = torch.stack(candidates), torch.stack(log_p)
+    for name, (before, after) in windows.items():
+        estimates[name] = fuse_latencies(latency, cand, lp, before, after)
+    rows = []
+    for n, i in enumerate(kept):
+        frame = frames[i]
+        true = float(frame.meta["true_latency"].mean())
+        psnr_ideal, psnr_uncorrected = edi_psnr(ideal_frames[i], case.threshold), edi_psnr(frame, case.threshold)
+        for name, values in estimates.items():
+            value = float(values[n])
+            psnr = edi_psnr(frame, case.threshold, latency=value)
+            rows.append(dict(case=case.name, model=case.latency_model, frame=i, estimate=name, latency_us=value,
+                             true_latency_us=true, error_us=value - true, psnr_ideal=psnr_ideal,
+                             psnr_uncorrected=psnr_uncorrected, psnr_corrected=psnr,
+                             recovery=recovery(psnr, psnr_uncorrected, psnr_ideal, NO_GAP_DB)))
+    return rows
+
+
+def summarize_sequences(rows: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, float]]]:
+    """Per estimate and latency model: frames, the median / 90th percentile / worst absolute error (constant
+    latency only, µs), the median / 10th percentile / worst recovery and how many frames recover less than half of
+    their gap (frames with a gap only)."""
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for estimate in dict.fromkeys(r["estimate"] for r in rows):
+        out[estimate] = {}
+        for model in dict.fromkeys(r["model"] for r in rows):
+            sel = [r for r in rows if r["estimate"] == estimate and r["model"] == model]
+            errors = [abs(r["error_us"]) for r in sel]
+            gains = [r["recovery"] for r in sel if not math.isnan(r["recovery"])]
+            stats: dict[str, float] = {"frames": len(sel), "frames_with_gap": len(gains)}
+            if model == "constant" and errors:
+                stats.update(median_abs_error_us=statistics.median(errors),
+                             p90_abs_error_us=float(np.percentile(errors, 90)), worst_abs_error_us=max(errors))
+            if gains:
+                stats.update(median_recovery=statistics.median(gains), p10_recovery=float(np.percentile(gains, 10)),
+                             worst_recovery=min(gains), below_half=sum(g < 0.5 for g in gains))
+            out[estimate][model] = stats
+    return out

@@ -1,0 +1,123 @@
+"""One latency from several frames of a recording: the evidence of neighbouring frames, combined.
+
+A camera's latency follows the light, which changes over seconds, so consecutive frames of a recording share it,
+while one frame's estimate scatters with its scene (a few frames of a sequence can be off by milliseconds while
+their neighbours are right). The learned reader (``score="learned"``, the default) gives each frame a
+log-probability over the candidate latencies (``meta["latency_log_probability"]``); :func:`fuse_latencies` sums
+those of a frame and its neighbours, as independent evidence of one latency, and takes the centre of the result
+as the search does for one frame. Each frame keeps its own candidates that could be scored: the fused latency
+never needs events past the frame's last one. A frame whose windows held no events at all (its events stop at
+its exposure's end) takes its neighbours' latency instead of no shift.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from evlatcorr.curve_reader import probability_centre
+
+__all__ = ["fuse_latencies", "DEFAULT_FUSED_FRAMES"]
+
+# frames either side whose evidence a frame takes: on 6-frame sequences of the accuracy suite's tuning cases
+# (constant and photoreceptor latency), 2 either side lowered the constant-latency median error from 664 to 513 µs,
+# the 90th percentile from 4966 to 2942 µs, and raised the 10th percentile of the EDI recovery from 10 to 42 %
+DEFAULT_FUSED_FRAMES = 2
+
+
+def fuse_latencies(latency: Tensor, candidates: Tensor | Sequence[Tensor],
+                   log_probability: Tensor | Sequence[Tensor | None] | None,
+                   before: int = DEFAULT_FUSED_FRAMES, after: int = DEFAULT_FUSED_FRAMES) -> Tensor:
+    """Each frame's latency from its own and its neighbours' reader log-probabilities.
+
+    Args:
+        latency: the frames' own estimates :math:`(N,)` µs, in recording order. A frame with no log-probability
+            (another score, or nothing could be scored) takes its neighbours' fused latency instead, or keeps its own
+            when no frame of its window has one.
+        candidates: each frame's candidate latencies :math:`(N, K)` µs, sorted (``meta["etf_curve"][0]``),
+            :math:`(K,)` when all frames share them, or a list of N such rows (their lengths may differ). Frames
+            with other candidates (another exposure time) are interpolated onto the frame's own.
+        log_probability: :math:`(N, K)` or a list of N rows (``meta["latency_log_probability"]``): −inf where a
+            candidate could not be scored (uninformative for the other frames, excluded for the frame itself), a
+            NaN row or None for a frame with none. None: nothing to fuse, ``latency`` is returned.
+        before: earlier frames that count (0 or more).
+        after: later frames that count (0 for a stream, where the next frames are not there yet).
+
+    Returns:
+        :math:`(N,)` float64 µs, on ``latency``'s device.
+
+    Raises:
+        ValueError: for shapes that do not match, a negative window, or non-finite latencies.
+
+    Example:
+        >>> cand = torch.arange(0.0, 2000.0, 100.0)
+        >>> def belief(mean, sigma):  # a frame's log-probability over the candidates
+        ...     return torch.log_softmax(-((cand - mean) / sigma) ** 2, 0)
+        >>> log_p = torch.stack([belief(400.0, 150.0), belief(1500.0, 1000.0), belief(400.0, 150.0)])
+        >>> own = torch.tensor([400.0, 1500.0, 400.0])  # the middle frame, unsure, is off on its own
+        >>> fuse_latencies(own, cand, log_p, before=1, after=1).round()
+        tensor([422., 412., 422.], dtype=torch.float64)
+    """
+    if latency.dim() != 1 or not bool(torch.isfinite(latency).all()):
+        raise ValueError(f"latency must be (N,) and finite, got {tuple(latency.shape)}")
+    if isinstance(before, bool) or isinstance(after, bool) or not (isinstance(before, int) and isinstance(after, int)
+                                                                   and before >= 0 and after >= 0):
+        raise ValueError(f"before and after must be whole numbers >= 0, got {before!r} and {after!r}")
+    out = latency.detach().to("cpu", torch.float64).clone()
+    if log_probability is None:
+        return out.to(latency.device)
+    n = len(latency)
+    log_p = _rows(log_probability, n, "log_probability")
+    cand = _rows(candidates.expand(n, -1) if isinstance(candidates, Tensor) and candidates.dim() == 1 else candidates,
+                 n, "candidates")
+    for k in range(n):
+        if log_p[k] is not None and (cand[k] is None or cand[k].shape != log_p[k].shape or log_p[k].dim() != 1):
+            raise ValueError(f"frame {k}: candidates and log_probability must be rows of one length, got "
+                             f"{None if cand[k] is None else tuple(cand[k].shape)} and {tuple(log_p[k].shape)}")
+    has_row = [r is not None and not bool(torch.isnan(r).any()) and bool(torch.isfinite(r).any()) for r in log_p]
+    evidence = [_uninformative_filled(log_p[j]) if has_row[j] else None for j in range(n)]
+    for k in range(n):  # frames, not events or pixels: a recording has a few thousand
+        window = [j for j in range(max(0, k - before), min(n, k + after + 1)) if has_row[j]]
+        if not window:
+            continue
+        # a frame with no evidence of its own reads its neighbours' on the nearest one's candidates (the earlier
+        # on a tie): their latency is a better guess for its late events than no shift
+        own = k if has_row[k] else min(window, key=lambda j: (abs(j - k), j))
+        total = torch.zeros_like(log_p[own])
+        for j in window:
+            total += _on_candidates(evidence[j], cand[j], cand[own])
+        scored = torch.isfinite(log_p[own])
+        total = torch.where(scored, total, -math.inf)
+        out[k] = probability_centre(total, cand[own], int(scored.sum()))[1]
+    return out.to(latency.device)
+
+
+def _rows(values: Tensor | Sequence[Tensor | None], n: int, name: str) -> list[Tensor | None]:
+    """``values`` as N float64 rows on the CPU (None kept)."""
+    if isinstance(values, Tensor) and values.dim() != 2:
+        raise ValueError(f"{name} must be (N, K) or a list of N rows, got {tuple(values.shape)}")
+    rows = list(values)
+    if len(rows) != n:
+        raise ValueError(f"{name} must have one row per frame ({n}), got {len(rows)}")
+    return [None if r is None else r.detach().to("cpu", torch.float64) for r in rows]
+
+
+def _uninformative_filled(log_p: Tensor) -> Tensor:
+    """A frame's log-probabilities with the candidates it could not score set to the median of those it could: it
+    says nothing about them (its events stopped before their windows end)."""
+    scored = torch.isfinite(log_p)
+    return torch.where(scored, log_p, log_p[scored].median())
+
+
+def _on_candidates(values: Tensor, source: Tensor, target: Tensor) -> Tensor:
+    """``values`` given at the sorted ``source`` candidates, linearly interpolated at ``target`` (held at the ends)."""
+    if source.shape == target.shape and torch.equal(source, target):
+        return values
+    right = torch.searchsorted(source, target).clamp(1, len(source) - 1)
+    left = right - 1
+    span = (source[right] - source[left]).clamp_min(1e-12)
+    weight = ((target - source[left]) / span).clamp(0.0, 1.0)
+    return values[left] + weight * (values[right] - values[left])

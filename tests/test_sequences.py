@@ -1,0 +1,43 @@
+import math
+
+import pytest
+
+from evlatcorr.benchmark.accuracy import make_cases
+from evlatcorr.benchmark.sequences import evaluate_sequence, summarize_sequences
+
+
+@pytest.fixture(scope="module")
+def rows():
+    # the first constant-latency dev case at 48x64, as 3 back-to-back frames
+    case = next(c for c in make_cases("dev", size=(48, 64)) if c.latency_model == "constant")
+    return case, evaluate_sequence(case, num_frames=3, windows={"fused ±1": (1, 1)})
+
+
+def test_every_frame_is_scored_with_its_own_and_the_fused_latency(rows):
+    case, rows = rows
+    assert {r["estimate"] for r in rows} == {"per frame", "fused ±1"}
+    frames = sorted({r["frame"] for r in rows})
+    assert frames == [0, 1, 2] and len(rows) == 2 * len(frames)
+    for r in rows:
+        assert r["true_latency_us"] == pytest.approx(case.latency_us)
+        assert r["error_us"] == pytest.approx(r["latency_us"] - r["true_latency_us"])
+        gap = r["psnr_ideal"] - r["psnr_uncorrected"]
+        if gap > 0.1:
+            assert r["recovery"] == pytest.approx((r["psnr_corrected"] - r["psnr_uncorrected"]) / gap)
+        else:
+            assert math.isnan(r["recovery"])
+
+
+def test_the_summary_counts_frames_per_estimate_and_model(rows):
+    _, rows = rows
+    summary = summarize_sequences(rows)
+    for estimate in ("per frame", "fused ±1"):
+        stats = summary[estimate]["constant"]
+        assert stats["frames"] == 3
+        errors = sorted(abs(r["error_us"]) for r in rows if r["estimate"] == estimate)
+        assert stats["median_abs_error_us"] == pytest.approx(errors[1]) and stats["worst_abs_error_us"] == errors[2]
+
+
+def test_a_sequence_needs_at_least_one_frame():
+    with pytest.raises(ValueError, match="num_frames"):
+        evaluate_sequence(make_cases("dev")[0], num_frames=0)

@@ -1,0 +1,107 @@
+import math
+
+import pytest
+import torch
+
+from evlatcorr.curve_reader import probability_centre
+from evlatcorr.search import search_constant_latency
+from evlatcorr.temporal import fuse_latencies
+from tests.conftest import random_events
+
+CANDIDATES = torch.arange(0.0, 2000.0, 100.0, dtype=torch.float64)
+
+
+def belief(mean: float, sigma: float, candidates: torch.Tensor = CANDIDATES) -> torch.Tensor:
+    """A frame's log-probability over the candidates: a Gaussian around ``mean``."""
+    return torch.log_softmax(-((candidates - mean) / sigma) ** 2, 0)
+
+
+def test_no_window_gives_each_frames_own_centre():
+    log_p = torch.stack([belief(430.0, 150.0), belief(1210.0, 300.0)])
+    fused = fuse_latencies(torch.tensor([0.0, 0.0]), CANDIDATES, log_p, before=0, after=0)
+    expected = [probability_centre(row, CANDIDATES, len(CANDIDATES))[1] for row in log_p]
+    torch.testing.assert_close(fused, torch.tensor(expected, dtype=torch.float64), rtol=0, atol=1e-9)
+
+
+def test_an_unsure_frame_off_on_its_own_follows_its_confident_neighbours():
+    log_p = torch.stack([belief(400.0, 150.0), belief(1500.0, 1000.0), belief(400.0, 150.0)])
+    own = torch.tensor([400.0, 1500.0, 400.0])
+    fused = fuse_latencies(own, CANDIDATES, log_p, before=1, after=1)
+    assert float((fused - 400.0).abs().max()) < 50.0
+    # a stream (no later frames): the first frame has only itself, the middle one its confident predecessor
+    stream = fuse_latencies(own, CANDIDATES, log_p, before=1, after=0)
+    assert float(stream[0]) == pytest.approx(probability_centre(log_p[0], CANDIDATES, 20)[1])
+    assert abs(float(stream[1]) - 400.0) < 100.0
+
+
+def test_a_later_frame_never_changes_a_streamed_estimate():
+    log_p = torch.stack([belief(400.0, 300.0), belief(600.0, 300.0), belief(800.0, 300.0)])
+    first = fuse_latencies(torch.zeros(3), CANDIDATES, log_p, before=2, after=0)
+    log_p[2] = belief(1900.0, 100.0)
+    second = fuse_latencies(torch.zeros(3), CANDIDATES, log_p, before=2, after=0)
+    torch.testing.assert_close(first[:2], second[:2], rtol=0, atol=0)
+    assert float(second[2]) > float(first[2])
+
+
+def test_the_fused_latency_never_needs_events_past_the_frames_last_one():
+    # frame 1's events stop early: only its first 6 candidates could be scored; its neighbours are sure of 1500 us
+    log_p = torch.stack([belief(1500.0, 100.0), belief(300.0, 2000.0), belief(1500.0, 100.0)])
+    log_p[1, 6:] = -math.inf
+    log_p[1, :6] = torch.log_softmax(log_p[1, :6], 0)
+    fused = fuse_latencies(torch.tensor([1500.0, 300.0, 1500.0]), CANDIDATES, log_p, before=1, after=1)
+    assert float(fused[1]) <= float(CANDIDATES[5])
+    # and candidates another frame could not score say nothing against them: its neighbours still get 1500 us
+    assert abs(float(fused[0]) - 1500.0) < 60.0 and abs(float(fused[2]) - 1500.0) < 60.0
+
+
+def test_a_frame_without_evidence_takes_its_neighbours_latency():
+    # the middle frame could score nothing (e.g. its events stop at its exposure's end): it fell back to no shift
+    log_p = torch.stack([belief(400.0, 150.0), torch.full((20,), math.nan), belief(400.0, 150.0)])
+    fused = fuse_latencies(torch.tensor([400.0, 0.0, 400.0]), CANDIDATES, log_p, before=1, after=1)
+    assert abs(float(fused[1]) - 400.0) < 30.0
+    rows = [belief(400.0, 150.0), None, belief(400.0, 150.0)]  # a list, as the command line gathers them
+    torch.testing.assert_close(fuse_latencies(torch.tensor([400.0, 0.0, 400.0]), [CANDIDATES] * 3, rows, 1, 1), fused)
+    # no frame of its window has evidence, or none is given at all: its own latency stays
+    alone = fuse_latencies(torch.tensor([400.0, 0.0, 400.0]), CANDIDATES, log_p, before=0, after=0)
+    assert float(alone[1]) == 0.0
+    assert torch.equal(fuse_latencies(torch.tensor([1.0, 2.0]), CANDIDATES, None), torch.tensor([1.0, 2.0]).double())
+
+
+def test_frames_with_other_candidates_are_interpolated():
+    fine = torch.arange(0.0, 2000.0, 50.0, dtype=torch.float64)
+    rows = [belief(700.0, 200.0), belief(700.0, 200.0, fine), belief(700.0, 200.0)]
+    fused = fuse_latencies(torch.zeros(3), [CANDIDATES, fine, CANDIDATES], rows, before=1, after=1)
+    assert float((fused - 700.0).abs().max()) < 30.0
+
+
+@pytest.mark.parametrize(
+    "latency, candidates, log_p, before, after, match",
+    [
+        (torch.zeros(2), CANDIDATES, torch.zeros(2, 20), -1, 0, "whole numbers"),
+        (torch.zeros(2), CANDIDATES, torch.zeros(2, 20), 1, True, "whole numbers"),
+        (torch.tensor([0.0, math.nan]), CANDIDATES, torch.zeros(2, 20), 1, 1, "finite"),
+        (torch.zeros(2), CANDIDATES, torch.zeros(3, 20), 1, 1, "one row per frame"),
+        (torch.zeros(2), CANDIDATES, torch.zeros(2, 19), 1, 1, "one length"),
+        (torch.zeros(2), CANDIDATES, torch.zeros(20), 1, 1, r"\(N, K\)"),
+    ],
+)
+def test_bad_arguments_are_refused(latency, candidates, log_p, before, after, match):
+    with pytest.raises(ValueError, match=match):
+        fuse_latencies(latency, candidates, log_p, before, after)
+
+
+def test_the_search_gives_the_readers_log_probability_of_each_scored_candidate():
+    ev = random_events(3000, (8, 9), (0.0, 200.0), seed=6)
+    blurry = torch.rand(1, 1, 8, 9, generator=torch.Generator().manual_seed(6)) * 0.8 + 0.1
+    args = (blurry, ev, torch.zeros(1), torch.full((1,), 100.0), 0.2)
+    res = search_constant_latency(*args, num_bins=50, num_candidates=11, score="learned")
+    log_p = res.log_probability
+    assert log_p.shape == res.candidates.shape and log_p.dtype == torch.float64
+    scored = torch.isfinite(res.etf[0])
+    assert torch.equal(torch.isfinite(log_p[0]), scored)  # −inf where a window runs past the last event
+    assert float(torch.logsumexp(log_p[0, scored], 0)) == pytest.approx(0.0, abs=1e-9)
+    # the frame's own evidence does not carry the temporal prior
+    prior = search_constant_latency(*args, num_bins=50, num_candidates=11, score="learned",
+                                    previous_latency=torch.tensor([0.0]))
+    torch.testing.assert_close(prior.log_probability, log_p)
+    assert search_constant_latency(*args, num_bins=50, num_candidates=11, score="consensus").log_probability is None
