@@ -101,6 +101,10 @@ def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> Non
     p.add_argument("--curve", type=Path, help="trained latency curve checkpoint (--correct spatial)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty OUTDIR")
     p.add_argument("--max-frames", type=int, help="only the first N frames (default: all)")
+    p.add_argument("--fuse-frames", type=int, default=DEFAULT_FUSED_FRAMES, metavar="N",
+                   help="--correct constant: each frame's latency from the learned reader's evidence of the N frames "
+                        f"before it too (frame by frame, as a stream; default {DEFAULT_FUSED_FRAMES}, 0: each frame "
+                        "alone); frames.csv keeps each frame's own estimate as frame_latency_us")
     _common(p)
 
 
@@ -386,11 +390,14 @@ def _restore(args: argparse.Namespace, task: str) -> int:
 
     if args.max_frames is not None and args.max_frames < 1:
         raise ValueError(f"--max-frames must be >= 1, got {args.max_frames}")
+    if args.fuse_frames < 0:
+        raise ValueError(f"--fuse-frames must be 0 or more, got {args.fuse_frames}")
     check_outputs([args.input], folders=[args.outdir], overwrite_folders=args.overwrite)
     device = _device(args.device)
     _threshold(args.threshold)  # a bad value fails before any reading
     run = _restoration(args, task, device)
     rows, gif, count = [], [], 0
+    history: list[tuple[float, Any, Any]] = []  # the corrected frames so far: own latency, candidates, evidence
     with atomic_dir(args.outdir, overwrite=args.overwrite) as tmp:
         stream, limit = _restore_inputs(run.rec, args.max_frames, run.pairs)
         for batch, frames in _progress(stream, limit, task):
@@ -400,8 +407,10 @@ def _restore(args: argparse.Namespace, task: str) -> int:
                 rows.append(_latency_row(batch, None, run.theta, 0.0, skipped="no next frame"))
                 continue
             frames = _with_targets(frames.to(device), task, args.model, args.num if task == "interpolation" else 0)
-            plain, corrected, out, skipped = _restore_frames(run, frames, batch)
+            plain, corrected, out, skipped = _restore_frames(run, frames, batch, history)
             rows.append(_latency_row(batch, out, run.theta, time.perf_counter() - t0, skipped))
+            if out is not None and "frame_latency_us" in out.meta:
+                rows[-1]["frame_latency_us"] = f"{out.meta['frame_latency_us']:.1f}"
             _save_restored(tmp, task, args.model, batch.meta["frame"], frames.blurry[0], plain,
                            corrected if run.corrector is not None else None, gif)
             count += 1
@@ -425,6 +434,7 @@ class _Restoration(NamedTuple):
     theta: float | str
     pairs: bool  # the model reads each frame with the next one
     device: torch.device
+    fuse_frames: int = 0  # earlier frames whose evidence a constant correction takes (0: each frame alone)
 
 
 def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _Restoration:
@@ -442,7 +452,8 @@ def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _
     if pairs:  # the first frame's events must reach the next exposure's end, plus the latency searched
         rec.after_us = pair_reach_us(rec, high)
         rec.before_us = max(rec.before_us, pair_lead_us(rec))  # and REFID reads before the first exposure
-    return _Restoration(rec, model, corrector, theta, pairs, device)
+    fuse = args.fuse_frames if args.correct == "constant" else 0
+    return _Restoration(rec, model, corrector, theta, pairs, device, fuse)
 
 
 def _restore_inputs(rec, max_frames: int | None, pairs: bool):
@@ -467,9 +478,10 @@ def _with_targets(frames, task: str, model: str, num: int):
     return frames
 
 
-def _restore_frames(run: _Restoration, frames, batch):
+def _restore_frames(run: _Restoration, frames, batch, history: list[tuple[float, Any, Any]]):
     """The model's output with the stamped events and with the corrected ones (the same without a corrector
-    or without events to correct), the corrector's output and why correction was skipped."""
+    or without events to correct), the corrector's output and why correction was skipped. ``history`` holds the
+    earlier corrected frames' evidence (:func:`_streamed`)."""
     from evlatcorr.restore import has_events
 
     with torch.no_grad():
@@ -478,6 +490,8 @@ def _restore_frames(run: _Restoration, frames, batch):
     if run.corrector is not None:
         if has_events(frames):
             out = run.corrector(frames)
+            if run.fuse_frames > 0:
+                out = _streamed(frames, out, history, run.fuse_frames)
             if run.pairs:  # REFID reads before the exposure: the corrected events start where the stamped ones do
                 out = out.replace(corrected=out.corrected.since(frames.exposure_start - run.rec.before_us))
             with torch.no_grad():
@@ -488,6 +502,24 @@ def _restore_frames(run: _Restoration, frames, batch):
     if run.device.type == "cuda":
         torch.cuda.synchronize(run.device)  # so the row's time is the frame's
     return plain, corrected, out, skipped
+
+
+def _streamed(frames, out, history: list[tuple[float, Any, Any]], before: int):
+    """A constant correction of one frame redone with its latency fused with the ``before`` earlier frames'
+    evidence (:func:`evlatcorr.temporal.fuse_latencies`, as a stream: no later frame); ``history`` gets this
+    frame's. ``meta["frame_latency_us"]`` keeps the frame's own estimate; the latent image is left out (the models
+    read the corrected events)."""
+    from evlatcorr.temporal import fuse_latencies
+
+    own = float(out.latency.mean())
+    log_p = out.meta.get("latency_log_probability")
+    history.append((own, out.meta["etf_curve"][0][0], None if log_p is None else log_p[0]))
+    del history[:-(before + 1)]
+    fused = float(fuse_latencies(torch.tensor([h[0] for h in history], dtype=torch.float64),
+                                 [h[1] for h in history], [h[2] for h in history], before, 0)[-1])
+    shift = torch.tensor([fused], dtype=torch.float64, device=frames.device)
+    return out.replace(latency=torch.full_like(out.latency, fused), corrected=frames.events.shift(shift), latent=None,
+                       meta={**out.meta, "frame_latency_us": own})
 
 
 def _save_restored(tmp: Path, task: str, name: str, i: int, blurry, plain, corrected, gif: list) -> None:

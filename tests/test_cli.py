@@ -116,6 +116,22 @@ def _check_restored(outdir: Path, model: str, frames: int, size: tuple[int, int]
     return rows
 
 
+def test_deblur_fuses_each_frames_latency_with_the_frames_before(simulated, tmp_path):
+    args = ("--model", "edi", "--correct", "--num-bins", "100")
+    assert run("deblur", str(simulated), str(tmp_path / "fused"), *args, cwd=tmp_path).returncode == 0
+    r = run("deblur", str(simulated), str(tmp_path / "alone"), *args, "--fuse-frames", "0", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    fused = list(csv.DictReader(open(tmp_path / "fused" / "frames.csv")))
+    alone = list(csv.DictReader(open(tmp_path / "alone" / "frames.csv")))
+    assert "frame_latency_us" not in alone[0]
+    assert [row["latency_us"] for row in alone] == [row["frame_latency_us"] for row in fused]
+    # a stream: the first frame has no earlier evidence, the second takes the first's too
+    assert abs(float(fused[0]["latency_us"]) - float(fused[0]["frame_latency_us"])) < 1.0
+    assert all(abs(float(row["latency_us"]) - 3000.0) < 1500.0 for row in fused)
+    bad = run("deblur", str(simulated), str(tmp_path / "bad"), *args, "--fuse-frames", "-2", cwd=tmp_path)
+    assert bad.returncode == 2 and "--fuse-frames must be 0 or more" in bad.stderr
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("model", ["edi", "efnet", "gem", "refid"])
 def test_deblur_every_model(simulated, tmp_path, model):
