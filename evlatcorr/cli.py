@@ -397,7 +397,6 @@ def _restore(args: argparse.Namespace, task: str) -> int:
     _threshold(args.threshold)  # a bad value fails before any reading
     run = _restoration(args, task, device)
     rows, gif, count = [], [], 0
-    history: list[tuple[float, Any, Any]] = []  # the corrected frames so far: own latency, candidates, evidence
     with atomic_dir(args.outdir, overwrite=args.overwrite) as tmp:
         stream, limit = _restore_inputs(run.rec, args.max_frames, run.pairs)
         for batch, frames in _progress(stream, limit, task):
@@ -407,10 +406,10 @@ def _restore(args: argparse.Namespace, task: str) -> int:
                 rows.append(_latency_row(batch, None, run.theta, 0.0, skipped="no next frame"))
                 continue
             frames = _with_targets(frames.to(device), task, args.model, args.num if task == "interpolation" else 0)
-            plain, corrected, out, skipped = _restore_frames(run, frames, batch, history)
+            plain, corrected, out, skipped = _restore_frames(run, frames, batch)
             rows.append(_latency_row(batch, out, run.theta, time.perf_counter() - t0, skipped))
-            if out is not None and "frame_latency_us" in out.meta:
-                rows[-1]["frame_latency_us"] = f"{out.meta['frame_latency_us']:.1f}"
+            if out is not None and "frame_latency_us" in out.meta:  # fused: the frame's own estimate too
+                rows[-1]["frame_latency_us"] = f"{float(out.meta['frame_latency_us'][0]):.1f}"
             _save_restored(tmp, task, args.model, batch.meta["frame"], frames.blurry[0], plain,
                            corrected if run.corrector is not None else None, gif)
             count += 1
@@ -430,11 +429,10 @@ class _Restoration(NamedTuple):
 
     rec: Any
     model: torch.nn.Module
-    corrector: Any  # an EventLatencyCorrector, or None for --correct none
+    corrector: Any  # an EventLatencyCorrector (streaming with --fuse-frames), or None for --correct none
     theta: float | str
     pairs: bool  # the model reads each frame with the next one
     device: torch.device
-    fuse_frames: int = 0  # earlier frames whose evidence a constant correction takes (0: each frame alone)
 
 
 def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _Restoration:
@@ -448,12 +446,15 @@ def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _
     if args.model == "edi":
         model = build_model(args.model, task, None, theta, args.num_bins)
     corrector = None if args.correct == "none" else _corrector(args, args.correct, args.curve, theta)
+    if args.correct == "constant" and args.fuse_frames > 0:  # frame by frame: each takes the frames before it
+        from evlatcorr.temporal import StreamingLatencyCorrector
+
+        corrector = StreamingLatencyCorrector(corrector, args.fuse_frames)
     pairs = needs_pairs(args.model, task)
     if pairs:  # the first frame's events must reach the next exposure's end, plus the latency searched
         rec.after_us = pair_reach_us(rec, high)
         rec.before_us = max(rec.before_us, pair_lead_us(rec))  # and REFID reads before the first exposure
-    fuse = args.fuse_frames if args.correct == "constant" else 0
-    return _Restoration(rec, model, corrector, theta, pairs, device, fuse)
+    return _Restoration(rec, model, corrector, theta, pairs, device)
 
 
 def _restore_inputs(rec, max_frames: int | None, pairs: bool):
@@ -478,10 +479,9 @@ def _with_targets(frames, task: str, model: str, num: int):
     return frames
 
 
-def _restore_frames(run: _Restoration, frames, batch, history: list[tuple[float, Any, Any]]):
+def _restore_frames(run: _Restoration, frames, batch):
     """The model's output with the stamped events and with the corrected ones (the same without a corrector
-    or without events to correct), the corrector's output and why correction was skipped. ``history`` holds the
-    earlier corrected frames' evidence (:func:`_streamed`)."""
+    or without events to correct), the corrector's output and why correction was skipped."""
     from evlatcorr.restore import has_events
 
     with torch.no_grad():
@@ -490,8 +490,6 @@ def _restore_frames(run: _Restoration, frames, batch, history: list[tuple[float,
     if run.corrector is not None:
         if has_events(frames):
             out = run.corrector(frames)
-            if run.fuse_frames > 0:
-                out = _streamed(frames, out, history, run.fuse_frames)
             if run.pairs:  # REFID reads before the exposure: the corrected events start where the stamped ones do
                 out = out.replace(corrected=out.corrected.since(frames.exposure_start - run.rec.before_us))
             with torch.no_grad():
@@ -502,24 +500,6 @@ def _restore_frames(run: _Restoration, frames, batch, history: list[tuple[float,
     if run.device.type == "cuda":
         torch.cuda.synchronize(run.device)  # so the row's time is the frame's
     return plain, corrected, out, skipped
-
-
-def _streamed(frames, out, history: list[tuple[float, Any, Any]], before: int):
-    """A constant correction of one frame redone with its latency fused with the ``before`` earlier frames'
-    evidence (:func:`evlatcorr.temporal.fuse_latencies`, as a stream: no later frame); ``history`` gets this
-    frame's. ``meta["frame_latency_us"]`` keeps the frame's own estimate; the latent image is left out (the models
-    read the corrected events)."""
-    from evlatcorr.temporal import fuse_latencies
-
-    own = float(out.latency.mean())
-    log_p = out.meta.get("latency_log_probability")
-    history.append((own, out.meta["etf_curve"][0][0], None if log_p is None else log_p[0]))
-    del history[:-(before + 1)]
-    fused = float(fuse_latencies(torch.tensor([h[0] for h in history], dtype=torch.float64),
-                                 [h[1] for h in history], [h[2] for h in history], before, 0)[-1])
-    shift = torch.tensor([fused], dtype=torch.float64, device=frames.device)
-    return out.replace(latency=torch.full_like(out.latency, fused), corrected=frames.events.shift(shift), latent=None,
-                       meta={**out.meta, "frame_latency_us": own})
 
 
 def _save_restored(tmp: Path, task: str, name: str, i: int, blurry, plain, corrected, gif: list) -> None:

@@ -105,3 +105,42 @@ def test_the_search_gives_the_readers_log_probability_of_each_scored_candidate()
                                     previous_latency=torch.tensor([0.0]))
     torch.testing.assert_close(prior.log_probability, log_p)
     assert search_constant_latency(*args, num_bins=50, num_candidates=11, score="consensus").log_probability is None
+
+
+def test_the_streaming_corrector_fuses_each_frame_with_the_frames_before_it():
+    from evlatcorr.correction import EventLatencyCorrector
+    from evlatcorr.simulate import simulate
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    seq = simulate("camera", num_frames=3, height=32, width=48, latency_us=3000.0, seed=0)
+    frames = seq.frames("delayed")
+    corrector = EventLatencyCorrector(threshold=0.2)
+    alone = corrector(frames)
+    stream = StreamingLatencyCorrector(corrector, before=2)
+    outs = [stream(frame) for frame in frames.split()]
+    own = torch.stack([o.meta["frame_latency_us"][0] for o in outs])
+    torch.testing.assert_close(own, alone.latency.flatten(1).mean(1).double(), rtol=0, atol=1e-6)
+    # the first frame has nothing before it; the others take their predecessors' evidence
+    fused = fuse_latencies(own, alone.meta["etf_curve"][0], alone.meta["latency_log_probability"], before=2, after=0)
+    for k, out in enumerate(outs):
+        assert float(out.latency.mean()) == pytest.approx(float(fused[k]), abs=1e-3)
+        # the events and the latent image follow the fused latency
+        assert torch.allclose(out.corrected.t.sort().values,
+                              frames.split()[k].events.shift(fused[k:k + 1]).t.sort().values)
+        assert out.latent.shape == frames.blurry[:1].shape and bool(torch.isfinite(out.latent).all())
+    # a batch of the three frames in one call gives the same, and reset() forgets the earlier frames
+    stream.reset()
+    batched = stream(frames)
+    torch.testing.assert_close(batched.latency.flatten(1).mean(1).double(), fused, rtol=0, atol=1e-3)
+    stream.reset()
+    torch.testing.assert_close(stream(frames.split()[2]).latency, alone.latency[2:3], rtol=0, atol=1e-3)
+
+
+def test_the_streaming_corrector_refuses_a_spatial_corrector_or_a_negative_window():
+    from evlatcorr.correction import EventLatencyCorrector
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    with pytest.raises(ValueError, match="constant-mode"):
+        StreamingLatencyCorrector(EventLatencyCorrector(mode="spatial"))
+    with pytest.raises(ValueError, match="whole number"):
+        StreamingLatencyCorrector(before=-1)
