@@ -62,8 +62,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--search-range", type=float, nargs=2, default=None, metavar=("LO", "HI"),
                    help="latency search range of the built-in correctors, µs (default: their own, 0 to the exposure)")
     p.add_argument("--score", default=None, choices=SCORES,
-                   help="built-in correctors' sharpness score (default: theirs, 'consensus'; 'learned': the curve "
-                        "reader, evlatcorr.curve_reader)")
+                   help="built-in correctors' sharpness score (default: theirs, 'learned': the curve reader, "
+                        "evlatcorr.curve_reader; 'consensus': the median of the three sparsity scores' minima)")
     p.add_argument("--ghost-confidence", type=float, default=None, metavar="C",
                    help="built-in correctors: frames whose score confidence is at most C take the ghost cue's "
                         "latency (default: theirs, 0: only frames with no minimum; see evlatcorr.ghost)")

@@ -185,8 +185,8 @@ class EventLatencyCorrector(nn.Module):
         epsilon: ETF edge amplifier ε.
         window: ETF local-contrast window.
         sigma_us: σ of the ETF temporal prior (used when ``frames.meta["previous_latency"]`` is set).
-        score: sharpness score of the search: ``"consensus"`` (default), a single sparsity score,
-            ``"etf"`` (the paper's) or ``"learned"`` (:mod:`evlatcorr.curve_reader`); see
+        score: sharpness score of the search: ``"learned"`` (default: :mod:`evlatcorr.curve_reader` reads the
+            sparsity curves), ``"consensus"``, a single sparsity score or ``"etf"`` (the paper's); see
             :func:`~evlatcorr.search.search_constant_latency`.
         ghost_confidence: frames whose score curve's confidence is at most this get the ghost-moment cue's
             latency where it is clear (:mod:`evlatcorr.ghost`); 0: only frames with no minimum and no

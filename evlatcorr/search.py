@@ -171,11 +171,11 @@ def search_constant_latency(
         sigma_us: σ of the temporal prior, µs.
         integral: ``"step"`` (impulse events) or ``"linear"`` (each event spread since the previous one
             at its pixel, Eq. 16-18; see :mod:`evlatcorr.integral`).
-        score: ``"consensus"`` (default: the median of the estimates of the three sparsity scores),
-            ``"sparsity"``, ``"sparsity_bright"``, ``"sparsity_multiscale"``, ``"etf"`` (paper Eq. 14; see
-            :func:`sharpness_score`) or ``"learned"`` (:mod:`evlatcorr.curve_reader` reads the three sparsity
-            curves and the ghost moment; the estimate is the centre of its probability around its likeliest
-            candidate).
+        score: ``"learned"`` (default: :mod:`evlatcorr.curve_reader` reads the three sparsity curves and the
+            ghost moment; the estimate is the centre of its probability around its likeliest candidate),
+            ``"consensus"`` (the median of the estimates of the three sparsity scores), ``"sparsity"``,
+            ``"sparsity_bright"``, ``"sparsity_multiscale"`` or ``"etf"`` (paper Eq. 14; see
+            :func:`sharpness_score`).
         memory_budget: bytes the search table may take; default
             :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`. A larger table is built strip by strip for
             each batch of candidates (the same values, more time).
