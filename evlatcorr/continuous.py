@@ -183,7 +183,9 @@ class ContinuousIntegral:
         flat = torch.add(self.pixel[lo:hi], slot, alpha=p).sub_(r0 * width)  # int64: the pixels' type
         # an event counts from the first time after it on; row 0 starts from minus the pixel's peak
         count.zero_()[0].sub_(self.peak_count[r0 * width:r1 * width].to(count.dtype))
-        count.view(-1).index_add_(0, flat, self.step[lo:hi].to(count.dtype))
+        # scatter_add_ rather than index_add_: the same sums; on a CPU the two tables' scatters of the default
+        # search's events took 20 ms against 25 ms per DAVIS346 frame
+        count.view(-1).scatter_add_(0, flat, self.step[lo:hi].to(count.dtype))
         cumsum_(count[:num], 0)
         if level.dtype == count.dtype:
             torch.mul(count[:num], self.theta, out=level)
@@ -196,7 +198,7 @@ class ContinuousIntegral:
         torch.mul(level[:num - 1], (g[1:] - g[:-1]).to(level.dtype)[:, None], out=interval[1:num])
         interval[0].zero_()  # rows no window reads (events before the first time, after the last, padding)
         interval[num:].zero_()
-        interval.view(-1).index_add_(0, flat, held.to(interval.dtype))
+        interval.view(-1).scatter_add_(0, flat, held.to(interval.dtype))
 
     def log_ratio(self, start: float, end: float, latencies: Tensor, reference: float = 0.5,
                   out: Tensor | None = None) -> Tensor:
