@@ -41,3 +41,25 @@ def test_the_summary_counts_frames_per_estimate_and_model(rows):
 def test_a_sequence_needs_at_least_one_frame():
     with pytest.raises(ValueError, match="num_frames"):
         evaluate_sequence(make_cases("dev")[0], num_frames=0)
+
+
+def test_the_script_writes_its_table(tmp_path):
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    script = [sys.executable, str(root / "benchmarks" / "sequence_accuracy.py"), "--split", "dev", "--num", "6",
+              "--size", "32", "40", "--frames", "2", "--models", "constant", "--out", str(tmp_path)]
+    run = subprocess.run(script, capture_output=True, text=True, cwd=root, timeout=300)
+    assert run.returncode == 0, run.stderr
+    table = (tmp_path / "results.md").read_text()
+    for estimate in ("per frame", "fused ±2", "fused, past 2 (stream)"):
+        assert f"| {estimate} | constant latency |" in table
+    summary = json.loads((tmp_path / "results.json").read_text())["summary"]
+    assert summary["per frame"]["constant"]["frames"] == 2  # the one constant case among the first six, 2 frames
+    rows = (tmp_path / "results.csv").read_text().splitlines()
+    assert rows[0].startswith("case,model,frame,estimate") and len(rows) == 1 + 3 * 2
+    bad = subprocess.run([*script[:-2], "--frames", "0"], capture_output=True, text=True, cwd=root, timeout=300)
+    assert bad.returncode == 2 and "--frames must be at least 1" in bad.stderr
