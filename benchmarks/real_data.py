@@ -38,7 +38,7 @@ from evlatcorr import EventLatencyCorrector, edi_deblur  # noqa: E402
 from evlatcorr.consistency import pair_disagreement  # noqa: E402
 from evlatcorr.io import open_recording  # noqa: E402
 from evlatcorr.restore import build_model, has_events, pair_frames, pair_reach_us, recording_threshold  # noqa: E402
-from evlatcorr.temporal import fuse_latencies  # noqa: E402
+from evlatcorr.temporal import frame_evidence, fuse_latencies  # noqa: E402
 
 DEFAULT = next((p for p in (Path(__file__).resolve().parents[2] / "shared", Path("/work/shared"))
                 if (p / "data").is_dir()), Path("../shared")) / "data" / "davis346" / "cradle_lowlight.aedat4"
@@ -88,8 +88,7 @@ def main() -> None:
             out = corrector(batch)
             latency = float(out.latency.mean())
             row["latency_us"] = round(latency, 1)
-            log_p = out.meta.get("latency_log_probability")
-            evidence[i] = (latency, out.meta["etf_curve"][0][0], None if log_p is None else log_p[0], pair)
+            evidence[i] = (*frame_evidence(out)[0], pair)
             if pair is not None:
                 stamped = float(pair_disagreement(pair, theta, 0.0))
                 corrected = float(pair_disagreement(pair, theta, latency))

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from evlatcorr.restore import INTERPOLATION_MODELS, MODELS
-from evlatcorr.temporal import DEFAULT_FUSED_FRAMES
+from evlatcorr.temporal import DEFAULT_FUSED_FRAMES, frame_evidence
 
 __all__ = ["main"]
 
@@ -285,8 +285,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
         else:
             out = corrector(batch)
             rows.append(_latency_row(batch, out, theta, time.perf_counter() - t0))
-            log_p = out.meta.get("latency_log_probability")
-            evidence.append((out.meta["etf_curve"][0][0], None if log_p is None else log_p[0]))
+            evidence.append(frame_evidence(out)[0][1:] if args.mode == "constant" else (None, None))
         lat_map = out.latency[0, 0].cpu()
         previous = float(lat_map.mean())
         latencies.append(lat_map)

@@ -21,7 +21,7 @@ from torch import Tensor, nn
 from evlatcorr.curve_reader import probability_centre
 from evlatcorr.frames import EventFrames
 
-__all__ = ["fuse_latencies", "StreamingLatencyCorrector", "DEFAULT_FUSED_FRAMES"]
+__all__ = ["fuse_latencies", "frame_evidence", "StreamingLatencyCorrector", "DEFAULT_FUSED_FRAMES"]
 
 # frames either side whose evidence a frame takes: on 6-frame sequences of the accuracy suite's tuning cases
 # (constant and photoreceptor latency), 2 either side lowered the constant-latency median error from 664 to 513 µs,
@@ -94,6 +94,32 @@ def fuse_latencies(latency: Tensor, candidates: Tensor | Sequence[Tensor],
         total = torch.where(scored, total, -math.inf)
         out[k] = probability_centre(total, cand[own], int(scored.sum()))[1]
     return out.to(latency.device)
+
+
+def frame_evidence(out: EventFrames) -> list[tuple[float, Tensor, Tensor | None]]:
+    """What :func:`fuse_latencies` takes of each frame of a constant corrector's output: its own latency (µs, the
+    mean of its map), its candidates :math:`(K,)` and the reader's log-probability :math:`(K,)` (None for another
+    score, or where nothing could be scored), on the CPU.
+
+    Raises:
+        ValueError: when ``out`` is not a constant corrector's output (no ``meta["etf_curve"]`` or latency).
+
+    Example:
+        >>> from evlatcorr.correction import EventLatencyCorrector
+        >>> from evlatcorr.simulate import simulate
+        >>> out = EventLatencyCorrector()(simulate("camera", num_frames=2, height=24, width=32, seed=0).frames())
+        >>> [(len(candidates), log_p is not None) for _, candidates, log_p in frame_evidence(out)]
+        [(101, True), (101, True)]
+    """
+    if not isinstance(out, EventFrames) or out.latency is None or "etf_curve" not in out.meta:
+        raise ValueError("frame_evidence takes the output of a constant-mode EventLatencyCorrector (its latency and "
+                         "meta['etf_curve'])")
+    own = out.latency.flatten(1).mean(1).double().cpu()
+    candidates = out.meta["etf_curve"][0].double().cpu()
+    log_p = out.meta.get("latency_log_probability")
+    rows = [None] * len(own) if log_p is None else list(log_p.double().cpu())
+    return [(float(own[b]), candidates[b], None if rows[b] is None or bool(torch.isnan(rows[b]).any()) else rows[b])
+            for b in range(len(own))]
 
 
 def _rows(values: Tensor | Sequence[Tensor | None], n: int, name: str) -> list[Tensor | None]:
@@ -176,11 +202,9 @@ class StreamingLatencyCorrector(nn.Module):
 
         out = self.corrector(frames)
         own = out.latency.flatten(1).mean(1).double().cpu()
-        candidates = out.meta["etf_curve"][0]
-        log_p = out.meta.get("latency_log_probability")
         fused = torch.empty_like(own)
-        for b in range(frames.batch_size):  # frames, in order: each takes the ones before it
-            self._history.append((float(own[b]), candidates[b], None if log_p is None else log_p[b]))
+        for b, evidence in enumerate(frame_evidence(out)):  # frames, in order: each takes the ones before it
+            self._history.append(evidence)
             del self._history[:-(self.before + 1)]
             fused[b] = fuse_latencies(torch.tensor([h[0] for h in self._history], dtype=torch.float64),
                                       [h[1] for h in self._history], [h[2] for h in self._history], self.before, 0)[-1]

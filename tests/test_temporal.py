@@ -5,7 +5,7 @@ import torch
 
 from evlatcorr.curve_reader import probability_centre
 from evlatcorr.search import search_constant_latency
-from evlatcorr.temporal import fuse_latencies
+from evlatcorr.temporal import frame_evidence, fuse_latencies
 from tests.conftest import random_events
 
 CANDIDATES = torch.arange(0.0, 2000.0, 100.0, dtype=torch.float64)
@@ -144,3 +144,31 @@ def test_the_streaming_corrector_refuses_a_spatial_corrector_or_a_negative_windo
         StreamingLatencyCorrector(EventLatencyCorrector(mode="spatial"))
     with pytest.raises(ValueError, match="whole number"):
         StreamingLatencyCorrector(before=-1)
+
+
+def test_frame_evidence_reads_each_frame_of_a_constant_correction():
+    from evlatcorr.correction import EventLatencyCorrector
+    from evlatcorr.simulate import simulate
+
+    frames = simulate("camera", num_frames=2, height=24, width=32, latency_us=2000.0, seed=0).frames("delayed")
+    out = EventLatencyCorrector()(frames)
+    evidence = frame_evidence(out)
+    assert len(evidence) == 2
+    for b, (own, candidates, log_p) in enumerate(evidence):
+        assert own == pytest.approx(float(out.latency[b].mean()))
+        torch.testing.assert_close(candidates, out.meta["etf_curve"][0][b].double().cpu())
+        torch.testing.assert_close(log_p, out.meta["latency_log_probability"][b].cpu())
+    # the consensus has no reader: no evidence, the frame's own latency only
+    consensus = frame_evidence(EventLatencyCorrector(score="consensus")(frames))
+    assert [log_p for _, _, log_p in consensus] == [None, None]
+    with pytest.raises(ValueError, match="constant-mode EventLatencyCorrector"):
+        frame_evidence(frames)
+
+
+def test_probability_centre_refuses_shapes_that_do_not_match():
+    with pytest.raises(ValueError, match="num_valid"):
+        probability_centre(torch.zeros(4), torch.arange(4.0), 0)
+    with pytest.raises(ValueError, match=r"\(K,\)"):
+        probability_centre(torch.zeros(4), torch.arange(5.0), 4)
+    # a pick at the edge of the valid candidates keeps no neighbours: it stays where it is
+    assert probability_centre(torch.tensor([0.0, 1.0, 5.0, -1e4]), torch.arange(4.0), 3) == (2.0, 2.0)

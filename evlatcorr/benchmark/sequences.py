@@ -25,7 +25,7 @@ import torch
 
 from evlatcorr.benchmark.accuracy import NO_GAP_DB, Case, simulate_case
 from evlatcorr.benchmark.compare import edi_psnr, recovery
-from evlatcorr.temporal import fuse_latencies
+from evlatcorr.temporal import frame_evidence, fuse_latencies
 
 __all__ = ["evaluate_sequence", "summarize_sequences", "DEFAULT_WINDOWS"]
 
@@ -61,19 +61,17 @@ def evaluate_sequence(case: Case, num_frames: int = 6,
         for i, frame in enumerate(frames):
             if len(frame.events) == 0:
                 continue
-            out = corrector(frame)
-            own.append(float(out.latency.mean()))
-            candidates.append(out.meta["etf_curve"][0][0].double().cpu())
-            row = out.meta.get("latency_log_probability")
-            log_p.append(torch.full_like(candidates[-1], math.nan) if row is None else row[0].double().cpu())
+            latency, cand, row = frame_evidence(corrector(frame))[0]
+            own.append(latency)
+            candidates.append(cand)
+            log_p.append(row)
             kept.append(i)
     if not kept:
         return []
     latency = torch.tensor(own, dtype=torch.float64)
     estimates = {"per frame": latency}
-    cand, lp = torch.stack(candidates), torch.stack(log_p)
     for name, (before, after) in windows.items():
-        estimates[name] = fuse_latencies(latency, cand, lp, before, after)
+        estimates[name] = fuse_latencies(latency, candidates, log_p, before, after)
     rows = []
     for n, i in enumerate(kept):
         frame = frames[i]
