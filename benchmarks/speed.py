@@ -55,7 +55,7 @@ from pathlib import Path
 
 import torch  # noqa: E402
 
-from evlatcorr import EventLatencyCorrector  # noqa: E402
+from evlatcorr import EventLatencyCorrector, Events  # noqa: E402
 from evlatcorr.edi import edi_deblur  # noqa: E402
 from evlatcorr.search import DEFAULT_SCORE, search_constant_latency, sharpness_score  # noqa: E402
 
@@ -113,9 +113,15 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of --part against")
     parser.add_argument("--events", type=int, default=3_000_000, help="events of --part memory")
     parser.add_argument("--memory-child", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[4], metavar="B",
+                        help="frames per call of --part batch (each against one frame)")
+    parser.add_argument("--memory-budget", type=float, default=None, metavar="BYTES",
+                        help="memory budget of --part batch's searches (default: the library's, 2 GiB)")
     parser.add_argument("--adapter-size", type=int, nargs=2, default=(256, 336), metavar=("H", "W"),
                         help="frame size of --part adapters (the benchmark's)")
     args = parser.parse_args()
+    if min(args.batch_sizes) < 1:
+        parser.error("--batch-sizes must be positive")
     devices = args.device or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
     if args.memory_child:
         memory_child(torch.device(devices[0]), args)
@@ -263,25 +269,44 @@ def bench_stages(device: torch.device, args: argparse.Namespace) -> None:
         print(f"[{device.type}]   {label}: {statistics.median(values) * 1000:.1f} ms")
 
 
-def bench_batch(device: torch.device, args: argparse.Namespace, batch: int = 4) -> None:
-    """The default search on ``batch`` frames in one call against one frame: a batch must cost at most
-    ``batch`` times one frame."""
-    seq = simulate("astronaut", num_frames=batch, height=args.height, width=args.width, exposure_us=args.exposure_us,
-                   frame_interval_us=args.exposure_us * 1.25, latency="constant", latency_us=4000.0, seed=0)
+def bench_batch(device: torch.device, args: argparse.Namespace) -> None:
+    """The default search on B frames of one recording in one call (``--batch-sizes``) against one frame: a batch
+    must cost at most B times one frame. On a GPU the frames share one pass over their events
+    (:mod:`evlatcorr.search_batched`) as far as ``--memory-budget`` allows; on a CPU they are searched one by one."""
+    sizes = sorted(set(args.batch_sizes))
+    seq = simulate("astronaut", num_frames=max(sizes), height=args.height, width=args.width,
+                   exposure_us=args.exposure_us, frame_interval_us=args.exposure_us * 1.25, latency="constant",
+                   latency_us=4000.0, seed=0)
     frames = seq.frames("delayed").to(device)
-    one = frames.replace(blurry=frames.blurry[:1], events=frames.events.sample(0), sharp=None, meta={},
-                         exposure_start=frames.exposure_start[:1], exposure_end=frames.exposure_end[:1])
+
+    def first(f, n):
+        ev, end = f.events, f.events.sample_bounds()[n]
+        events = Events.from_canonical(ev.x[:end], ev.y[:end], ev.t[:end], ev.p[:end], ev.batch[:end],
+                                       ev.sensor_size, n)
+        return f.replace(blurry=f.blurry[:n], events=events, sharp=None, meta={},
+                         exposure_start=f.exposure_start[:n], exposure_end=f.exposure_end[:n])
 
     def search(f):
         return search_constant_latency(f.blurry, f.events, f.exposure_start, f.exposure_end, 0.2, args.bins, None,
-                                       args.candidates)
+                                       args.candidates, memory_budget=args.memory_budget)
 
-    search(one)  # warm-up
+    one = first(frames, 1)
+    for _ in range(WARM_UP):
+        search(one)
     t_one = statistics.median(timed(lambda: search(one), device)[0] for _ in range(args.repeats))
-    t_batch = statistics.median(timed(lambda: search(frames), device)[0] for _ in range(args.repeats))
-    print(f"[{device.type}] default search, one frame ({len(one.events)} events): {t_one * 1000:.1f} ms; "
-          f"{batch} frames in one call ({len(frames.events)} events): {t_batch * 1000:.1f} ms = "
-          f"{t_batch / t_one:.2f} x one frame (median of {args.repeats})")
+    budget = ("the default memory budget" if args.memory_budget is None
+              else f"a {args.memory_budget / 2**30:.0f} GiB budget")
+    print(f"[{device.type}] default search, one frame ({len(one.events)} events): {t_one * 1000:.1f} ms "
+          f"({1 / t_one:.0f} frames/s); {budget}, median of {args.repeats}")
+    for size in sizes:
+        if size == 1:
+            continue
+        batch = first(frames, size)
+        for _ in range(WARM_UP):
+            search(batch)
+        t_batch = statistics.median(timed(lambda b=batch: search(b), device)[0] for _ in range(args.repeats))
+        print(f"[{device.type}] {size} frames in one call ({len(batch.events)} events): {t_batch * 1000:.1f} ms = "
+              f"{t_batch / t_one:.2f} x one frame, {size / t_batch:.0f} frames/s")
 
 
 def bench_spatial(device: torch.device, args: argparse.Namespace) -> None:

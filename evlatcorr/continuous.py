@@ -53,6 +53,9 @@ class ContinuousIntegral:
         max_log_range: pixels whose level θC spans more than this over the events (a hot pixel firing one
             polarity: no scene's log intensity spans e^15) are read as if they had no events (``ignored``: their
             mask :math:`(H·W,)`); None: every pixel is read.
+        time_sorted: the events are sorted by time (one sample's). False: only each pixel's events are (e.g.
+            several frames' events side by side as one tall image, each frame's times from its own exposure start);
+            each read then finds its events' slots by a binary search each (cheap on a GPU, slower on a CPU).
 
     Levels are kept relative to each pixel's highest level (``θC − peak ≤ 0``) so ``exp`` never
     overflows; the ratio ``R`` does not depend on that scale. A window's integral is summed from the
@@ -71,7 +74,8 @@ class ContinuousIntegral:
         -0.21907
     """
 
-    def __init__(self, events: Events, threshold: float, max_log_range: float | None = None) -> None:
+    def __init__(self, events: Events, threshold: float, max_log_range: float | None = None,
+                 time_sorted: bool = True) -> None:
         if events.batch_size != 1:
             raise ValueError(f"ContinuousIntegral takes one sample, got batch_size {events.batch_size}")
         if not threshold > 0:
@@ -92,8 +96,8 @@ class ContinuousIntegral:
         keys, order = torch.sort(torch.add(events.x, events.y, alpha=width, out=pixel), stable=True)
         # the events in time order (the input's own times, no copy) and where each pixel-order event came from: an
         # event's slot among sorted times is then a count over the time-ordered stream, not a binary search each
-        self.time_ordered = events.t
-        self.order = order.to(torch.int32) if small else order
+        self.time_ordered = events.t if time_sorted else None
+        self.order = (order.to(torch.int32) if small else order) if time_sorted else None
         self.pixel, self.t = keys.to(torch.int64), events.t.to(torch.float64).index_select(0, order)
         step = events.p.index_select(0, order)
         counts = torch.bincount(self.pixel, minlength=self.num_pixels)
@@ -160,6 +164,8 @@ class ContinuousIntegral:
     def _slots(self, g: Tensor) -> Tensor:
         """How many of the sorted times ``g`` each event (pixel order) is at or after: ``searchsorted(g, t,
         right=True)``, from one count over the time-ordered stream."""
+        if self.time_ordered is None:  # times sorted within each pixel only
+            return torch.searchsorted(g, self.t, right=True, out_int32=True)
         n = len(self.time_ordered)
         first = torch.searchsorted(self.time_ordered, g)  # the first event at or after each time
         marks = torch.zeros(n + 1, dtype=torch.int32, device=self.device).index_add_(

@@ -28,7 +28,7 @@ import kornia
 import torch
 from torch import Tensor
 
-__all__ = ["ghost_moment", "ghost_root", "inverse_ratio_moment"]
+__all__ = ["ghost_moment", "ghost_root", "inverse_ratio_moment", "stacked_inverse_ratio_moment"]
 
 # σ of the high-pass, px: 1 removed the shading offset on most dev scenes; 0 (none) and 2 were worse
 HIGH_PASS_SIGMA = 1.0
@@ -80,6 +80,23 @@ def inverse_ratio_moment(grey: Tensor, inverse: Tensor, log_change: Tensor) -> T
     _check_moment_inputs(grey, inverse, log_change, "inverse")
     log_latent = torch.log(inverse).add_(torch.log(grey.to(inverse).clamp_min(_FLOOR)))
     return _high_pass_correlation(log_latent, log_change, HIGH_PASS_SIGMA)
+
+
+def stacked_inverse_ratio_moment(grey: Tensor, inverse: Tensor, log_change: Tensor) -> Tensor:
+    """:func:`inverse_ratio_moment` of several frames' candidates at once: ``grey`` :math:`(1, F, H, W)`, ``inverse``
+    and ``log_change`` :math:`(K, F, H, W)` float32 (frame ``f``'s candidates in channel ``f``) → :math:`(K, F)`.
+
+    Raises:
+        ValueError: when the shapes do not match.
+    """
+    if (grey.dim() != 4 or grey.shape[0] != 1 or inverse.shape[1:] != grey.shape[1:]
+            or log_change.shape != inverse.shape):
+        raise ValueError(f"grey must be (1, F, H, W) and inverse and log_change both (K, F, H, W), got "
+                         f"{tuple(grey.shape)}, {tuple(inverse.shape)} and {tuple(log_change.shape)}")
+    k, frames, height, width = inverse.shape
+    log_latent = torch.log(inverse).add_(torch.log(grey.to(inverse).clamp_min(_FLOOR)))
+    flat = (k * frames, 1, height, width)
+    return _high_pass_correlation(log_latent.view(flat), log_change.reshape(flat), HIGH_PASS_SIGMA).view(k, frames)
 
 
 def _check_moment_inputs(grey: Tensor, ratio: Tensor, log_change: Tensor, name: str) -> None:

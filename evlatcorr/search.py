@@ -263,12 +263,15 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
     # every sample's bounds in one copy to the host (one wait for a GPU, not five per sample)
     spans = torch.stack([start, end, lows.to(start), highs.to(start), reach]).T.cpu().tolist()
     thetas = theta.cpu().tolist()
-    results = []
-    for i in range(b):
-        ev = events.sample(i)
-        results.append(_search_one(
-            grey[i:i + 1], ev, _Window(*spans[i]), thetas[i], config, None if prev is None else prev[i:i + 1], integral,
-            budget, method))
+    windows = [_Window(*span) for span in spans]
+    from evlatcorr import search_batched  # it builds on this module
+
+    if search_batched.frames_can_share_a_pass(grey, windows, thetas, config, method):
+        # on a GPU each frame's search is bound by launches and waits: frames alike share one pass
+        results = search_batched.search_frames_together(grey, events, windows, thetas[0], config, prev, budget)
+    else:
+        results = [_search_one(grey[i:i + 1], events.sample(i), windows[i], thetas[i], config,
+                               None if prev is None else prev[i:i + 1], integral, budget, method) for i in range(b)]
     return ConstantSearchResult(
         latency=torch.tensor([r.latency for r in results], dtype=torch.float64, device=blurry.device),
         candidates=torch.stack([r.candidates for r in results]).to(blurry.device),
@@ -308,6 +311,19 @@ class _OneResult:
     ignored_pixels: int = 0
     spread_us: float = math.nan  # the learned reader's standard deviation, µs
     log_probability: Tensor | None = None  # (K,) the learned reader's, without the prior (−inf: not scored)
+
+
+@dataclass
+class _Evidence:
+    """What :func:`_search_one` reads of one frame with ``score="learned"``, when made with other frames': its
+    reader (``final_ratio`` may give None: the latent at the estimate is read afterwards), coarse scores
+    :math:`(3, K)` (inf: not scored), the curve reader's log-odds :math:`(K,)` on the host and the ghost moments
+    :math:`(K,)`."""
+
+    reader: _CandidateReader
+    scores: Tensor
+    log_p: Tensor
+    moment: Tensor
 
 
 def sharpness_score(latent: Tensor, latency: Tensor, previous: Tensor | None, score: str, epsilon: float,
@@ -611,11 +627,14 @@ def _latent_scores(grey: Tensor, inverse: Tensor, latency: Tensor, previous: Ten
                       previous, scores, config.epsilon, config.window, config.sigma_us)
 
 
-def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, config: SearchConfig,
+def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float, config: SearchConfig,
                 prev: Tensor | None, integral: str, budget: int | None = None,
-                method: str = "continuous") -> _OneResult:
+                method: str = "continuous", evidence: _Evidence | None = None) -> _OneResult:
     """Search for one sample; ``grey`` is :math:`(1, 1, H, W)`. See :func:`_continuous_reader` and
-    :func:`_binned_reader` for how each ``method`` lays out its candidates."""
+    :func:`_binned_reader` for how each ``method`` lays out its candidates.
+
+    ``evidence``: the sample's reader, coarse scores and curve reader output, already made with other frames'
+    (``score="learned"``, :mod:`evlatcorr.search_batched`); ``events`` is then not read."""
     low, high = span.low, span.high
     width_us = (span.end - span.start) / config.num_bins
     if max(abs(low), abs(high)) / width_us >= 2**53:  # beyond float64's whole numbers of sub-intervals
@@ -623,8 +642,11 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
                          f"sub-intervals of {width_us:.4g} us (exposure time / num_bins), more than the search "
                          "can count (2**53): narrow search_range")
     members = tuple(_SPARSITY) if config.score in ("consensus", "learned") else (config.score,)
-    reader = (_continuous_reader(grey, events, span, theta, config, budget) if method == "continuous"
-              else _binned_reader(events, span, theta, config, integral, budget))
+    if evidence is not None:
+        reader = evidence.reader
+    else:
+        reader = (_continuous_reader(grey, events, span, theta, config, budget) if method == "continuous"
+                  else _binned_reader(events, span, theta, config, integral, budget))
     coarse, to_us = reader.coarse, reader.to_us
 
     spread, log_probability = math.nan, None
@@ -640,11 +662,20 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
 
     # the learned reader reads the curves as it was trained (no temporal prior) and takes the prior afterwards
     coarse_prev = None if config.score == "learned" else prev
-    coarse_scores = torch.stack(_score_candidates(reader, grey, members, config, coarse_prev,
-                                                  [coarse] * len(members)))
+    moment = None
+    if evidence is not None:
+        coarse_scores = evidence.scores
+    else:
+        coarse_scores = torch.stack(_score_candidates(reader, grey, members, config, coarse_prev,
+                                                      [coarse] * len(members)))
     if config.score == "learned":  # the reader refines its own pick: no fine candidates to score
+        if evidence is not None:
+            log_p, moment = evidence.log_p, evidence.moment
+        else:
+            log_p, moment = _learned_log_p(reader, grey, coarse, coarse_scores)
         prior = None if prev is None else (to_us(coarse).cpu().double(), float(prev), config.sigma_us)
-        pick, centre, spread, log_probability = _learned_pick(reader, grey, coarse, coarse_scores, prior)
+        pick, centre, spread, log_probability = _learned_pick(reader, coarse, log_p,
+                                                              torch.isfinite(coarse_scores[0]), prior)
         estimates = [_refine(coarse, coarse_scores[m], coarse, None, False) for m in range(len(members))]
     else:
         fines = [reader.fine_of(float(coarse[int(torch.argmin(coarse_scores[m]))])) for m in range(len(members))]
@@ -657,7 +688,7 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
     if ghost_wanted and (confidence > 0 or prev is None) and reader.log_change is not None:
         # a flat sharpness curve: the ghost moment's zero where it crosses once (a frame with no minimum at all
         # keeps the previous frame's latency when there is one)
-        ghost = _ghost_latency(reader, grey, coarse)
+        ghost = _ghost_latency(reader, grey, coarse, moment)
         if ghost is not None:
             latency = min(max(ghost, low), high)
             return result(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(coarse).cpu(),
@@ -679,9 +710,9 @@ def _search_one(grey: Tensor, events: Events, span: _Window, theta: float, confi
 
 
 def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor
-                  ) -> tuple[Tensor, Tensor]:
-    """:func:`~evlatcorr.curve_reader.curve_features` of one frame's coarse candidates on the frame's device, and
-    which are valid (on the scores' device, the host)."""
+                  ) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`~evlatcorr.curve_reader.curve_features` of one frame's coarse candidates on the frame's device, which
+    are valid (on the scores' device, the host), and their ghost moments :math:`(K,)` (0 past the last event)."""
     from evlatcorr.curve_reader import curve_features
 
     valid = torch.isfinite(coarse_scores[0])
@@ -690,7 +721,24 @@ def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse
     moment[:len(kept)] = _candidate_moments(reader, grey, kept)
     # the features are made where the moments are: on a GPU the moments are not waited for, and the reader runs
     # there too (on a many-core host its few tiny convolutions cost milliseconds of thread wake-ups)
-    return curve_features(coarse_scores.to(grey.device), moment, valid.to(grey.device)), valid
+    return curve_features(coarse_scores.to(grey.device), moment, valid.to(grey.device)), valid, moment
+
+
+def _learned_log_p(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor
+                   ) -> tuple[Tensor, Tensor]:
+    """The shipped curve reader's log-odds of one frame's coarse candidates :math:`(K,)` float64 on the host, and
+    their ghost moments :math:`(K,)` on the frame's device (0 past the last event)."""
+    curves, valid, moment = _curve_inputs(reader, grey, coarse, coarse_scores)
+    return _read_curves(curves[None], valid[None])[0], moment
+
+
+def _read_curves(curves: Tensor, valid: Tensor) -> Tensor:
+    """The shipped curve reader's log-odds :math:`(N, K)` float64 on the host of :math:`(N, F, K)` curves (on the
+    device they were made on) and their valid candidates :math:`(N, K)`: the one wait for the device."""
+    ensemble = _curve_reader_on(curves.device)
+    with torch.no_grad():
+        log_p = ensemble(curves.to(next(ensemble.parameters()).dtype), valid.to(curves.device))
+    return log_p.double().cpu()
 
 
 def _candidate_moments(reader: _CandidateReader, grey: Tensor, kept: Tensor) -> Tensor:
@@ -718,9 +766,10 @@ def _curve_reader_on(device: torch.device) -> torch.nn.Module:
     return fused if device.type == "cpu" else fused.to(device, torch.float64)
 
 
-def _learned_pick(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor,
+def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid: Tensor,
                   prior: tuple[Tensor, float, float] | None = None) -> tuple[float, float, float, Tensor]:
-    """The coarse candidate :mod:`evlatcorr.curve_reader`'s shipped ensemble finds likeliest and the centre of
+    """The coarse candidate :mod:`evlatcorr.curve_reader`'s shipped ensemble finds likeliest (its log-odds
+    ``log_p`` :math:`(K,)` on the host, :func:`_learned_log_p`; ``valid``: the scored candidates) and the centre of
     its probability over that candidate's neighbours (both in reader units), the standard deviation of its
     probability over all candidates (µs), and the reader's log-probability of each candidate without the prior
     :math:`(K,)` (normalised over the scored candidates, −inf elsewhere).
@@ -735,11 +784,7 @@ def _learned_pick(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse
     """
     from evlatcorr.curve_reader import probability_centre
 
-    curves, valid = _curve_inputs(reader, grey, coarse, coarse_scores)
-    ensemble = _curve_reader_on(curves.device)
-    with torch.no_grad():
-        log_p = ensemble(curves[None].to(next(ensemble.parameters()).dtype), valid[None].to(curves.device))[0]
-    log_p = log_p.double().cpu()  # the one wait for the device: the pick and its centre are a few host operations
+    valid = valid.cpu()
     # what the frame alone says, for fusing frames (evlatcorr.temporal): normalised over the scored candidates
     own = torch.full_like(log_p, -math.inf)
     own[valid] = torch.log_softmax(log_p[valid], 0)
@@ -777,16 +822,19 @@ def candidate_curves(blurry: Tensor, events: Events, exposure_start: float, expo
     reader = _continuous_reader(grey, events, span, float(threshold), config, None)
     coarse_scores = torch.stack(_score_candidates(reader, grey, tuple(_SPARSITY), config, None,
                                                   [reader.coarse] * len(_SPARSITY)))
-    curves, valid = _curve_inputs(reader, grey, reader.coarse, coarse_scores)
+    curves, valid, _ = _curve_inputs(reader, grey, reader.coarse, coarse_scores)
     return reader.coarse.cpu(), curves.cpu(), valid.cpu()
 
 
-def _ghost_latency(reader: _CandidateReader, grey: Tensor, coarse: Tensor) -> float | None:
-    """:func:`~evlatcorr.ghost.ghost_root` over the coarse candidates whose windows hold events, µs."""
+def _ghost_latency(reader: _CandidateReader, grey: Tensor, coarse: Tensor, moment: Tensor | None = None
+                   ) -> float | None:
+    """:func:`~evlatcorr.ghost.ghost_root` over the coarse candidates whose windows hold events, µs (``moment``:
+    the coarse candidates' moments when already made, :func:`_learned_log_p`)."""
     kept = coarse[coarse <= reader.top]
     if len(kept) < 3:
         return None
-    return ghost_root(reader.to_us(kept).cpu(), _candidate_moments(reader, grey, kept).cpu())
+    moment = _candidate_moments(reader, grey, kept) if moment is None else moment[:len(kept)]
+    return ghost_root(reader.to_us(kept).cpu(), moment.cpu())
 
 
 def _aligned_candidates(low: float, high: float, num: int, exposure: float) -> tuple[Tensor, float]:
