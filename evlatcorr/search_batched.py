@@ -37,10 +37,10 @@ from evlatcorr.search import (
     _OneResult,
     _read_curves,
     _score_chunk,
-    _scores_of,
     _search_one,
     _Window,
 )
+from evlatcorr.sharpness import _scores_of
 
 __all__ = ["frames_can_share_a_pass", "search_frames_together"]
 

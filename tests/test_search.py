@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 import evlatcorr.checks
 import evlatcorr.search
+import evlatcorr.sharpness
 from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.edi import edi_deblur
 from evlatcorr.search import SearchConfig, search_constant_latency, sharpness_score, sharpness_scores
@@ -277,7 +278,7 @@ def test_score_chunk_fills_a_device_budget():
 def test_padded_gradient_sparsity_equals_the_piecewise_one(shape, device):
     # a GPU takes the padded form (fewer kernel launches), a CPU the piecewise one (no image-sized copies)
     image = torch.rand(*shape, generator=torch.Generator().manual_seed(9)).log()
-    want = evlatcorr.search._gradient_sparsity(image)
-    torch.testing.assert_close(evlatcorr.search._padded_gradient_sparsity(image), want, rtol=1e-5, atol=1e-7)
-    torch.testing.assert_close(evlatcorr.search._gradient_sparsity(image.to(device)).cpu(), want, rtol=1e-5,
+    want = evlatcorr.sharpness._gradient_sparsity(image)
+    torch.testing.assert_close(evlatcorr.sharpness._padded_gradient_sparsity(image), want, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(evlatcorr.sharpness._gradient_sparsity(image.to(device)).cpu(), want, rtol=1e-5,
                                atol=1e-7)

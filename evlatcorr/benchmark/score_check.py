@@ -27,7 +27,7 @@ from evlatcorr.config import SPARSITY_SCORES
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
 from evlatcorr.latency_table import LatencyTable
-from evlatcorr.search import sharpness_scores
+from evlatcorr.sharpness import sharpness_scores
 from evlatcorr.spatial import PolynomialLatency
 
 __all__ = ["CHECKED_SCORES", "check_case", "summarize_checks", "checks_to_markdown"]
@@ -43,7 +43,7 @@ def check_case(case: Case, simulated: EventFrames | None = None, scores: Sequenc
     Args:
         case: an accuracy-suite case with a per-pixel latency (:data:`MAP_MODELS`).
         simulated: its delayed frames (``simulate_case(case)[0]``), to reuse a simulation.
-        scores: the sharpness scores to check (:func:`~evlatcorr.search.sharpness_scores` names).
+        scores: the sharpness scores to check (:func:`~evlatcorr.sharpness.sharpness_scores` names).
         num_latencies: constant latencies tabulated from 0 to the exposure time.
 
     Returns:
