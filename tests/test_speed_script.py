@@ -54,3 +54,20 @@ def test_stages_add_up_to_the_whole_search():
     assert all(value >= 0 for value in times.values())
     parts = sum(value for label, value in times.items() if label != "total")
     assert parts == pytest.approx(times["total"], abs=0.5)  # each printed to 0.1 ms
+
+
+def test_batch_part_times_each_batch_size_against_one_frame():
+    run = subprocess.run([sys.executable, str(SCRIPT), "--part", "batch", "--height", "24", "--width", "32",
+                          "--repeats", "1", "--batch-sizes", "3", "1", "2", "--device", "cpu"], capture_output=True,
+                         text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 0, run.stderr
+    lines = [line for line in run.stdout.splitlines() if line.startswith("[cpu]")]
+    assert "one frame" in lines[0] and "frames/s" in lines[0]
+    assert [line.split(" frames in one call")[0] for line in lines[1:]] == ["[cpu] 2", "[cpu] 3"]
+    assert all("x one frame" in line and line.endswith("frames/s") for line in lines[1:])
+
+
+def test_batch_sizes_must_be_positive():
+    run = subprocess.run([sys.executable, str(SCRIPT), "--part", "batch", "--batch-sizes", "0"], capture_output=True,
+                         text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 2 and "--batch-sizes must be positive" in run.stderr
