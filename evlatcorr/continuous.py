@@ -220,7 +220,44 @@ class ContinuousIntegral:
         Returns:
             :math:`(K, 1, H, W)` float64; the latent image is ``blurry · exp(−log R)``.
         """
+        if latencies.numel() == 1 and self.time_ordered is not None and out is None:
+            return self._one_window(start, end, float(latencies.reshape(-1)[0]), reference)
         return self._read(start, end, latencies, reference, out, torch.float64)
+
+    def _counts_where(self, mask: Tensor) -> Tensor:
+        """Each pixel's net signed events where ``mask`` (pixel order) holds, float64 :math:`(H·W,)`: a running sum
+        over the pixel-ordered events read at each pixel's run (whole numbers: exact)."""
+        running = torch.empty(len(mask) + 1, dtype=torch.int32 if len(mask) < 2**31 else torch.int64,
+                              device=self.device)
+        running[0] = 0
+        torch.cumsum(torch.mul(self.step, mask), 0, out=running[1:])
+        ends = torch.cat([self.run_start[1:], self.run_start.new_tensor([len(mask)])])
+        return (running.index_select(0, ends) - running.index_select(0, self.run_start)).to(torch.float64)
+
+    def _one_window(self, start: float, end: float, latency: float, reference: float) -> Tensor:
+        """:meth:`log_ratio` of one window (e.g. the latent at a search's estimate), from per-pixel sums instead of
+        tables: each pixel's count before the window's start and before its reference time, and its events' rises
+        held until the window's end. An event is before a time when its place in the time-ordered stream is (the
+        tables' rule); the sums run over events in pixel order, so they are sequential."""
+        lat = torch.tensor([latency], dtype=torch.float64)
+        mid = start + reference * (end - start)
+        times, index = _distinct_times(torch.stack([start + lat, mid + lat, end + lat]))
+        a, r, b = times[index[:, 0]].tolist()  # rounded as the tables' times are
+        first_r, first_b = torch.searchsorted(self.time_ordered, torch.tensor([r, b], dtype=torch.float64,
+                                                                                device=self.device)).tolist()
+        first_a = int(torch.searchsorted(self.time_ordered, torch.tensor([a], dtype=torch.float64,
+                                                                          device=self.device)))
+        before_a, before_r = self.order < first_a, self.order < first_r
+        count_a, count_r = self._counts_where(before_a), self._counts_where(before_r)
+        # the level at the window's start held throughout, and each event inside it adding its rise from its time on
+        held = torch.sub(b, self.t).mul_(self.rise).mul_((self.order < first_b).logical_and_(before_a.logical_not()))
+        window = torch.zeros(self.num_pixels, dtype=torch.float64, device=self.device).scatter_add_(
+            0, self.pixel, held)
+        peak = self.peak_count.to(torch.float64)
+        window += torch.exp((count_a - peak) * self.theta) * (b - a)
+        log_ratio = window.clamp_min_(torch.finfo(torch.float64).tiny).div_(end - start).log_()
+        log_ratio -= (count_r - peak) * self.theta
+        return log_ratio.view(1, 1, *self.sensor_size)
 
     def inverse_ratio(self, start: float, end: float, latencies: Tensor, reference: float = 0.5,
                       out: Tensor | None = None, change_out: Tensor | None = None) -> Tensor:

@@ -134,6 +134,25 @@ def test_event_slots_equal_a_binary_search_of_each_event():
     assert torch.equal(ci._slots(times).long(), expected)
 
 
+@pytest.mark.parametrize("reference", [0.0, 0.3, 0.5, 1.0])
+@pytest.mark.parametrize("latency", [-20.0, 0.0, 37.3, 150.0, 400.0])
+def test_one_window_from_per_pixel_sums_equals_the_tables(reference, latency):
+    # one latency is read from per-pixel sums, several from tables: the same log R, a hot pixel, events on window
+    # ends and windows past the last event included
+    t = torch.cat([torch.rand(3000, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 300.0,
+                   torch.tensor([10.0, 110.0, 60.0], dtype=torch.float64),  # on the ends and the reference
+                   torch.linspace(0.0, 299.0, 100, dtype=torch.float64)])  # a hot pixel at (0, 0)
+    g = torch.Generator().manual_seed(4)
+    x = torch.cat([torch.randint(0, 6, (3003,), generator=g), torch.zeros(100, dtype=torch.long)])
+    y = torch.cat([torch.randint(0, 5, (3003,), generator=g), torch.zeros(100, dtype=torch.long)])
+    p = torch.cat([torch.randint(0, 2, (3003,), generator=g), torch.ones(100, dtype=torch.long)])
+    ci = ContinuousIntegral(Events(x, y, t, p, sensor_size=(5, 6), sort=True), 0.3, max_log_range=15.0)
+    assert bool(ci.ignored[0])
+    lat = torch.tensor([latency, 5.0], dtype=torch.float64)
+    tables = ci.log_ratio(10.0, 110.0, lat, reference)[:1]
+    torch.testing.assert_close(ci.log_ratio(10.0, 110.0, lat[:1], reference), tables, rtol=0, atol=1e-12)
+
+
 def test_a_sample_with_no_events_reads_r_equal_to_one():
     empty = torch.zeros(0, dtype=torch.long)
     ci = ContinuousIntegral(Events(empty, empty, torch.zeros(0, dtype=torch.float64), empty, sensor_size=(2, 3)), 0.2,

@@ -282,3 +282,15 @@ def test_padded_gradient_sparsity_equals_the_piecewise_one(shape, device):
     torch.testing.assert_close(evlatcorr.sharpness._padded_gradient_sparsity(image), want, rtol=1e-5, atol=1e-7)
     torch.testing.assert_close(evlatcorr.sharpness._gradient_sparsity(image.to(device)).cpu(), want, rtol=1e-5,
                                atol=1e-7)
+
+
+@pytest.mark.parametrize("shape", [(3, 1, 7, 9), (2, 1, 8, 8), (2, 1, 2, 3), (16, 1, 26, 34)])
+def test_mean_pool_equals_avg_pool2d(shape):
+    image = torch.randn(*shape, generator=torch.Generator().manual_seed(7))
+    torch.testing.assert_close(evlatcorr.sharpness._mean_pool(image, 2), torch.nn.functional.avg_pool2d(image, 2),
+                               rtol=1e-6, atol=1e-6)
+
+
+def test_mean_pool_of_one_row_fails_as_avg_pool2d_does():
+    with pytest.raises(RuntimeError, match="too small"):
+        evlatcorr.sharpness._mean_pool(torch.randn(1, 1, 1, 5), 2)
