@@ -243,10 +243,9 @@ class ContinuousIntegral:
         mid = start + reference * (end - start)
         times, index = _distinct_times(torch.stack([start + lat, mid + lat, end + lat]))
         a, r, b = times[index[:, 0]].tolist()  # rounded as the tables' times are
-        first_r, first_b = torch.searchsorted(self.time_ordered, torch.tensor([r, b], dtype=torch.float64,
-                                                                                device=self.device)).tolist()
-        first_a = int(torch.searchsorted(self.time_ordered, torch.tensor([a], dtype=torch.float64,
-                                                                          device=self.device)))
+        # the first event at or after each time, left on the device (no wait for it on a GPU)
+        first_a, first_r, first_b = torch.searchsorted(
+            self.time_ordered, torch.tensor([a, r, b], dtype=torch.float64, device=self.device)).to(self.order.dtype)
         before_a, before_r = self.order < first_a, self.order < first_r
         count_a, count_r = self._counts_where(before_a), self._counts_where(before_r)
         # the level at the window's start held throughout, and each event inside it adding its rise from its time on

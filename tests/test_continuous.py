@@ -136,7 +136,7 @@ def test_event_slots_equal_a_binary_search_of_each_event():
 
 @pytest.mark.parametrize("reference", [0.0, 0.3, 0.5, 1.0])
 @pytest.mark.parametrize("latency", [-20.0, 0.0, 37.3, 150.0, 400.0])
-def test_one_window_from_per_pixel_sums_equals_the_tables(reference, latency):
+def test_one_window_from_per_pixel_sums_equals_the_tables(reference, latency, device):
     # one latency is read from per-pixel sums, several from tables: the same log R, a hot pixel, events on window
     # ends and windows past the last event included
     t = torch.cat([torch.rand(3000, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 300.0,
@@ -146,7 +146,7 @@ def test_one_window_from_per_pixel_sums_equals_the_tables(reference, latency):
     x = torch.cat([torch.randint(0, 6, (3003,), generator=g), torch.zeros(100, dtype=torch.long)])
     y = torch.cat([torch.randint(0, 5, (3003,), generator=g), torch.zeros(100, dtype=torch.long)])
     p = torch.cat([torch.randint(0, 2, (3003,), generator=g), torch.ones(100, dtype=torch.long)])
-    ci = ContinuousIntegral(Events(x, y, t, p, sensor_size=(5, 6), sort=True), 0.3, max_log_range=15.0)
+    ci = ContinuousIntegral(Events(x, y, t, p, sensor_size=(5, 6), sort=True).to(device), 0.3, max_log_range=15.0)
     assert bool(ci.ignored[0])
     lat = torch.tensor([latency, 5.0], dtype=torch.float64)
     tables = ci.log_ratio(10.0, 110.0, lat, reference)[:1]
