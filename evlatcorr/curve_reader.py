@@ -89,31 +89,35 @@ def probability_centre(log_p: Tensor, candidates: Tensor, num_valid: int,
 
 
 def curve_features(scores: Tensor, moment: Tensor, valid: Tensor) -> Tensor:
-    """The reader's input :math:`(NUM\\_FEATURES, K)` float32 from one frame's candidate curves.
+    """The reader's input :math:`(NUM\\_FEATURES, K)` float32 from one frame's candidate curves (or
+    :math:`(N, NUM\\_FEATURES, K)` from N frames' at once).
 
     Args:
-        scores: the sparsity scores :math:`(3, K)` of the candidates (any value where ``valid`` is False).
-        moment: the ghost moment of each candidate :math:`(K,)` (0 where not valid).
-        valid: :math:`(K,)` bool: the candidate's window holds events.
+        scores: the sparsity scores :math:`(3, K)` of the candidates (any value where ``valid`` is False), or
+            :math:`(N, 3, K)`.
+        moment: the ghost moment of each candidate :math:`(K,)` (0 where not valid), or :math:`(N, K)`.
+        valid: :math:`(K,)` bool: the candidate's window holds events; or :math:`(N, K)`.
 
     Returns:
         each score relative to its median over the valid candidates and divided by its range there (0 where
         not valid, or everywhere when fewer than two are valid), the moment, and ``valid`` as 0/1.
     """
-    if scores.dim() != 2 or moment.shape != scores.shape[1:] or valid.shape != moment.shape:
-        raise ValueError(f"scores must be (M, K) with moment and valid (K,), got {tuple(scores.shape)}, "
-                         f"{tuple(moment.shape)} and {tuple(valid.shape)}")
+    if (scores.dim() not in (2, 3) or moment.shape != scores.shape[:-2] + scores.shape[-1:]
+            or valid.shape != moment.shape):
+        raise ValueError(f"scores must be (M, K) with moment and valid (K,), or (N, M, K) with them (N, K), got "
+                         f"{tuple(scores.shape)}, {tuple(moment.shape)} and {tuple(valid.shape)}")
     # every curve at once and on the curves' device (no per-curve host sync); the same values as each curve's
     # median and range over its valid candidates
     scores, moment = scores.double(), moment.double().to(scores.device)
     valid = valid.to(scores.device)
-    masked = scores.masked_fill(~valid, math.nan)
-    median = masked.nanmedian(dim=1, keepdim=True).values
-    spread = (scores.masked_fill(~valid, -math.inf).amax(1, keepdim=True)
-              - scores.masked_fill(~valid, math.inf).amin(1, keepdim=True))
-    usable = valid & (valid.sum() >= 2)
+    along = valid.unsqueeze(-2)  # (..., 1, K): the same candidates for each score
+    masked = scores.masked_fill(~along, math.nan)
+    median = masked.nanmedian(dim=-1, keepdim=True).values
+    spread = (scores.masked_fill(~along, -math.inf).amax(-1, keepdim=True)
+              - scores.masked_fill(~along, math.inf).amin(-1, keepdim=True))
+    usable = along & (valid.sum(-1, keepdim=True) >= 2).unsqueeze(-1)
     rows = torch.where(usable, (scores - median) / spread.clamp_min(1e-12), 0.0)
-    return torch.cat([rows, torch.where(valid, moment, 0.0)[None], valid.double()[None]]).float()
+    return torch.cat([rows, torch.where(valid, moment, 0.0).unsqueeze(-2), valid.double().unsqueeze(-2)], -2).float()
 
 
 class CurveReader(nn.Module):

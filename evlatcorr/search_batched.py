@@ -126,8 +126,7 @@ def _search_pass(grey: Tensor, events: Events, bounds: list[int], spans: list[_W
             moments[j, :n] = moment[:n, j]
         del change
     valid = torch.isfinite(scores[:, 0])
-    curves = torch.stack([curve_features(scores[j].to(grey.device), moments[j], valid[j].to(grey.device))
-                          for j in range(frames)])
+    curves = curve_features(scores.to(grey.device), moments, valid.to(grey.device))
     log_p = _read_curves(curves, valid)
 
     results = []

@@ -39,9 +39,24 @@ def test_features_with_fewer_than_two_valid_candidates_are_zero():
     assert torch.equal(x[:3], torch.zeros(3, 5))
 
 
+def test_features_of_several_frames_at_once_equal_each_frames():
+    g = torch.Generator().manual_seed(8)
+    scores, moment = torch.rand(4, 3, 9, generator=g), torch.randn(4, 9, generator=g)
+    valid = torch.ones(4, 9, dtype=torch.bool)
+    valid[1, 5:] = False  # events that stop early
+    valid[2, 1:] = False  # one valid candidate: no usable curve
+    valid[3] = False  # nothing scored
+    together = curve_features(scores, moment, valid)
+    assert together.shape == (4, NUM_FEATURES, 9)
+    for n in range(4):
+        torch.testing.assert_close(together[n], curve_features(scores[n], moment[n], valid[n]), rtol=0, atol=0)
+
+
 def test_features_refuse_mismatched_shapes():
     with pytest.raises(ValueError, match="scores must be"):
         curve_features(torch.rand(3, 5), torch.zeros(4), torch.ones(5, dtype=torch.bool))
+    with pytest.raises(ValueError, match="scores must be"):
+        curve_features(torch.rand(2, 3, 5), torch.zeros(5), torch.ones(5, dtype=torch.bool))
 
 
 def test_reader_never_picks_a_candidate_that_could_not_be_scored():
