@@ -16,6 +16,7 @@ one-pass search, frames per second.
     python benchmarks/speed.py --part spatial                  # the spatial test-time fit, new and previous
     python benchmarks/speed.py --part against --against cfd57f4  # this checkout's default search against a revision's
     python benchmarks/speed.py --part stages                   # where the default search's time goes
+    python benchmarks/speed.py --part stream                   # the streaming corrector against the corrector alone
 
 ``--part adapters`` times, at the benchmark's resolution (256x336, 20 ms exposure), the constant
 corrector (``EventLatencyCorrector()``: search, shift, EDI latent) against each adapter's forward pass
@@ -107,7 +108,7 @@ def main() -> None:
     parser.add_argument("--naive-repeats", type=int, default=3, help="repeats of the naive loop")
     parser.add_argument("--device", action="append", help="cpu and/or cuda (default: cpu, and cuda if present)")
     parser.add_argument("--part", choices=("search", "batch", "spatial", "adapters", "memory", "against", "stages",
-                                           "all"),
+                                           "stream", "all"),
                         default="all", help="what to time; 'against' is not part of 'all' (it needs --against)")
     parser.add_argument("--against", metavar="REV", help="git revision whose default search --part against times")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of --part against")
@@ -148,6 +149,8 @@ def main() -> None:
             bench_spatial(torch.device(name), args)
         if args.part in ("stages", "all"):
             bench_stages(torch.device(name), args)
+        if args.part in ("stream", "all"):
+            bench_stream(torch.device(name), args)
 
 
 # one process's timing of the default search at a source tree (argv: tree, frame file, repeats, this checkout's
@@ -307,6 +310,34 @@ def bench_batch(device: torch.device, args: argparse.Namespace) -> None:
         t_batch = statistics.median(timed(lambda b=batch: search(b), device)[0] for _ in range(args.repeats))
         print(f"[{device.type}] {size} frames in one call ({len(batch.events)} events): {t_batch * 1000:.1f} ms = "
               f"{t_batch / t_one:.2f} x one frame, {size / t_batch:.0f} frames/s")
+
+
+def bench_stream(device: torch.device, args: argparse.Namespace, num_frames: int = 8) -> None:
+    """The streaming corrector (each frame fused with the 2 before it, its latent read at the fused latency) against
+    the corrector alone, frame by frame over one simulated recording at the adapters' size: medians over the frames
+    of ``--repeats`` passes."""
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    height, width = args.adapter_size
+    seq = simulate("astronaut", num_frames=num_frames, height=height, width=width, exposure_us=20_000.0,
+                   frame_interval_us=25_000.0, latency="constant", latency_us=4000.0, seed=0)
+    frames = seq.frames("delayed").to(device).split()
+    corrector = EventLatencyCorrector(num_bins=args.bins, num_candidates=args.candidates).to(device)
+    stream = StreamingLatencyCorrector(corrector)
+    alone, streamed = [], []
+    with torch.no_grad():
+        for frame in frames[:WARM_UP]:
+            corrector(frame)
+            stream(frame)
+        for _ in range(args.repeats):
+            stream.reset()
+            for frame in frames:
+                alone.append(timed(lambda f=frame: corrector(f), device)[0])
+                streamed.append(timed(lambda f=frame: stream(f), device)[0])
+    t_alone, t_stream = statistics.median(alone), statistics.median(streamed)
+    print(f"[{device.type}] stream of {num_frames} frames at {width}x{height}: corrector alone "
+          f"{t_alone * 1000:.1f} ms, streaming (fused with 2 frames before) {t_stream * 1000:.1f} ms per frame; "
+          f"stream/alone: {t_stream / t_alone:.2f}")
 
 
 def bench_spatial(device: torch.device, args: argparse.Namespace) -> None:

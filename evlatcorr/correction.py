@@ -14,6 +14,7 @@ from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
 from evlatcorr.search import HOT_PIXEL_LOG_RANGE, _search_constant_latency
+from evlatcorr.temporal import LatencyHistory
 
 __all__ = ["EventLatencyCorrector", "ConstantLatencyCorrector", "correct_constant_latency", "SearchConfig"]
 
@@ -25,6 +26,7 @@ def correct_constant_latency(
     threshold: float | str = 0.2,
     config: SearchConfig | None = None,
     previous_latency: Tensor | None = None,
+    history: LatencyHistory | None = None,
     **settings: Any,
 ) -> EventFrames:
     """Estimate one latency per frame and remove it from the events (functional form).
@@ -38,6 +40,10 @@ def correct_constant_latency(
         config: the search settings (:class:`~evlatcorr.config.SearchConfig`: bins, range, candidates,
             refinement, score); default ``SearchConfig()``.
         previous_latency: ``l'`` :math:`(B,)` µs for the temporal prior (e.g. the previous frame's).
+        history: the frames are the next of a stream, in order: each frame's latency is fused with the
+            ``history.before`` frames before it (:class:`~evlatcorr.temporal.LatencyHistory`), and its events and
+            latent image follow the fused latency; ``meta["frame_latency_us"]`` :math:`(B,)` keeps each frame's
+            own estimate.
         **settings: fields of :class:`~evlatcorr.config.SearchConfig` to change, e.g. ``num_bins=100``.
 
     Returns:
@@ -77,7 +83,7 @@ def correct_constant_latency(
         theta = _auto_threshold(frames, config, previous)
         theta_vector = _threshold_vector(theta, b)
     result = _search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                                      theta_vector, config, previous)
+                                      theta_vector, config, previous, history=history)
     if result.fallback is not None and bool(result.fallback.any()):
         which = torch.nonzero(result.fallback).flatten().tolist()
         warnings.warn(f"samples {which}: the sharpness score has no clear minimum inside the latency range the "
@@ -107,6 +113,8 @@ def correct_constant_latency(
     meta["hot_pixels"] = result.ignored_pixels
     meta["latency_spread_us"] = result.latency_spread
     meta["latency_log_probability"] = result.log_probability
+    if result.own_latency is not None:
+        meta["frame_latency_us"] = result.own_latency
     return frames.with_outputs(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
 
 
@@ -157,7 +165,8 @@ class ConstantLatencyCorrector(nn.Module):
                 f"num_candidates={c.num_candidates}")
 
     def forward(self, frames: EventFrames) -> EventFrames:
-        return correct_constant_latency(frames, self.threshold, self.config, frames.meta.get("previous_latency"))
+        return correct_constant_latency(frames, self.threshold, self.config, frames.meta.get("previous_latency"),
+                                        frames.meta.get("latency_history"))
 
 
 class EventLatencyCorrector(nn.Module):

@@ -24,6 +24,7 @@ latent image there takes one more read of the events' window.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Callable
@@ -49,6 +50,7 @@ from evlatcorr.events import Events
 from evlatcorr.ghost import ghost_root, inverse_ratio_moment
 from evlatcorr.integral import _row_strips, cumsum_, cumulative_event_grid
 from evlatcorr.sharpness import _scores_of, sharpness_score, sharpness_scores
+from evlatcorr.temporal import LatencyHistory
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score",
            "sharpness_scores", "candidate_curves", "SCORES", "DEFAULT_SCORE", "SearchConfig"]
@@ -108,6 +110,8 @@ class ConstantSearchResult:
             coarse candidate (``candidates``) from the frame alone (no temporal prior), normalised over the candidates
             that could be scored (−inf elsewhere); NaN rows for samples where the reader did not run, None when no
             sample has one. :func:`evlatcorr.temporal.fuse_latencies` combines consecutive frames' rows.
+        own_latency: :math:`(B,)` µs, where a :class:`~evlatcorr.temporal.LatencyHistory` fused ``latency`` with
+            earlier frames': each frame's own estimate (None otherwise).
         log_ratio: :math:`(B, 1, H, W)` float64 EDI ``log R`` at ``latency`` (latent image at mid-exposure
             ``blurry · exp(−log R)``), exact in continuous time (to float32 rounding when ``latency`` is a scored
             candidate: the ratio its score saw); None with ``method="binned"`` or when a sample had no window to
@@ -126,6 +130,7 @@ class ConstantSearchResult:
     ignored_pixels: list[int] | None = None
     latency_spread: Tensor | None = None
     log_probability: Tensor | None = None
+    own_latency: Tensor | None = None
 
 
 def default_search_range(exposure_time: Tensor) -> tuple[Tensor, Tensor]:
@@ -243,9 +248,13 @@ def search_constant_latency(
 def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Tensor, exposure_end: Tensor,
                              threshold: Tensor, config: SearchConfig, previous_latency: Tensor | None = None,
                              integral: str = "step", method: str = "continuous",
-                             memory_budget: int | None = None) -> ConstantSearchResult:
+                             memory_budget: int | None = None,
+                             history: LatencyHistory | None = None) -> ConstantSearchResult:
     """:func:`search_constant_latency` of checked inputs: an image batch, its events, exposures (float64
-    :math:`(B,)`, end after start), a positive threshold :math:`(B,)` and a finite ``previous_latency`` :math:`(B,)`."""
+    :math:`(B,)`, end after start), a positive threshold :math:`(B,)` and a finite ``previous_latency`` :math:`(B,)`.
+
+    ``history``: the frames are the next of a stream, in order: each frame's latency is fused with the earlier
+    frames' as it is decided (:class:`~evlatcorr.temporal.LatencyHistory`), and its latent read there."""
     b = blurry.shape[0]
     start = exposure_start.to(events.device, torch.float64)
     end = exposure_end.to(events.device, torch.float64)
@@ -269,10 +278,19 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
 
     if search_batched.frames_can_share_a_pass(grey, windows, thetas, config, method):
         # on a GPU each frame's search is bound by launches and waits: frames alike share one pass
-        results = search_batched.search_frames_together(grey, events, windows, thetas[0], config, prev, budget)
+        results = search_batched.search_frames_together(grey, events, windows, thetas[0], config, prev, budget,
+                                                        history)
     else:
-        results = [_search_one(grey[i:i + 1], events.sample(i), windows[i], thetas[i], config,
-                               None if prev is None else prev[i:i + 1], integral, budget, method) for i in range(b)]
+        results = []
+        for i in range(b):
+            res = _search_one(grey[i:i + 1], events.sample(i), windows[i], thetas[i], config,
+                              None if prev is None else prev[i:i + 1], integral, budget, method,
+                              defer_latent=history is not None)
+            if history is not None:
+                _fuse_with_history(res, history)
+                if res.read_latent is not None:
+                    res.log_ratio = res.read_latent(res.latency)
+            results.append(res)
     return ConstantSearchResult(
         latency=torch.tensor([r.latency for r in results], dtype=torch.float64, device=blurry.device),
         candidates=torch.stack([r.candidates for r in results]).to(blurry.device),
@@ -287,6 +305,8 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
         ignored_pixels=[r.ignored_pixels for r in results],
         latency_spread=torch.tensor([r.spread_us for r in results], dtype=torch.float64, device=blurry.device),
         log_probability=_stack_log_probability([r.log_probability for r in results], blurry.device),
+        own_latency=(None if history is None else
+                     torch.tensor([r.own_latency for r in results], dtype=torch.float64, device=blurry.device)),
     )
 
 
@@ -312,6 +332,15 @@ class _OneResult:
     ignored_pixels: int = 0
     spread_us: float = math.nan  # the learned reader's standard deviation, µs
     log_probability: Tensor | None = None  # (K,) the learned reader's, without the prior (−inf: not scored)
+    own_latency: float | None = None  # the frame's own estimate, where a history fused ``latency`` with others'
+    # the latent's read at a latency, where it was left until the latency is final (a history to fuse with)
+    read_latent: Callable[[float], Tensor | None] | None = None
+
+
+def _fuse_with_history(result: _OneResult, history: LatencyHistory) -> None:
+    """The frame's latency fused with the earlier frames' of ``history`` (its own estimate kept in ``own_latency``)."""
+    result.own_latency = result.latency
+    result.latency = history.fuse(result.latency, result.candidates, result.log_probability)
 
 
 @dataclass
@@ -501,12 +530,14 @@ def _latent_scores(grey: Tensor, inverse: Tensor, latency: Tensor, previous: Ten
 
 def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float, config: SearchConfig,
                 prev: Tensor | None, integral: str, budget: int | None = None,
-                method: str = "continuous", evidence: _Evidence | None = None) -> _OneResult:
+                method: str = "continuous", evidence: _Evidence | None = None,
+                defer_latent: bool = False) -> _OneResult:
     """Search for one sample; ``grey`` is :math:`(1, 1, H, W)`. See :func:`_continuous_reader` and
     :func:`_binned_reader` for how each ``method`` lays out its candidates.
 
     ``evidence``: the sample's reader, coarse scores and curve reader output, already made with other frames'
-    (``score="learned"``, :mod:`evlatcorr.search_batched`); ``events`` is then not read."""
+    (``score="learned"``, :mod:`evlatcorr.search_batched`); ``events`` is then not read. ``defer_latent``: the
+    latent image at the estimate is not read; the result's ``read_latent`` reads it at a latency given later."""
     low, high = span.low, span.high
     width_us = (span.end - span.start) / config.num_bins
     if max(abs(low), abs(high)) / width_us >= 2**53:  # beyond float64's whole numbers of sub-intervals
@@ -519,16 +550,20 @@ def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float
     else:
         reader = (_continuous_reader(grey, events, span, theta, config, budget) if method == "continuous"
                   else _binned_reader(events, span, theta, config, integral, budget))
+    read_latent = None
+    if defer_latent and evidence is None:
+        read_latent, reader = reader.final_ratio, dataclasses.replace(reader, final_ratio=_read_later)
     coarse, to_us = reader.coarse, reader.to_us
 
     spread, log_probability = math.nan, None
 
     def result(*args, **kwargs) -> _OneResult:
         return _OneResult(*args, **kwargs, ignored_pixels=reader.ignored_pixels, spread_us=spread,
-                          log_probability=log_probability)
+                          log_probability=log_probability, read_latent=read_latent)
 
     fallback = low if prev is None else min(max(float(prev), low), high)
     if reader.top < reader.floor:  # no candidate window holds events: nothing to score
+        read_latent = None  # and no latent image to read
         nan = torch.full((len(coarse),), math.nan, dtype=torch.float64)
         return result(fallback, to_us(coarse).cpu(), nan, to_us(coarse).cpu(), nan, 0.0, True, source="fallback")
 
@@ -579,6 +614,11 @@ def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float
     latency = min(max(float(to_us(torch.tensor(best, dtype=torch.float64))), low), high)
     return result(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(fine).cpu(), fine_score, confidence, False,
                   reader.final_ratio(latency), "reader" if confidence == 0.0 else "sharpness")
+
+
+def _read_later(latency: float) -> None:
+    """The latent at the estimate is read once the latency is final (fused with a history's frames)."""
+    return None
 
 
 def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor

@@ -34,6 +34,7 @@ from evlatcorr.search import (
     _aligned_candidates,
     _CandidateReader,
     _Evidence,
+    _fuse_with_history,
     _OneResult,
     _read_curves,
     _score_chunk,
@@ -41,6 +42,7 @@ from evlatcorr.search import (
     _Window,
 )
 from evlatcorr.sharpness import _scores_of
+from evlatcorr.temporal import LatencyHistory
 
 __all__ = ["frames_can_share_a_pass", "search_frames_together"]
 
@@ -65,7 +67,8 @@ def frames_can_share_a_pass(grey: Tensor, spans: list[_Window], thetas: list[flo
 
 
 def search_frames_together(grey: Tensor, events: Events, spans: list[_Window], theta: float, config: SearchConfig,
-                           previous: Tensor | None, budget: int | None) -> list[_OneResult]:
+                           previous: Tensor | None, budget: int | None,
+                           history: LatencyHistory | None = None) -> list[_OneResult]:
     """:func:`evlatcorr.search._search_one` of every frame, the events read in passes of several frames.
 
     Args:
@@ -77,6 +80,8 @@ def search_frames_together(grey: Tensor, events: Events, spans: list[_Window], t
         previous: the previous latencies :math:`(B,)` µs, or None.
         budget: the memory budget in bytes (None: the default); each pass takes as many frames as fit in it (at
             most :data:`MAX_FRAMES`).
+        history: the frames are the next of a stream: each one's latency is fused with the earlier frames' in
+            order, before the latents are read.
 
     Returns:
         one result per frame, as the frame-by-frame search gives it.
@@ -95,13 +100,14 @@ def search_frames_together(grey: Tensor, events: Events, spans: list[_Window], t
         while last < len(spans) and last - first < MAX_FRAMES and used + frame_bytes[last] <= limit:
             used += frame_bytes[last]
             last += 1
-        results += _search_pass(grey, events, bounds, spans, theta, config, previous, first, last, limit)
+        results += _search_pass(grey, events, bounds, spans, theta, config, previous, first, last, limit, history)
         first = last
     return results
 
 
 def _search_pass(grey: Tensor, events: Events, bounds: list[int], spans: list[_Window], theta: float,
-                 config: SearchConfig, previous: Tensor | None, first: int, last: int, limit: int) -> list[_OneResult]:
+                 config: SearchConfig, previous: Tensor | None, first: int, last: int, limit: int,
+                 history: LatencyHistory | None) -> list[_OneResult]:
     """The frames ``first .. last − 1`` in one pass (``bounds``: where each frame's events start, and the end)."""
     frames, (height, width) = last - first, grey.shape[-2:]
     span = spans[first]
@@ -137,6 +143,8 @@ def _search_pass(grey: Tensor, events: Events, bounds: list[int], spans: list[_W
         prev = None if previous is None else previous[first + j:first + j + 1]
         results.append(_search_one(grey[first + j:first + j + 1], None, spans[first + j], theta, config, prev,
                                    "step", evidence=evidence))
+        if history is not None:
+            _fuse_with_history(results[-1], history)
     _read_latents(integral, exposure, results, tops, span.low, kept, own, inverse, (frames, height, width))
     return results
 

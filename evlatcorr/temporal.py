@@ -21,7 +21,7 @@ from torch import Tensor, nn
 from evlatcorr.curve_reader import probability_centre
 from evlatcorr.frames import EventFrames
 
-__all__ = ["fuse_latencies", "frame_evidence", "StreamingLatencyCorrector", "DEFAULT_FUSED_FRAMES"]
+__all__ = ["fuse_latencies", "frame_evidence", "LatencyHistory", "StreamingLatencyCorrector", "DEFAULT_FUSED_FRAMES"]
 
 # frames either side whose evidence a frame takes: on 6-frame sequences of the accuracy suite's tuning cases
 # (constant and photoreceptor latency), 2 either side lowered the constant-latency median error from 664 to 513 µs,
@@ -150,6 +150,45 @@ def _on_candidates(values: Tensor, source: Tensor, target: Tensor) -> Tensor:
     return values[left] + weight * (values[right] - values[left])
 
 
+class LatencyHistory:
+    """The evidence of a stream's latest frames: each new frame's latency fused with that of the ``before`` frames
+    before it (:func:`fuse_latencies` with ``after=0``).
+
+    The constant search takes one (``frames.meta["latency_history"]``, as :class:`StreamingLatencyCorrector` passes
+    it) and reads each frame's latent image at its fused latency, from the frame's own integral: no second pass
+    over its events.
+
+    Example:
+        >>> cand = torch.arange(0.0, 2000.0, 100.0)
+        >>> history = LatencyHistory(before=1)
+        >>> sure = torch.log_softmax(-((cand - 400.0) / 150.0) ** 2, 0)
+        >>> unsure = torch.log_softmax(-((cand - 1500.0) / 1000.0) ** 2, 0)
+        >>> round(history.fuse(400.0, cand, sure)), round(history.fuse(1500.0, cand, unsure))
+        (400, 422)
+    """
+
+    def __init__(self, before: int = DEFAULT_FUSED_FRAMES) -> None:
+        if isinstance(before, bool) or not isinstance(before, int) or before < 0:
+            raise ValueError(f"before must be a whole number >= 0, got {before!r}")
+        self.before = before
+        self._rows: list[tuple[float, Tensor, Tensor | None]] = []
+
+    def reset(self) -> None:
+        """Forget the earlier frames: the next frame starts a new recording."""
+        self._rows.clear()
+
+    def fuse(self, latency: float, candidates: Tensor, log_probability: Tensor | None) -> float:
+        """Take the next frame: its own latency (µs), its candidates :math:`(K,)` and the reader's log-probability of
+        each :math:`(K,)` (None, or a NaN row, where it has none); returns its fused latency, µs."""
+        row = None if log_probability is None else log_probability.detach().to("cpu", torch.float64)
+        if row is not None and bool(torch.isnan(row).any()):
+            row = None
+        self._rows.append((float(latency), candidates.detach().to("cpu", torch.float64), row))
+        del self._rows[:-(self.before + 1)]
+        return float(fuse_latencies(torch.tensor([r[0] for r in self._rows], dtype=torch.float64),
+                                    [r[1] for r in self._rows], [r[2] for r in self._rows], self.before, 0)[-1])
+
+
 class StreamingLatencyCorrector(nn.Module):
     """A constant-latency corrector for the frames of one recording, passed in order, call after call.
 
@@ -185,35 +224,22 @@ class StreamingLatencyCorrector(nn.Module):
         corrector = EventLatencyCorrector() if corrector is None else corrector
         if not isinstance(corrector, EventLatencyCorrector) or corrector.mode != "constant":
             raise ValueError("StreamingLatencyCorrector takes a constant-mode EventLatencyCorrector")
-        if isinstance(before, bool) or not isinstance(before, int) or before < 0:
-            raise ValueError(f"before must be a whole number >= 0, got {before!r}")
-        self.corrector, self.before = corrector, before
-        self._history: list[tuple[float, Tensor, Tensor | None]] = []
+        self.corrector, self.history = corrector, LatencyHistory(before)
+
+    @property
+    def before(self) -> int:
+        return self.history.before
 
     def reset(self) -> None:
         """Forget the earlier frames: the next frame starts a new recording."""
-        self._history.clear()
+        self.history.reset()
 
     def extra_repr(self) -> str:
         return f"before={self.before}"
 
     def forward(self, frames: EventFrames) -> EventFrames:
-        from evlatcorr.edi import edi_deblur
-
-        out = self.corrector(frames)
-        own = out.latency.flatten(1).mean(1).double().cpu()
-        fused = torch.empty_like(own)
-        for b, evidence in enumerate(frame_evidence(out)):  # frames, in order: each takes the ones before it
-            self._history.append(evidence)
-            del self._history[:-(self.before + 1)]
-            fused[b] = fuse_latencies(torch.tensor([h[0] for h in self._history], dtype=torch.float64),
-                                      [h[1] for h in self._history], [h[2] for h in self._history], self.before, 0)[-1]
-        if torch.equal(fused, own):
-            return out.replace(meta={**out.meta, "frame_latency_us": own})
-        shift = fused.to(frames.device)
-        height, width = frames.sensor_size
-        latency = shift.to(out.latency.dtype).view(-1, 1, 1, 1).expand(-1, 1, height, width).contiguous()
-        latent = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                            out.meta["threshold"], latency=shift, integral="continuous")
-        return out.replace(latency=latency, corrected=frames.events.shift(shift), latent=latent,
-                           meta={**out.meta, "frame_latency_us": own})
+        # the search fuses each frame's evidence with the history's as it decides, and reads the frame's latent image
+        # at the fused latency from the frame's own integral
+        out = self.corrector(frames.replace(meta={**frames.meta, "latency_history": self.history}))
+        meta = {key: value for key, value in out.meta.items() if key != "latency_history"}
+        return out.replace(meta=meta)

@@ -101,7 +101,7 @@ def test_passes_sized_to_the_memory_budget_give_the_same_results(together_on_cpu
     passes = []
     original = evlatcorr.search_batched._search_pass
     monkeypatch.setattr(evlatcorr.search_batched, "_search_pass",
-                        lambda *a: passes.append(a[-2] - a[-3]) or original(*a))
+                        lambda *a: passes.append(a[8] - a[7]) or original(*a))  # frames last − first
     split = search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
                                     memory_budget=2 * 40 * 32 * 24 * 101 + 2 * 120 * 10**3)
     assert len(passes) > 1 and sum(passes) == 5
@@ -135,3 +135,19 @@ def test_frames_together_on_cuda():
                                    SearchConfig(), "continuous")
     together = assert_as_frame_by_frame(frames)
     assert together.latency.device.type == "cuda"
+
+
+def test_a_stream_of_frames_searched_together_fuses_them_as_frame_by_frame(together_on_cpu):
+    from evlatcorr import EventLatencyCorrector
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    frames = recording()
+    one_by_one = StreamingLatencyCorrector(EventLatencyCorrector())
+    outs = [one_by_one(frame) for frame in frames.split()]
+    together = StreamingLatencyCorrector(EventLatencyCorrector())(frames)
+    for k, out in enumerate(outs):
+        assert float(together.latency[k].mean()) == pytest.approx(float(out.latency.mean()), abs=0.05)
+        assert float(together.meta["frame_latency_us"][k]) == pytest.approx(float(out.meta["frame_latency_us"][0]),
+                                                                           abs=0.05)
+        torch.testing.assert_close(together.latent[k:k + 1], out.latent, rtol=1e-4, atol=1e-4)
+    assert "latency_history" not in together.meta

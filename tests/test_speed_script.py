@@ -71,3 +71,11 @@ def test_batch_sizes_must_be_positive():
     run = subprocess.run([sys.executable, str(SCRIPT), "--part", "batch", "--batch-sizes", "0"], capture_output=True,
                          text=True, cwd=ROOT, timeout=300)
     assert run.returncode == 2 and "--batch-sizes must be positive" in run.stderr
+
+
+def test_stream_part_times_the_streaming_corrector_against_the_corrector_alone():
+    run = subprocess.run([sys.executable, str(SCRIPT), "--part", "stream", "--adapter-size", "24", "32", "--repeats",
+                          "1", "--device", "cpu"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 0, run.stderr
+    line = next(line for line in run.stdout.splitlines() if line.startswith("[cpu] stream of 8 frames at 32x24"))
+    assert float(line.split("stream/alone: ")[1]) > 0
