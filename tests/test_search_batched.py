@@ -135,6 +135,12 @@ def test_frames_together_on_cuda():
                                    SearchConfig(), "continuous")
     together = assert_as_frame_by_frame(frames)
     assert together.latency.device.type == "cuda"
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    streamed = StreamingLatencyCorrector()(frames)
+    one_by_one = StreamingLatencyCorrector()
+    for k, frame in enumerate(frames.split()):
+        assert float(streamed.latency[k].mean()) == pytest.approx(float(one_by_one(frame).latency.mean()), abs=0.05)
 
 
 def test_a_stream_of_frames_searched_together_fuses_them_as_frame_by_frame(together_on_cpu):
