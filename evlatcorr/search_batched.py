@@ -1,7 +1,7 @@
 """The default constant-latency search of several frames in one pass, for a GPU.
 
 On a GPU the search of one frame is bound by kernel launches, Python and its waits for the device, not by
-arithmetic: a 40x32 frame took 7.7 ms on an H100, a DAVIS346 frame with 2 M events 9.1 ms. Frames with the same
+arithmetic: a frame a hundredth of DAVIS346's size took nearly as long on an H100. Frames with the same
 exposure time, search range and contrast threshold can share every launch. Their events, each frame's times taken
 from its own exposure start, are laid out as one tall image (frame ``j``'s rows ``j·H .. (j + 1)·H``), so one
 :class:`~evlatcorr.continuous.ContinuousIntegral` reads every frame's candidate windows at once. The scores, ghost
