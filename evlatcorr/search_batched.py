@@ -37,6 +37,7 @@ from evlatcorr.search import (
     _fuse_with_history,
     _OneResult,
     _read_curves,
+    _read_later,
     _score_chunk,
     _search_one,
     _Window,
@@ -138,7 +139,7 @@ def _search_pass(grey: Tensor, events: Events, bounds: list[int], spans: list[_W
     results = []
     for j in range(frames):
         reader = _CandidateReader(coarse, tops[j], span.low, _same, _read_with_the_pass, _read_with_the_pass,
-                                  _later, _read_with_the_pass, ignored[j])
+                                  _read_later, _read_with_the_pass, ignored[j])
         evidence = _Evidence(reader, scores[j], log_p[j], moments[j])
         prev = None if previous is None else previous[first + j:first + j + 1]
         results.append(_search_one(grey[first + j:first + j + 1], None, spans[first + j], theta, config, prev,
@@ -233,11 +234,6 @@ def _read_latents(integral: ContinuousIntegral, exposure: float, results: list[_
 def _same(value: Tensor) -> Tensor:
     """Candidates are in µs already."""
     return value
-
-
-def _later(latency: float) -> None:
-    """The latents at the estimates are read after every frame's decision (:func:`_read_latents`)."""
-    return None
 
 
 def _read_with_the_pass(*args: object) -> Tensor:
