@@ -124,3 +124,27 @@ def test_blur_matrices_are_kornias_reflected_gaussian_blur(size):
     along_h = _reflected_blur_matrix(height, 7, 1.0, cpu, torch.float64)
     torch.testing.assert_close(along_h @ x @ along_w.T, kornia.filters.gaussian_blur2d(x, (7, 7), (1.0, 1.0)),
                                rtol=1e-12, atol=1e-12)
+
+
+def test_stacked_moment_equals_each_frames_moment():
+    from evlatcorr.ghost import inverse_ratio_moment, stacked_inverse_ratio_moment
+
+    g = torch.Generator().manual_seed(9)
+    grey = 0.2 + 0.6 * torch.rand(1, 3, 12, 14, generator=g)
+    inverse = 0.5 + torch.rand(4, 3, 12, 14, generator=g)
+    change = torch.randn(4, 3, 12, 14, generator=g)
+    together = stacked_inverse_ratio_moment(grey, inverse, change)
+    assert together.shape == (4, 3)
+    for f in range(3):
+        alone = inverse_ratio_moment(grey[:, f:f + 1], inverse[:, f:f + 1].contiguous(),
+                                     change[:, f:f + 1].contiguous())
+        torch.testing.assert_close(together[:, f], alone, rtol=1e-5, atol=1e-6)
+
+
+def test_stacked_moment_refuses_shapes_that_do_not_match():
+    from evlatcorr.ghost import stacked_inverse_ratio_moment
+
+    with pytest.raises(ValueError, match=r"grey must be \(1, F, H, W\)"):
+        stacked_inverse_ratio_moment(torch.rand(2, 3, 4, 4), torch.rand(5, 3, 4, 4), torch.rand(5, 3, 4, 4))
+    with pytest.raises(ValueError, match="inverse and log_change both"):
+        stacked_inverse_ratio_moment(torch.rand(1, 3, 4, 4), torch.rand(5, 3, 4, 4), torch.rand(5, 2, 4, 4))

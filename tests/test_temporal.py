@@ -179,3 +179,31 @@ def test_probability_centre_refuses_shapes_that_do_not_match():
         probability_centre(torch.zeros(4), torch.arange(5.0), 4)
     # a pick at the edge of the valid candidates keeps no neighbours: it stays where it is
     assert probability_centre(torch.tensor([0.0, 1.0, 5.0, -1e4]), torch.arange(4.0), 3) == (2.0, 2.0)
+
+
+def test_latency_history_fuses_each_frame_with_the_ones_before_it():
+    from evlatcorr.temporal import LatencyHistory
+
+    cand = torch.arange(0.0, 2000.0, 100.0)
+    rows = [torch.log_softmax(-((cand - mean) / sigma) ** 2, 0) for mean, sigma in ((400.0, 150.0), (1500.0, 1000.0),
+                                                                                      (700.0, 150.0))]
+    own = torch.tensor([400.0, 1500.0, 700.0], dtype=torch.float64)
+    history = LatencyHistory(before=1)
+    fused = [history.fuse(float(own[k]), cand, rows[k]) for k in range(3)]
+    expected = fuse_latencies(own, cand, torch.stack(rows), before=1, after=0)
+    assert fused == pytest.approx(expected.tolist(), abs=1e-9)
+    assert abs(fused[1] - 400.0) < 100.0  # the unsure frame follows its confident predecessor
+    history.reset()
+    assert history.fuse(1500.0, cand, rows[1]) == pytest.approx(float(fuse_latencies(own[1:2], cand, rows[1][None])[0]))
+    # a frame with no evidence of its own takes its predecessor's
+    without = history.fuse(1234.0, cand, None)
+    want = fuse_latencies(torch.tensor([1500.0, 1234.0], dtype=torch.float64), [cand, cand], [rows[1], None], 1, 0)
+    assert without == pytest.approx(float(want[1])) and abs(without - 1234.0) > 50.0
+
+
+@pytest.mark.parametrize("before", [-1, 1.5, True])
+def test_latency_history_refuses_a_bad_window(before):
+    from evlatcorr.temporal import LatencyHistory
+
+    with pytest.raises(ValueError, match="before must be a whole number"):
+        LatencyHistory(before)
