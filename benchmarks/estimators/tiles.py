@@ -1,0 +1,105 @@
+"""An ``--estimator`` for ``benchmarks/accuracy.py``: the learned curve reader run on image tiles as well as on the
+whole frame, its log-probabilities fused.
+
+A small object moving over a static textured background barely changes a whole-image sharpness score, so the
+whole frame's curves can miss what one tile of it shows clearly. This estimator reads the shipped curve reader's
+inputs (the three sparsity curves and the ghost moment over the coarse candidates) on the whole frame and on each
+tile of a 2x2 and a 3x3 grid, and sums the log-probabilities: the whole frame's with weight 1, each grid's tiles
+with weights that add up to 1 per grid, in proportion to the events in each tile (a tile with no motion has flat
+curves that the reader, reading them relative to their own range, would answer at random). The estimate is the
+centre of the summed probability, as the search takes it for one frame. It was measured on the tuning cases and
+not shipped (``docs/estimator.md``):
+
+    python benchmarks/accuracy.py --split tuning --mode none \\
+        --estimator benchmarks/estimators/tiles.py:estimate_whole --estimator benchmarks/estimators/tiles.py:estimate
+
+``estimate_whole`` is the same read on the whole frame only: the default search's reader estimate without its
+fallbacks (a frame whose windows hold no events is refused here), the fair baseline for the tiles.
+"""
+
+from __future__ import annotations
+
+import math
+
+import kornia
+import torch
+from torch import Tensor
+
+from evlatcorr import search
+from evlatcorr.config import SearchConfig
+from evlatcorr.curve_reader import curve_features, probability_centre
+from evlatcorr.frames import EventFrames
+from evlatcorr.ghost import inverse_ratio_moment
+
+GRIDS = ((2, 2), (3, 3))  # tiles per (rows, columns)
+
+
+def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ...] = GRIDS
+                           ) -> tuple[Tensor, Tensor, Tensor, list[tuple[Tensor, Tensor]]]:
+    """The reader's log-probabilities of the first frame's coarse candidates on the whole frame and per tile.
+
+    Returns:
+        the candidates :math:`(K,)` µs, which are valid :math:`(K,)`, the whole frame's log-probability
+        :math:`(K,)` (−inf where not valid) and per grid ``(log-probabilities (T, K), each tile's share of the
+        events' absolute change over the candidates (T,))``.
+    """
+    events = frames.events.sample(0)
+    if not len(events):
+        raise ValueError("the frame has no events")
+    blurry = frames.blurry[:1]
+    grey = kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
+    start, end = float(frames.exposure_start[0]), float(frames.exposure_end[0])
+    span = search._Window(start, end, 0.0, end - start, float(events.t.max()) - end)
+    config = SearchConfig(score="learned")
+    reader = search._continuous_reader(grey, events, span, float(frames.meta["threshold"]), config, None)
+    kept = reader.coarse[reader.coarse <= reader.top]
+    if len(kept) < 3:
+        raise ValueError("fewer than three candidates' windows hold events")
+    num = len(reader.coarse)
+    valid = torch.arange(num) < len(kept)
+    inverse, change = reader.inverse_ratio(kept), reader.log_change(kept)
+    latency = reader.to_us(kept).float()
+
+    def read(region: tuple[slice, slice]) -> Tensor:
+        part = (..., *region)
+        scores = torch.full((len(search._SPARSITY), num), math.inf, dtype=torch.float64)
+        scores[:, :len(kept)] = search._latent_scores(grey[part], inverse[part], latency, None,
+                                                      tuple(search._SPARSITY), config).double()
+        moment = torch.zeros(num, dtype=torch.float64)
+        moment[:len(kept)] = inverse_ratio_moment(grey[part], inverse[part], change[part]).double()
+        log_p = search._read_curves(curve_features(scores, moment, valid)[None], valid[None])[0]
+        return torch.full_like(log_p, -math.inf).masked_scatter_(valid, torch.log_softmax(log_p[valid], 0))
+
+    height, width = grey.shape[-2:]
+    whole = read((slice(None), slice(None)))
+    tiled = []
+    for rows, cols in grids:
+        r, c = [round(i * height / rows) for i in range(rows + 1)], [round(j * width / cols) for j in range(cols + 1)]
+        regions = [(slice(r[i], r[i + 1]), slice(c[j], c[j + 1])) for i in range(rows) for j in range(cols)]
+        activity = torch.stack([change[(..., *region)].abs().sum().double() for region in regions])
+        tiled.append((torch.stack([read(region) for region in regions]), activity / activity.sum().clamp_min(1e-12)))
+    return reader.to_us(reader.coarse).double(), valid, whole, tiled
+
+
+def fused_latency(frames: EventFrames, grids: tuple[tuple[int, int], ...] = GRIDS) -> float:
+    """The centre of the whole frame's and the tiles' summed log-probabilities, µs."""
+    candidates, valid, whole, tiled = tile_log_probabilities(frames, grids)
+    total = whole.clone()
+    for log_p, share in tiled:
+        total[valid] += (share[:, None] * log_p[:, valid]).sum(0)
+    _, centre = probability_centre(total.masked_fill(~valid, -1e30), candidates, int(valid.sum()))
+    return centre
+
+
+def _as_map(frames: EventFrames, latency: float) -> Tensor:
+    return torch.full_like(frames.blurry[:1, :1], latency)
+
+
+def estimate(frames: EventFrames) -> Tensor:
+    """The tiles' fused latency as a map (1, 1, H, W) µs (the first frame; the case's threshold)."""
+    return _as_map(frames, fused_latency(frames))
+
+
+def estimate_whole(frames: EventFrames) -> Tensor:
+    """The same read on the whole frame only, as a map (1, 1, H, W) µs."""
+    return _as_map(frames, fused_latency(frames, ()))
