@@ -251,6 +251,7 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 def cmd_correct(args: argparse.Namespace) -> int:
     import h5py
 
+    from evlatcorr.frames import EventFrames
     from evlatcorr.io import EventUtilsRecording, EventWriter, write_event_utils
     from evlatcorr.io.h5 import atomic_path, write_header
     from evlatcorr.io.outputs import check_outputs
@@ -271,27 +272,41 @@ def cmd_correct(args: argparse.Namespace) -> int:
     corrector = _corrector(args, args.mode, args.curve, theta)
     rows, latencies, starts, ends, images = [], [], [], [], []
     evidence: list[tuple[Any, Any]] = []  # per frame: its candidates and the reader's log-probability (or None)
-    previous = 0.0
-    for batch in _progress(rec, len(rec), "correct"):
-        t0 = time.perf_counter()
-        batch = batch.to(device)
-        h, w = batch.sensor_size
-        if not has_events(batch):  # nothing to estimate from: the previous frame's latency (or none)
-            _skip_warning(batch, f"no events in its exposure and search window; its events keep the previous "
-                                 f"frame's latency ({previous:.0f} us)")
-            out = batch.replace(latency=torch.full((1, 1, h, w), previous, dtype=torch.float64, device=device))
-            rows.append(_latency_row(batch, out, theta, time.perf_counter() - t0, skipped="no events"))
-            evidence.append((None, None))
-        else:
-            out = corrector(batch)
-            rows.append(_latency_row(batch, out, theta, time.perf_counter() - t0))
-            evidence.append(frame_evidence(out)[0][1:] if args.mode == "constant" else (None, None))
-        lat_map = out.latency[0, 0].cpu()
-        previous = float(lat_map.mean())
-        latencies.append(lat_map)
+    pending: list[Any] = []  # frames with events not yet corrected, searched in one call (_frames_per_call)
+
+    def record(batch, out, seconds: float, skipped: str = "") -> None:
+        rows.append(_latency_row(batch, out, theta, seconds, skipped=skipped))
+        evidence.append(frame_evidence(out)[0][1:] if args.mode == "constant" and not skipped else (None, None))
+        latencies.append(out.latency[0, 0].cpu())
         starts.append(float(batch.exposure_start))
         ends.append(float(batch.exposure_end))
         images.append(batch.blurry[0].cpu().numpy())
+
+    def correct_pending() -> None:
+        if pending:
+            t0 = time.perf_counter()
+            out = corrector(pending[0] if len(pending) == 1 else EventFrames.cat(pending))
+            seconds = (time.perf_counter() - t0) / len(pending)  # each frame's share of the call
+            for batch, part in zip(pending, out.split() if len(pending) > 1 else [out]):
+                record(batch, part, seconds)
+            pending.clear()
+
+    per_call = _frames_per_call(device, args.mode)
+    for batch in _progress(rec, len(rec), "correct"):
+        batch = batch.to(device)
+        if has_events(batch):
+            pending.append(batch)
+            if len(pending) >= per_call:
+                correct_pending()
+            continue
+        correct_pending()  # the frames before it first: it takes the latency of the last of them
+        previous = float(latencies[-1].mean()) if latencies else 0.0
+        _skip_warning(batch, f"no events in its exposure and search window; its events keep the previous "
+                             f"frame's latency ({previous:.0f} us)")
+        h, w = batch.sensor_size
+        record(batch, batch.replace(latency=torch.full((1, 1, h, w), previous, dtype=torch.float64, device=device)),
+               0.0, skipped="no events")
+    correct_pending()
     if not rows:
         raise ValueError(f"{args.input}: no frames")
     if args.mode == "constant" and args.fuse_frames > 0:
@@ -325,6 +340,14 @@ def cmd_correct(args: argparse.Namespace) -> int:
           f"{np.median([float(r['latency_us']) for r in rows]):.0f} us"
           + (f", {skipped} without events kept the previous latency" if skipped else "") + ")")
     return EXIT_OK
+
+
+def _frames_per_call(device: torch.device, mode: str) -> int:
+    """Frames of a recording corrected in one call: on an accelerator the constant search takes several frames in
+    one pass (:mod:`evlatcorr.search_batched`); a CPU searches frame by frame, so it gets them one at a time."""
+    from evlatcorr import search_batched
+
+    return search_batched.MAX_FRAMES if mode == "constant" and device.type != "cpu" else 1
 
 
 def _fused(rows: list[dict], latencies: list[torch.Tensor], evidence: list[tuple[Any, Any]],

@@ -216,8 +216,9 @@ class EventFrames:
 
         Every field is kept: tensors are concatenated along the batch dimension and events (``events``,
         ``corrected``) by :meth:`Events.cat`; an optional field must be set on every item or on none.
-        In ``meta``, a tensor whose first dimension is the item's batch size, or a list as long as
-        it, holds one entry per sample and is concatenated; any other entry describes the whole item
+        In ``meta``, a tensor whose first dimension is the item's batch size, a list as long as it, or a
+        tuple of such tensors (e.g. ``etf_curve``) holds one entry per sample and is concatenated (a tuple
+        element by element); any other entry describes the whole item
         and is kept when every item has the same value (else dropped: it has no batched form).
 
         Raises:
@@ -269,7 +270,7 @@ class EventFrames:
                 for name in ("blurry", "exposure_start", "exposure_end", *_IMAGE_FIELDS, *_VECTOR_FIELDS)}
             changes["events"] = self.events.sample(i)
             changes["corrected"] = None if self.corrected is None else self.corrected.sample(i)
-            changes["meta"] = {k: v[i:i + 1] if _per_sample(v, b) else v for k, v in self.meta.items()}
+            changes["meta"] = {k: _sample_of(v, i) if _per_sample(v, b) else v for k, v in self.meta.items()}
             parts.append(self.replace(**changes))
         return parts
 
@@ -295,10 +296,18 @@ def _is_pixel_map(value: Any, size: tuple[int, int]) -> bool:
 
 
 def _per_sample(value: Any, batch_size: int) -> bool:
-    """Whether a ``meta`` entry holds one entry per sample (a tensor ``(B, ...)`` or a list of B)."""
+    """Whether a ``meta`` entry holds one entry per sample: a tensor ``(B, ...)``, a list of B, or a tuple of such
+    tensors (e.g. the corrector's ``etf_curve``, candidates and scores)."""
     if isinstance(value, Tensor):
         return value.dim() >= 1 and value.shape[0] == batch_size
+    if isinstance(value, tuple):
+        return bool(value) and all(isinstance(v, Tensor) and _per_sample(v, batch_size) for v in value)
     return isinstance(value, list) and len(value) == batch_size
+
+
+def _sample_of(value: Any, i: int) -> Any:
+    """Sample ``i`` of a per-sample ``meta`` entry (:func:`_per_sample`), as a batch of one."""
+    return tuple(v[i:i + 1] for v in value) if isinstance(value, tuple) else value[i:i + 1]
 
 
 def _check_all_or_none(name: str, values: Sequence[Any]) -> None:
@@ -328,9 +337,11 @@ def _cat_meta(items: Sequence[EventFrames]) -> dict[str, Any]:
             continue
         values = [x.meta[key] for x in items]
         if all(_per_sample(v, x.batch_size) for v, x in zip(values, items)):
-            tensors = isinstance(values[0], Tensor)
-            if all(isinstance(v, Tensor) == tensors for v in values):
-                meta[key] = torch.cat(values) if tensors else [e for v in values for e in v]
+            kind = type(values[0]) if not isinstance(values[0], Tensor) else Tensor
+            if all(isinstance(v, kind) for v in values) and (kind is not tuple or len({len(v) for v in values}) == 1):
+                meta[key] = (torch.cat(values) if kind is Tensor else
+                             tuple(torch.cat(parts) for parts in zip(*values)) if kind is tuple else
+                             [e for v in values for e in v])
                 continue
         if all(_same(values[0], v) for v in values[1:]):
             meta[key] = values[0]

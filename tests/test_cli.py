@@ -342,3 +342,54 @@ def test_pair_reach_and_lead_cover_refids_window(simulated):
     # the window REFID reads lies inside the events read, with room for a correction of up to half an exposure
     assert float(pair.events.t.min()) <= float(start[0]) - exposure / 2
     assert float(pair.events.t.max()) >= float(end[0])
+
+
+@pytest.fixture(scope="module")
+def four_frames_first_empty(tmp_path_factory):
+    """Four frames, the first without events in its window (``--search-us 0 5000``)."""
+    seq = simulate("coffee", num_frames=4, height=32, width=48, latency_us=2000.0, seed=4)
+    ev = seq.delayed_events
+    keep = ev.t > float(seq.exposure_end[0]) + 5000.0
+    seq.delayed_events = type(ev)(ev.x[keep], ev.y[keep], ev.t[keep], ev.p[keep], sensor_size=ev.sensor_size)
+    path = tmp_path_factory.mktemp("four") / "four.h5"
+    write_sequence(path, seq)
+    return path
+
+
+def test_correct_searches_several_frames_per_call_as_frame_by_frame(four_frames_first_empty, tmp_path,
+                                                                     monkeypatch):
+    # what an accelerator does (frames searched in one pass, evlatcorr.search_batched), forced on this CPU: two
+    # frames per call, so frames 1-2 share a call, frame 3 is corrected alone at the end and frame 0 has no events
+    from evlatcorr import cli, search_batched
+
+    args = ["correct", str(four_frames_first_empty), "--num-bins", "100", "--search-us", "0", "5000"]
+    assert cli.main([*args[:2], str(tmp_path / "alone.h5"), *args[2:]]) == 0
+    calls = []
+    corrector = cli._corrector
+
+    def counting(*a, **k):
+        inner = corrector(*a, **k)
+
+        def run(frames):
+            calls.append(frames.batch_size)
+            return inner(frames)
+        return run
+
+    monkeypatch.setattr(cli, "_frames_per_call", lambda device, mode: 2)
+    monkeypatch.setattr(cli, "_corrector", counting)
+    monkeypatch.setattr(search_batched, "ON_CPU", True)
+    together = search_batched.search_frames_together
+    passes = []
+    monkeypatch.setattr(search_batched, "search_frames_together", lambda *a, **k: passes.append(1) or together(*a, **k))
+    assert cli.main([*args[:2], str(tmp_path / "batched.h5"), *args[2:]]) == 0
+    assert calls == [2, 1] and passes == [1]  # frames 1-2 in one pass
+    alone = list(csv.DictReader(open(tmp_path / "alone.csv")))
+    batched = list(csv.DictReader(open(tmp_path / "batched.csv")))
+    assert [r["skipped"] for r in batched] == ["no events", "", "", ""] == [r["skipped"] for r in alone]
+    for key in ("latency_us", "frame_latency_us", "spread_us", "confidence"):  # empty (nan): the skipped frame
+        np.testing.assert_allclose([float(r[key] or "nan") for r in batched], [float(r[key] or "nan") for r in alone],
+                                   atol=0.2, equal_nan=True)
+    assert [r["source"] for r in batched] == [r["source"] for r in alone]
+    with h5py.File(tmp_path / "alone.h5") as a, h5py.File(tmp_path / "batched.h5") as b:
+        np.testing.assert_allclose(b["events/t"][:], a["events/t"][:], atol=0.2)
+        np.testing.assert_array_equal(b["events/x"][:], a["events/x"][:])

@@ -212,3 +212,15 @@ class TestCatAndSplit:
     def test_cat_bad_input(self, items, message):
         with pytest.raises(ValueError, match=re.escape(message)):
             EventFrames.cat(items)
+
+
+def test_a_tuple_of_per_sample_tensors_in_meta_is_split_and_concatenated_per_sample():
+    # the corrector's etf_curve: (candidates (B, K), scores (B, K))
+    curve = (torch.tensor([[0.0, 1.0], [0.0, 2.0]]), torch.tensor([[5.0, 6.0], [7.0, 8.0]]))
+    fr = _frames(meta={"etf_curve": curve, "pair": (torch.zeros(3), torch.zeros(3)), "name": "x"})
+    first, second = fr.split()
+    assert torch.equal(second.meta["etf_curve"][0], curve[0][1:]) and torch.equal(second.meta["etf_curve"][1],
+                                                                                   curve[1][1:])
+    assert first.meta["pair"] is fr.meta["pair"] and first.meta["name"] == "x"  # not one entry per sample: kept
+    joined = EventFrames.cat([first, second])
+    assert all(torch.equal(a, b) for a, b in zip(joined.meta["etf_curve"], curve))
