@@ -15,6 +15,9 @@ not shipped (``docs/estimator.md``):
 
 ``estimate_whole`` is the same read on the whole frame only: the default search's reader estimate without its
 fallbacks (a frame whose windows hold no events is refused here), the fair baseline for the tiles.
+``estimate_map_2x2`` and ``estimate_map_3x3`` give each tile its own latency instead (its log-probability plus the
+whole frame's), interpolated bilinearly between the tiles' centres: a per-pixel map for latencies that vary with
+intensity, also measured and not shipped.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import math
 
 import kornia
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from evlatcorr import search
@@ -103,3 +107,26 @@ def estimate(frames: EventFrames) -> Tensor:
 def estimate_whole(frames: EventFrames) -> Tensor:
     """The same read on the whole frame only, as a map (1, 1, H, W) µs."""
     return _as_map(frames, fused_latency(frames, ()))
+
+
+def tile_latency_map(frames: EventFrames, grid: tuple[int, int]) -> Tensor:
+    """Each tile's centre of its own and the whole frame's summed log-probabilities, bilinear between the tiles'
+    centres: a map (1, 1, H, W) µs."""
+    candidates, valid, whole, tiled = tile_log_probabilities(frames, (grid,))
+    centres = []
+    for log_p in tiled[0][0]:
+        total = log_p.clone()
+        total[valid] += whole[valid]
+        centres.append(probability_centre(total.masked_fill(~valid, -1e30), candidates, int(valid.sum()))[1])
+    coarse = torch.tensor(centres, dtype=torch.float32).view(1, 1, *grid)
+    return F.interpolate(coarse, size=frames.blurry.shape[-2:], mode="bilinear", align_corners=False).to(frames.blurry)
+
+
+def estimate_map_2x2(frames: EventFrames) -> Tensor:
+    """:func:`tile_latency_map` of a 2x2 grid."""
+    return tile_latency_map(frames, (2, 2))
+
+
+def estimate_map_3x3(frames: EventFrames) -> Tensor:
+    """:func:`tile_latency_map` of a 3x3 grid."""
+    return tile_latency_map(frames, (3, 3))
