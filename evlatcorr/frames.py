@@ -305,6 +305,11 @@ def _per_sample(value: Any, batch_size: int) -> bool:
     return isinstance(value, list) and len(value) == batch_size
 
 
+def _stackable(tuples: Sequence[tuple[Tensor, ...]]) -> bool:
+    """Whether per-sample tuples of tensors concatenate element by element (one length, one shape past dim 0)."""
+    return len({tuple(t.shape[1:] for t in value) for value in tuples}) == 1
+
+
 def _sample_of(value: Any, i: int) -> Any:
     """Sample ``i`` of a per-sample ``meta`` entry (:func:`_per_sample`), as a batch of one."""
     return tuple(v[i:i + 1] for v in value) if isinstance(value, tuple) else value[i:i + 1]
@@ -338,7 +343,7 @@ def _cat_meta(items: Sequence[EventFrames]) -> dict[str, Any]:
         values = [x.meta[key] for x in items]
         if all(_per_sample(v, x.batch_size) for v, x in zip(values, items)):
             kind = type(values[0]) if not isinstance(values[0], Tensor) else Tensor
-            if all(isinstance(v, kind) for v in values) and (kind is not tuple or len({len(v) for v in values}) == 1):
+            if all(isinstance(v, kind) for v in values) and (kind is not tuple or _stackable(values)):
                 meta[key] = (torch.cat(values) if kind is Tensor else
                              tuple(torch.cat(parts) for parts in zip(*values)) if kind is tuple else
                              [e for v in values for e in v])

@@ -224,3 +224,6 @@ def test_a_tuple_of_per_sample_tensors_in_meta_is_split_and_concatenated_per_sam
     assert first.meta["pair"] is fr.meta["pair"] and first.meta["name"] == "x"  # not one entry per sample: kept
     joined = EventFrames.cat([first, second])
     assert all(torch.equal(a, b) for a, b in zip(joined.meta["etf_curve"], curve))
+    # curves of other lengths have no batched form: dropped, as other entries that differ
+    other = first.replace(meta={"etf_curve": (torch.zeros(1, 3), torch.zeros(1, 3))})
+    assert "etf_curve" not in EventFrames.cat([first, other]).meta
