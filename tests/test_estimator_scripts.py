@@ -5,6 +5,7 @@ import torch
 
 from evlatcorr.benchmark.accuracy import load_estimator, make_cases, simulate_case
 from evlatcorr.correction import EventLatencyCorrector
+from evlatcorr.frames import EventFrames
 from tests.test_accuracy import tiny_case
 
 TILES = "benchmarks/estimators/tiles.py"
@@ -44,3 +45,14 @@ def test_tile_latency_map_covers_the_frame_with_the_tiles_estimates(text_case):
     assert latency.shape == (1, 1, 96, 128) and torch.isfinite(latency).all()
     # one latency for every pixel here: each tile's estimate is near it
     assert float((latency - case.latency_us).abs().max()) < 1500.0
+
+
+def test_tiles_refuse_a_batch_and_tiles_too_small_to_read(text_case):
+    tile_log_probabilities = load_estimator(f"{TILES}:tile_log_probabilities")
+    tile_latency_map = load_estimator(f"{TILES}:tile_latency_map")
+    _, delayed = text_case
+    with pytest.raises(ValueError, match="one frame"):
+        tile_log_probabilities(EventFrames.cat([delayed, delayed]))
+    for grid in ((0, 2), (40, 2), (2, 2.5)):
+        with pytest.raises(ValueError, match="at least 3x3 pixels"):
+            tile_latency_map(delayed, grid)

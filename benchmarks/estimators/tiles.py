@@ -42,11 +42,23 @@ def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ..
                            ) -> tuple[Tensor, Tensor, Tensor, list[tuple[Tensor, Tensor]]]:
     """The reader's log-probabilities of the first frame's coarse candidates on the whole frame and per tile.
 
+    Raises:
+        ValueError: for more than one frame, a frame without events or with fewer than three candidates to score,
+            or a grid whose tiles are under 3x3 pixels.
+
     Returns:
         the candidates :math:`(K,)` µs, which are valid :math:`(K,)`, the whole frame's log-probability
         :math:`(K,)` (−inf where not valid) and per grid ``(log-probabilities (T, K), each tile's share of the
         events' absolute change over the candidates (T,))``.
     """
+    height, width = frames.sensor_size
+    if frames.batch_size != 1:
+        raise ValueError(f"the tiles read one frame, got {frames.batch_size}")
+    for rows, cols in grids:
+        whole_tiles = isinstance(rows, int) and isinstance(cols, int)
+        if not (whole_tiles and 1 <= rows <= height // 3 and 1 <= cols <= width // 3):
+            raise ValueError(f"a grid must be whole numbers of tiles, each at least 3x3 pixels of the {height}x{width} "
+                             f"frame, got {(rows, cols)}")
     events = frames.events.sample(0)
     if not len(events):
         raise ValueError("the frame has no events")
@@ -74,7 +86,6 @@ def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ..
         log_p = search._read_curves(curve_features(scores, moment, valid)[None], valid[None])[0]
         return torch.full_like(log_p, -math.inf).masked_scatter_(valid, torch.log_softmax(log_p[valid], 0))
 
-    height, width = grey.shape[-2:]
     whole = read((slice(None), slice(None)))
     tiled = []
     for rows, cols in grids:
