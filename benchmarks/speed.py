@@ -240,6 +240,7 @@ def bench_stages(device: torch.device, args: argparse.Namespace) -> None:
               "read the candidates' windows": (continuous.ContinuousIntegral, "inverse_ratio"),
               "sharpness scores": (search, "_latent_scores"),
               "ghost moments": (search, "inverse_ratio_moment"),
+              "overshoots": (search, "overshoot"),
               "the estimate's latent (its window read once more)": (continuous.ContinuousIntegral, "log_ratio")}
     spent: dict[str, float] = {}
 

@@ -5,8 +5,8 @@ constant-latency and 200 photoreceptor-lag frames of the dev split's photographs
 disjoint from dev and test), reads each frame's candidate curves as the search does
 (:func:`evlatcorr.search.candidate_curves`), and fits an ensemble of 5 readers to each frame's target
 (:func:`evlatcorr.benchmark.accuracy.training_target`: the true latency, or under the photoreceptor model the
-best constant shift). About 45 minutes on 2 CPU cores: simulating, the photoreceptor frames' best-shift scans,
-then about 6 minutes of training.
+best constant shift). About 15 minutes on 2 CPU cores: 14 minutes simulating and reading the frames (most of it
+the photoreceptor frames' best-shift scans), then about a minute of training.
 
     python benchmarks/train_curve_reader.py                                  # writes checkpoints/curve-reader.*
     python benchmarks/train_curve_reader.py --cache curves.pt --out /tmp/reader.safetensors

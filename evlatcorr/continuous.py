@@ -39,6 +39,8 @@ BYTES_PER_EVENT = 112
 # pages are faster; and elsewhere (a GPU), where each strip costs two dozen kernel launches and a DAVIS346 frame's
 # 200 times take about 400 MB in one strip.
 STRIP_BYTES = 64 * 2**20
+# where in the window, besides its ends and reference, the peak log rise (``peak_out``) is read
+PEAK_FRACTIONS = (0.25, 0.75)
 DEVICE_STRIP_BYTES = 2**30
 # Window ends are rounded to 1/_LATTICE µs (exact in binary) so equal times computed two ways coincide.
 _LATTICE = 1024.0
@@ -259,33 +261,41 @@ class ContinuousIntegral:
         return log_ratio.view(1, 1, *self.sensor_size)
 
     def inverse_ratio(self, start: float, end: float, latencies: Tensor, reference: float = 0.5,
-                      out: Tensor | None = None, change_out: Tensor | None = None) -> Tensor:
+                      out: Tensor | None = None, change_out: Tensor | None = None,
+                      peak_out: Tensor | None = None) -> Tensor:
         """``1 / R`` of the same windows as :meth:`log_ratio`, float32: the latent image is ``blurry / R``.
 
         What a search that scores latent images needs: its tables are float32 (half the memory traffic of
         :meth:`log_ratio`'s) and it takes no logarithm. ``out``: optional float32 :math:`(K, 1, H, W)`.
         ``change_out``: optional float32 :math:`(K, 1, H, W)` that also receives :meth:`log_change` of the windows,
         from the same tables (the count at the window's ends: no second pass over the events).
+        ``peak_out``: optional float32 :math:`(K, 1, H, W)` that receives, from the same tables, how far each
+        pixel's log latent rises above its value at the reference over the window:
+        ``θ (max C − C(reference))``, the maximum over the window's start, its quarters, its reference and its end
+        (what :func:`evlatcorr.overshoot.overshoot` reads).
         """
-        return self._read(start, end, latencies, reference, out, torch.float32, change_out)
+        return self._read(start, end, latencies, reference, out, torch.float32, change_out, peak_out)
 
     def _read(self, start: float, end: float, latencies: Tensor, reference: float, out: Tensor | None,
-              dtype: torch.dtype, change_out: Tensor | None = None) -> Tensor:
+              dtype: torch.dtype, change_out: Tensor | None = None, peak_out: Tensor | None = None) -> Tensor:
         """log R (float64) or 1 / R (float32) of every window, a strip of rows at a time (and the windows' event
-        change into ``change_out``)."""
+        change into ``change_out``, their peak log rise into ``peak_out``)."""
         # the plan (a few hundred times and where each window lies among them) is made on the CPU: on a GPU its
         # small steps would each cost a kernel launch, and its decisions a wait for the device
         lat = latencies.detach().to("cpu", torch.float64).reshape(-1)
         mid = start + reference * (end - start)
-        times, (a, b, r) = _distinct_times(torch.stack([start + lat, end + lat, mid + lat]))
+        points = [start + lat, end + lat, mid + lat]
+        if peak_out is not None:  # the quarters: with candidates spaced by exposure / 100, times already read
+            points += [start + f * (end - start) + lat for f in PEAK_FRACTIONS]
+        times, (a, b, r, *quarters) = _distinct_times(torch.stack(points))
         height, width = self.sensor_size
         if out is None:
             out = torch.empty((len(lat), 1, height, width), dtype=dtype, device=self.device)
         elif out.shape != (len(lat), 1, height, width) or out.dtype != dtype:
             raise ValueError(f"out must be {dtype} {(len(lat), 1, height, width)}, got {out.dtype} {tuple(out.shape)}")
-        if change_out is not None and (change_out.shape != out.shape or change_out.dtype != torch.float32):
-            raise ValueError(f"change_out must be float32 {tuple(out.shape)}, got {change_out.dtype} "
-                             f"{tuple(change_out.shape)}")
+        for name, extra in (("change_out", change_out), ("peak_out", peak_out)):
+            if extra is not None and (extra.shape != out.shape or extra.dtype != torch.float32):
+                raise ValueError(f"{name} must be float32 {tuple(out.shape)}, got {extra.dtype} {tuple(extra.shape)}")
         windows = _Windows(a, b, len(times), self.device)
         num, padded, size = len(times), windows.rows, out.element_size()
         extended = 1 + max(padded, num)  # interval rows: before the first time, the blocks, after the last time
@@ -301,7 +311,7 @@ class ContinuousIntegral:
         times = times.to(self.device)
         slots = self._slots(times)
         # evenly spaced candidates read evenly spaced times: rows of the tables as views, not gathered copies
-        a, b, r = (_as_rows(index, self.device) for index in (a, b, r))
+        a, b, r, *quarters = (_as_rows(index, self.device) for index in (a, b, r, *quarters))
         for r0 in range(0, height, rows):
             r1 = min(height, r0 + rows)
             p = (r1 - r0) * width
@@ -313,6 +323,12 @@ class ContinuousIntegral:
             if change_out is not None:  # θ (C(end) − C(start)): whole numbers of events
                 torch.sub(strip_count[b], strip_count[a], out=change_out[:, 0, r0:r1].view(len(lat), p))
                 change_out[:, 0, r0:r1].mul_(self.theta)
+            if peak_out is not None:  # θ (max C − C(reference)) over the window's start, quarters, reference, end
+                peak = peak_out[:, 0, r0:r1].view(len(lat), p)
+                torch.maximum(strip_count[a], strip_count[b], out=peak)
+                for rows_read in (r, *quarters):
+                    torch.maximum(peak, strip_count[rows_read], out=peak)
+                peak.sub_(strip_count[r]).mul_(self.theta)
             if dtype == torch.float64:  # log of the mean level over the window, relative to the level read
                 torch.sub(window.div_(end - start).log_(), strip_count[r].view(len(lat), r1 - r0, width),
                           alpha=self.theta, out=out[:, 0, r0:r1])

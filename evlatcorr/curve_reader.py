@@ -9,13 +9,16 @@ over the coarse candidates reads
 - the three sparsity scores' curves, each relative to its median and range over the candidates that could be
   scored (so neither a score's level nor its scale matters),
 - the ghost moment (:func:`evlatcorr.ghost.ghost_moment`) of each candidate,
+- the overshoot (:func:`evlatcorr.overshoot.overshoot`): how far the candidate's latent rises over the exposure
+  above the blurry frame's brightest, in log (a wrong window's ghosts overshoot; it points near the truth on many
+  scenes where the sharpness scores mislead),
 - which candidates could be scored (their window holds events),
 
 and gives a log-probability per candidate. :class:`CurveReaderEnsemble` averages a few readers trained from
 different seeds. The search's estimate is the centre of the ensemble's probability over its likeliest candidate
 and two neighbours on each side, a latency between candidates.
 
-The shipped weights (``checkpoints/curve-reader.safetensors``, 64 kB) come from
+The shipped weights (``checkpoints/curve-reader.safetensors``, 5 x 3105 parameters) come from
 ``python benchmarks/train_curve_reader.py``: cases of the accuracy suite's generator
 (:data:`evlatcorr.benchmark.accuracy.TRAIN_SPLITS`: the dev split's photographs, seeds disjoint from both dev
 and test), the reader trained against each case's
@@ -44,8 +47,8 @@ from torch import Tensor, nn
 __all__ = ["NUM_FEATURES", "CurveReader", "CurveReaderEnsemble", "FusedCurveReaderEnsemble", "curve_features",
            "probability_centre", "train_curve_reader", "load_curve_reader", "WEIGHTS_NAME", "CENTRE_HALF_WIDTH"]
 
-# three sparsity curves, the ghost moment, the valid mask
-NUM_FEATURES = 5
+# three sparsity curves, the ghost moment, the overshoot, the valid mask
+NUM_FEATURES = 6
 WEIGHTS_NAME = "curve-reader"
 # the training target: a Gaussian around the true latency, µs (about one and a half coarse candidates)
 TARGET_SIGMA_US = 300.0
@@ -88,7 +91,7 @@ def probability_centre(log_p: Tensor, candidates: Tensor, num_valid: int,
     return float(candidates[k]), float((torch.softmax(log_p[near], 0) * candidates[near]).sum())
 
 
-def curve_features(scores: Tensor, moment: Tensor, valid: Tensor) -> Tensor:
+def curve_features(scores: Tensor, moment: Tensor, valid: Tensor, overshoot: Tensor) -> Tensor:
     """The reader's input :math:`(NUM\\_FEATURES, K)` float32 from one frame's candidate curves (or
     :math:`(N, NUM\\_FEATURES, K)` from N frames' at once).
 
@@ -97,18 +100,23 @@ def curve_features(scores: Tensor, moment: Tensor, valid: Tensor) -> Tensor:
             :math:`(N, 3, K)`.
         moment: the ghost moment of each candidate :math:`(K,)` (0 where not valid), or :math:`(N, K)`.
         valid: :math:`(K,)` bool: the candidate's window holds events; or :math:`(N, K)`.
+        overshoot: :func:`evlatcorr.overshoot.overshoot` of each candidate :math:`(K,)` (any value where not valid),
+            or :math:`(N, K)`.
 
     Returns:
         each score relative to its median over the valid candidates and divided by its range there (0 where
-        not valid, or everywhere when fewer than two are valid), the moment, and ``valid`` as 0/1.
+        not valid, or everywhere when fewer than two are valid), the moment, the overshoot (0 where not valid) and
+        ``valid`` as 0/1.
     """
     if (scores.dim() not in (2, 3) or moment.shape != scores.shape[:-2] + scores.shape[-1:]
-            or valid.shape != moment.shape):
-        raise ValueError(f"scores must be (M, K) with moment and valid (K,), or (N, M, K) with them (N, K), got "
-                         f"{tuple(scores.shape)}, {tuple(moment.shape)} and {tuple(valid.shape)}")
+            or valid.shape != moment.shape or overshoot.shape != moment.shape):
+        raise ValueError(f"scores must be (M, K) with moment, valid and overshoot (K,), or (N, M, K) with them (N, K), "
+                         f"got {tuple(scores.shape)}, {tuple(moment.shape)}, {tuple(valid.shape)} and "
+                         f"{tuple(overshoot.shape)}")
     # every curve at once and on the curves' device (no per-curve host sync); the same values as each curve's
     # median and range over its valid candidates
     scores, moment = scores.double(), moment.double().to(scores.device)
+    overshoot = overshoot.double().to(scores.device)
     valid = valid.to(scores.device)
     along = valid.unsqueeze(-2)  # (..., 1, K): the same candidates for each score
     masked = scores.masked_fill(~along, math.nan)
@@ -117,7 +125,8 @@ def curve_features(scores: Tensor, moment: Tensor, valid: Tensor) -> Tensor:
               - scores.masked_fill(~along, math.inf).amin(-1, keepdim=True))
     usable = along & (valid.sum(-1, keepdim=True) >= 2).unsqueeze(-1)
     rows = torch.where(usable, (scores - median) / spread.clamp_min(1e-12), 0.0)
-    return torch.cat([rows, torch.where(valid, moment, 0.0).unsqueeze(-2), valid.double().unsqueeze(-2)], -2).float()
+    cues = [torch.where(valid, cue, 0.0).unsqueeze(-2) for cue in (moment, overshoot)]
+    return torch.cat([rows, *cues, valid.double().unsqueeze(-2)], -2).float()
 
 
 class CurveReader(nn.Module):

@@ -49,6 +49,7 @@ from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.events import Events
 from evlatcorr.ghost import ghost_root, inverse_ratio_moment
 from evlatcorr.integral import _row_strips, cumsum_, cumulative_event_grid
+from evlatcorr.overshoot import overshoot
 from evlatcorr.sharpness import _scores_of, sharpness_score, sharpness_scores
 from evlatcorr.temporal import LatencyHistory
 
@@ -389,6 +390,8 @@ class _CandidateReader:
     final_ratio: Callable[[float], Tensor | None]
     log_change: Callable[[Tensor], Tensor] | None = None
     ignored_pixels: int = 0  # hot pixels read as having no events
+    # θ (max C − C(reference)) over each window :math:`(K, 1, H, W)` float32 (the overshoot cue's; None: none)
+    log_peak: Callable[[Tensor], Tensor] | None = None
 
 
 def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float, config: SearchConfig,
@@ -400,9 +403,9 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
     top = span.reach if math.isfinite(span.reach) else -math.inf
     fine_step = min((end - start) / config.num_bins, step)
     limit = resolve_memory_budget(budget)
-    # the learned score also keeps each candidate's event change (float32)
+    # the learned score also keeps each candidate's event change and peak log rise (float32)
     with_change = config.score == "learned"
-    candidate_bytes = grey.numel() * (continuous.BYTES_PER_CANDIDATE + 4 * with_change)
+    candidate_bytes = grey.numel() * (continuous.BYTES_PER_CANDIDATE + 8 * with_change)
     check_memory(len(events) * continuous.BYTES_PER_EVENT + candidate_bytes, f"the continuous integral of "
                  f"{len(events)} events", "pass only the events of the exposure and the latencies searched, or a "
                  "smaller sensor crop", limit)
@@ -419,13 +422,15 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
             return last_read["inverse"]
         out = torch.empty((len(lat), 1, *grey.shape[-2:]), dtype=torch.float32, device=events.device)
         change = torch.empty_like(out) if with_change else None
+        peak = torch.empty_like(out) if with_change else None
         for k in range(0, len(lat), chunk):  # each read writes its slice: no concatenated copy
             integral.inverse_ratio(start, end, lat[k:k + chunk], out=out[k:k + chunk],
-                                   change_out=None if change is None else change[k:k + chunk])
+                                   change_out=None if change is None else change[k:k + chunk],
+                                   peak_out=None if peak is None else peak[k:k + chunk])
         last_read.clear()
         last_read.update(latencies=lat.cpu(), inverse=out)
         if change is not None:
-            last_read["change"] = change
+            last_read.update(change=change, peak=peak)
         return out
 
     def fine_of(best: float) -> Tensor:
@@ -446,8 +451,17 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
             return last_read["change"]
         return integral.log_change(start, end, lat)
 
+    def log_peak(lat: Tensor) -> Tensor:
+        if not ("peak" in last_read and torch.equal(last_read["latencies"], lat.cpu())):
+            peak = torch.empty((len(lat), 1, *grey.shape[-2:]), dtype=torch.float32, device=events.device)
+            for k in range(0, len(lat), chunk):
+                integral.inverse_ratio(start, end, lat[k:k + chunk], peak_out=peak[k:k + chunk])
+            return peak
+        return last_read["peak"]
+
     ignored = 0 if integral is None else int(integral.ignored.sum())
-    return _CandidateReader(coarse, top, low, lambda v: v, inverse_ratio, fine_of, final_ratio, log_change, ignored)
+    return _CandidateReader(coarse, top, low, lambda v: v, inverse_ratio, fine_of, final_ratio, log_change, ignored,
+                            log_peak)
 
 
 def _binned_reader(events: Events, span: _Window, theta: float, config: SearchConfig, integral: str,
@@ -478,7 +492,7 @@ def _binned_reader(events: Events, span: _Window, theta: float, config: SearchCo
     return _CandidateReader(torch.arange(num, device=events.device) * step, top, 0,
                             lambda v: (first + v).to(torch.float64) * width_us,
                             lambda shifts: torch.exp(-table.log_ratio(shifts)).float(), fine_of, lambda latency: None,
-                            lambda shifts: table.log_change(shifts))
+                            lambda shifts: table.log_change(shifts), log_peak=lambda shifts: table.log_peak(shifts))
 
 
 def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str, ...], config: SearchConfig,
@@ -631,9 +645,12 @@ def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse
     kept = coarse[coarse <= reader.top]  # the valid candidates: a prefix of the sorted coarse ones
     moment = torch.zeros(len(coarse), dtype=torch.float64, device=grey.device)
     moment[:len(kept)] = _candidate_moments(reader, grey, kept)
+    over = torch.zeros(len(coarse), dtype=torch.float64, device=grey.device)
+    if len(kept):
+        over[:len(kept)] = overshoot(grey, reader.inverse_ratio(kept), reader.log_peak(kept))
     # the features are made where the moments are: on a GPU the moments are not waited for, and the reader runs
     # there too (on a many-core host its few tiny convolutions cost milliseconds of thread wake-ups)
-    return curve_features(coarse_scores.to(grey.device), moment, valid.to(grey.device)), valid, moment
+    return curve_features(coarse_scores.to(grey.device), moment, valid.to(grey.device), over), valid, moment
 
 
 def _learned_log_p(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor
@@ -846,6 +863,21 @@ class _ShiftTable:
         for strip in self.strips:
             cum = (strip if isinstance(strip, tuple) else self._build(strip))[0]
             out.append(self.theta * (cum[shifts + self.n] - cum[shifts]))
+        return torch.cat(out, dim=1)[:, None].float()
+
+    def log_peak(self, shifts: Tensor) -> Tensor:
+        """θ (max C − C(mid-exposure)) over each shift's window :math:`(K, 1, H, W)` float32, the maximum over the
+        window's start, quarters, middle and end bin edges (the overshoot cue's; the continuous integral's
+        ``peak_out`` on the bins' edges)."""
+        n, out = self.n, []
+        offsets = [round(f * n) for f in (0.0, *continuous.PEAK_FRACTIONS, 1.0)]
+        for strip in self.strips:
+            cum = (strip if isinstance(strip, tuple) else self._build(strip))[0]
+            middle = cum[shifts + round(0.5 * n)]
+            peak = middle.clone()
+            for offset in offsets:
+                torch.maximum(peak, cum[shifts + offset], out=peak)
+            out.append(self.theta * (peak - middle))
         return torch.cat(out, dim=1)[:, None].float()
 
     def log_ratio(self, shifts: Tensor, reference: float = 0.5) -> Tensor:

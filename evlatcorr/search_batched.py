@@ -28,6 +28,7 @@ from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.curve_reader import curve_features
 from evlatcorr.events import Events
 from evlatcorr.ghost import stacked_inverse_ratio_moment
+from evlatcorr.overshoot import overshoot
 from evlatcorr.search import (
     _SPARSITY,
     HOT_PIXEL_LOG_RANGE,
@@ -91,8 +92,9 @@ def search_frames_together(grey: Tensor, events: Events, spans: list[_Window], t
     num_candidates = len(_aligned_candidates(spans[0].low, spans[0].high, config.num_candidates,
                                              spans[0].end - spans[0].start)[0])
     bounds = events.sample_bounds().tolist()  # one wait for the device, for every pass's plan
-    # each frame's events and its candidates' reads (1 / R and the event change) with their scores' work arrays
-    frame_bytes = [(hi - lo) * continuous.BYTES_PER_EVENT + grey[0].numel() * num_candidates * 24
+    # each frame's events and its candidates' reads (1 / R, the event change and the peak rise) with their scores'
+    # work arrays
+    frame_bytes = [(hi - lo) * continuous.BYTES_PER_EVENT + grey[0].numel() * num_candidates * 28
                    for lo, hi in zip(bounds[:-1], bounds[1:])]
     results: list[_OneResult] = []
     first = 0
@@ -122,18 +124,21 @@ def _search_pass(grey: Tensor, events: Events, bounds: list[int], spans: list[_W
     own = [int((kept <= top).sum()) for top in tops]
     scores = torch.full((frames, len(_SPARSITY), len(coarse)), math.inf, dtype=torch.float64)
     moments = torch.zeros((frames, len(coarse)), dtype=torch.float64, device=grey.device)
+    overshoots = torch.zeros_like(moments)
     inverse = None
     if len(kept):
-        inverse, change = _read(integral, exposure, kept, frames * height * width, limit)
+        inverse, change, peak = _read(integral, exposure, kept, frames * height * width, limit)
         block = grey[first:last, 0][None]  # (1, F, H, W): frame j's pixels are block j of the tall image
         tall = (len(kept), frames, height, width)
         values, moment = _scores_and_moments(block, inverse.view(tall), change.view(tall), config)
+        over = overshoot(block.to(inverse), inverse.view(tall), peak.view(tall)).view(len(kept), frames)
         for j, n in enumerate(own):
             scores[j, :, :n] = values[:, :n, j]
             moments[j, :n] = moment[:n, j]
-        del change
+            overshoots[j, :n] = over[:n, j]
+        del change, peak
     valid = torch.isfinite(scores[:, 0])
-    curves = curve_features(scores.to(grey.device), moments, valid.to(grey.device))
+    curves = curve_features(scores.to(grey.device), moments, valid.to(grey.device), overshoots)
     log_p = _read_curves(curves, valid)
 
     results = []
@@ -164,18 +169,18 @@ def _tall_events(events: Events, bounds: list[int], spans: list[_Window], first:
 
 
 def _read(integral: ContinuousIntegral, exposure: float, kept: Tensor, pixels: int, limit: int
-          ) -> tuple[Tensor, Tensor]:
-    """``1 / R`` and the event change of the candidates ``kept`` over every frame's windows, :math:`(K, 1, F·H, W)`
-    float32 each, as many candidates per read as the budget allows."""
+          ) -> tuple[Tensor, Tensor, Tensor]:
+    """``1 / R``, the event change and the peak log rise of the candidates ``kept`` over every frame's windows,
+    :math:`(K, 1, F·H, W)` float32 each, as many candidates per read as the budget allows."""
     height, width = integral.sensor_size
     inverse = torch.empty((len(kept), 1, height, width), dtype=torch.float32, device=integral.device)
-    change = torch.empty_like(inverse)
+    change, peak = torch.empty_like(inverse), torch.empty_like(inverse)
     # the pass was sized to hold every candidate's read (search_frames_together): one read unless over the budget
-    chunk = max(1, limit // (pixels * (continuous.BYTES_PER_CANDIDATE + 4)))
+    chunk = max(1, limit // (pixels * (continuous.BYTES_PER_CANDIDATE + 8)))
     for k in range(0, len(kept), chunk):
         integral.inverse_ratio(0.0, exposure, kept[k:k + chunk], out=inverse[k:k + chunk],
-                               change_out=change[k:k + chunk])
-    return inverse, change
+                               change_out=change[k:k + chunk], peak_out=peak[k:k + chunk])
+    return inverse, change, peak
 
 
 def _scores_and_moments(grey: Tensor, inverse: Tensor, change: Tensor, config: SearchConfig

@@ -25,38 +25,44 @@ def test_features_are_relative_to_the_valid_part():
     scores = torch.tensor([[4.0, 2.0, 0.0, 99.0]] * 3)
     valid = torch.tensor([True, True, True, False])
     moment = torch.tensor([0.5, 0.0, -0.5, 7.0])
-    x = curve_features(scores, moment, valid)
+    overshoot = torch.tensor([0.25, 0.0, 1.5, 9.0])
+    x = curve_features(scores, moment, valid, overshoot)
     assert x.shape == (NUM_FEATURES, 4)
     torch.testing.assert_close(x[0], torch.tensor([0.5, 0.0, -0.5, 0.0]))  # (s - median) / range, 0 past
     torch.testing.assert_close(x[3], torch.tensor([0.5, 0.0, -0.5, 0.0]))
-    torch.testing.assert_close(x[4], valid.float())
+    torch.testing.assert_close(x[4], torch.tensor([0.25, 0.0, 1.5, 0.0]))  # the overshoot as it is, 0 past
+    torch.testing.assert_close(x[5], valid.float())
     # the same curves at another level and scale read the same
-    torch.testing.assert_close(curve_features(10.0 + 3.0 * scores, moment, valid), x)
+    torch.testing.assert_close(curve_features(10.0 + 3.0 * scores, moment, valid, overshoot), x)
 
 
 def test_features_with_fewer_than_two_valid_candidates_are_zero():
-    x = curve_features(torch.rand(3, 5), torch.zeros(5), torch.tensor([True, False, False, False, False]))
+    valid = torch.tensor([True, False, False, False, False])
+    x = curve_features(torch.rand(3, 5), torch.zeros(5), valid, torch.zeros(5))
     assert torch.equal(x[:3], torch.zeros(3, 5))
 
 
 def test_features_of_several_frames_at_once_equal_each_frames():
     g = torch.Generator().manual_seed(8)
-    scores, moment = torch.rand(4, 3, 9, generator=g), torch.randn(4, 9, generator=g)
+    scores, moment, overshoot = torch.rand(4, 3, 9, generator=g), torch.randn(4, 9, generator=g), torch.rand(4, 9)
     valid = torch.ones(4, 9, dtype=torch.bool)
     valid[1, 5:] = False  # events that stop early
     valid[2, 1:] = False  # one valid candidate: no usable curve
     valid[3] = False  # nothing scored
-    together = curve_features(scores, moment, valid)
+    together = curve_features(scores, moment, valid, overshoot)
     assert together.shape == (4, NUM_FEATURES, 9)
     for n in range(4):
-        torch.testing.assert_close(together[n], curve_features(scores[n], moment[n], valid[n]), rtol=0, atol=0)
+        torch.testing.assert_close(together[n], curve_features(scores[n], moment[n], valid[n], overshoot[n]),
+                                   rtol=0, atol=0)
 
 
 def test_features_refuse_mismatched_shapes():
     with pytest.raises(ValueError, match="scores must be"):
-        curve_features(torch.rand(3, 5), torch.zeros(4), torch.ones(5, dtype=torch.bool))
+        curve_features(torch.rand(3, 5), torch.zeros(4), torch.ones(5, dtype=torch.bool), torch.zeros(5))
     with pytest.raises(ValueError, match="scores must be"):
-        curve_features(torch.rand(2, 3, 5), torch.zeros(5), torch.ones(5, dtype=torch.bool))
+        curve_features(torch.rand(2, 3, 5), torch.zeros(5), torch.ones(5, dtype=torch.bool), torch.zeros(5))
+    with pytest.raises(ValueError, match="scores must be"):
+        curve_features(torch.rand(3, 5), torch.zeros(5), torch.ones(5, dtype=torch.bool), torch.zeros(4))
 
 
 def test_reader_never_picks_a_candidate_that_could_not_be_scored():
@@ -104,7 +110,7 @@ def _planted(n, generator):
     scores = torch.rand(n, 3, k, generator=generator, dtype=torch.float64)
     scores[:, 0] = ((grid[None] - where[:, None]).abs() / k).double()
     valid = torch.ones(k, dtype=torch.bool)
-    curves = torch.stack([curve_features(s, torch.zeros(k), valid) for s in scores])
+    curves = torch.stack([curve_features(s, torch.zeros(k), valid, torch.zeros(k)) for s in scores])
     return curves, valid.expand(n, k).clone(), latencies, latencies[where]
 
 

@@ -69,8 +69,9 @@ def test_curve_reader_inputs_and_pick_stay_on_the_device(device):
     valid = torch.arange(101) < 80
     scores[:, ~valid] = float("inf")
     moment = torch.randn(101, generator=generator, dtype=torch.float64)
-    on_cpu = curve_features(scores, moment, valid)
-    on_device = curve_features(scores.to(device), moment.to(device), valid.to(device))
+    overshoot = torch.rand(101, generator=generator, dtype=torch.float64)
+    on_cpu = curve_features(scores, moment, valid, overshoot)
+    on_device = curve_features(scores.to(device), moment.to(device), valid.to(device), overshoot.to(device))
     assert on_device.device.type == device.type
     torch.testing.assert_close(on_device.cpu(), on_cpu, rtol=0, atol=0)
     assert float(on_cpu[0, valid].median()) == 0.0  # each curve relative to its median over the valid candidates

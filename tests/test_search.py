@@ -201,12 +201,12 @@ def test_table_over_the_budget_is_streamed_with_the_same_result(long_exposure, i
 
 
 def test_continuous_integral_reads_fewer_candidates_at_once_when_they_do_not_fit(long_exposure, monkeypatch):
-    # 4000 events keep 128 kB; a 130 592-byte cap per read leaves room for 3 candidates (72 px x 12 bytes each:
-    # the ratio, the latent and, for the default learned score, the event change)
+    # 4000 events keep 128 kB; a 131 456-byte cap per read leaves room for 3 candidates (72 px x 16 bytes each:
+    # the ratio, the latent and, for the default learned score, the event change and the peak rise)
     ev, blurry = long_exposure
     kw = dict(num_bins=50, search_range=(0.0, 20000.0), num_candidates=11)
     whole = search_constant_latency(blurry, ev, START, LONG_END, **kw)
-    monkeypatch.setattr(evlatcorr.search, "_CONTINUOUS_READ_BYTES", 130_592)
+    monkeypatch.setattr(evlatcorr.search, "_CONTINUOUS_READ_BYTES", 131_456)
     calls = []
     original = ContinuousIntegral.inverse_ratio
     monkeypatch.setattr(ContinuousIntegral, "inverse_ratio",

@@ -49,7 +49,8 @@ def test_stages_add_up_to_the_whole_search():
     times = {line.split(": ")[0].removeprefix("[cpu]   "): float(line.split(": ")[1].split(" ms")[0])
              for line in run.stdout.splitlines() if line.endswith(" ms") and line.startswith("[cpu]   ")}
     assert set(times) == {"prepare the events (sort by pixel, levels)", "read the candidates' windows",
-                          "sharpness scores", "ghost moments", "the estimate's latent (its window read once more)",
+                          "sharpness scores", "ghost moments", "overshoots",
+                          "the estimate's latent (its window read once more)",
                           "other", "total"}
     assert all(value >= 0 for value in times.values())
     parts = sum(value for label, value in times.items() if label != "total")

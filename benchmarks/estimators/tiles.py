@@ -3,12 +3,12 @@ whole frame, its log-probabilities fused.
 
 A small object moving over a static textured background barely changes a whole-image sharpness score, so the
 whole frame's curves can miss what one tile of it shows clearly. This estimator reads the shipped curve reader's
-inputs (the three sparsity curves and the ghost moment over the coarse candidates) on the whole frame and on each
-tile of a 2x2 and a 3x3 grid, and sums the log-probabilities: the whole frame's with weight 1, each grid's tiles
-with weights that add up to 1 per grid, in proportion to the events in each tile (a tile with no motion has flat
-curves that the reader, reading them relative to their own range, would answer at random). The estimate is the
-centre of the summed probability, as the search takes it for one frame. It was measured on the tuning cases and
-not shipped (``docs/estimator.md``):
+inputs (the three sparsity curves, the ghost moment and the overshoot over the coarse candidates) on the whole
+frame and on each tile of a 2x2 and a 3x3 grid, and sums the log-probabilities: the whole frame's with weight 1,
+each grid's tiles with weights that add up to 1 per grid, in proportion to the events in each tile (a tile with no
+motion has flat curves that the reader, reading them relative to their own range, would answer at random). The
+estimate is the centre of the summed probability, as the search takes it for one frame. It was measured on the
+tuning cases and not shipped (``docs/estimator.md``):
 
     python benchmarks/accuracy.py --split tuning --mode none \\
         --estimator benchmarks/estimators/tiles.py:estimate_whole --estimator benchmarks/estimators/tiles.py:estimate
@@ -34,6 +34,7 @@ from evlatcorr.config import SearchConfig
 from evlatcorr.curve_reader import curve_features, probability_centre
 from evlatcorr.frames import EventFrames
 from evlatcorr.ghost import inverse_ratio_moment
+from evlatcorr.overshoot import overshoot
 
 GRIDS = ((2, 2), (3, 3))  # tiles per (rows, columns)
 
@@ -73,7 +74,7 @@ def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ..
         raise ValueError("fewer than three candidates' windows hold events")
     num = len(reader.coarse)
     valid = torch.arange(num) < len(kept)
-    inverse, change = reader.inverse_ratio(kept), reader.log_change(kept)
+    inverse, change, peak = reader.inverse_ratio(kept), reader.log_change(kept), reader.log_peak(kept)
     latency = reader.to_us(kept).float()
 
     def read(region: tuple[slice, slice]) -> Tensor:
@@ -83,7 +84,9 @@ def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ..
                                                       tuple(search._SPARSITY), config).double()
         moment = torch.zeros(num, dtype=torch.float64)
         moment[:len(kept)] = inverse_ratio_moment(grey[part], inverse[part], change[part]).double()
-        log_p = search._read_curves(curve_features(scores, moment, valid)[None], valid[None])[0]
+        over = torch.zeros(num, dtype=torch.float64)
+        over[:len(kept)] = overshoot(grey[part], inverse[part], peak[part])
+        log_p = search._read_curves(curve_features(scores, moment, valid, over)[None], valid[None])[0]
         return torch.full_like(log_p, -math.inf).masked_scatter_(valid, torch.log_softmax(log_p[valid], 0))
 
     whole = read((slice(None), slice(None)))
