@@ -262,7 +262,7 @@ class ContinuousIntegral:
 
     def inverse_ratio(self, start: float, end: float, latencies: Tensor, reference: float = 0.5,
                       out: Tensor | None = None, change_out: Tensor | None = None,
-                      peak_out: Tensor | None = None) -> Tensor:
+                      peak_out: Tensor | None = None, peak_stride: int = 1) -> Tensor:
         """``1 / R`` of the same windows as :meth:`log_ratio`, float32: the latent image is ``blurry / R``.
 
         What a search that scores latent images needs: its tables are float32 (half the memory traffic of
@@ -272,12 +272,14 @@ class ContinuousIntegral:
         ``peak_out``: optional float32 :math:`(K, 1, H, W)` that receives, from the same tables, how far each
         pixel's log latent rises above its value at the reference over the window:
         ``θ (max C − C(reference))``, the maximum over the window's start, its quarters, its reference and its end
-        (what :func:`evlatcorr.overshoot.overshoot` reads).
+        (what :func:`evlatcorr.overshoot.overshoot` reads); with ``peak_stride`` s, only every s-th row and column's,
+        :math:`(K, 1, ⌈H/s⌉, ⌈W/s⌉)`.
         """
-        return self._read(start, end, latencies, reference, out, torch.float32, change_out, peak_out)
+        return self._read(start, end, latencies, reference, out, torch.float32, change_out, peak_out, peak_stride)
 
     def _read(self, start: float, end: float, latencies: Tensor, reference: float, out: Tensor | None,
-              dtype: torch.dtype, change_out: Tensor | None = None, peak_out: Tensor | None = None) -> Tensor:
+              dtype: torch.dtype, change_out: Tensor | None = None, peak_out: Tensor | None = None,
+              peak_stride: int = 1) -> Tensor:
         """log R (float64) or 1 / R (float32) of every window, a strip of rows at a time (and the windows' event
         change into ``change_out``, their peak log rise into ``peak_out``)."""
         # the plan (a few hundred times and where each window lies among them) is made on the CPU: on a GPU its
@@ -293,9 +295,14 @@ class ContinuousIntegral:
             out = torch.empty((len(lat), 1, height, width), dtype=dtype, device=self.device)
         elif out.shape != (len(lat), 1, height, width) or out.dtype != dtype:
             raise ValueError(f"out must be {dtype} {(len(lat), 1, height, width)}, got {out.dtype} {tuple(out.shape)}")
-        for name, extra in (("change_out", change_out), ("peak_out", peak_out)):
-            if extra is not None and (extra.shape != out.shape or extra.dtype != torch.float32):
-                raise ValueError(f"{name} must be float32 {tuple(out.shape)}, got {extra.dtype} {tuple(extra.shape)}")
+        if change_out is not None and (change_out.shape != out.shape or change_out.dtype != torch.float32):
+            raise ValueError(f"change_out must be float32 {tuple(out.shape)}, got {change_out.dtype} "
+                             f"{tuple(change_out.shape)}")
+        if isinstance(peak_stride, bool) or not isinstance(peak_stride, int) or peak_stride < 1:
+            raise ValueError(f"peak_stride must be a whole number >= 1, got {peak_stride!r}")
+        peak_shape = (len(lat), 1, -(-height // peak_stride), -(-width // peak_stride))
+        if peak_out is not None and (peak_out.shape != peak_shape or peak_out.dtype != torch.float32):
+            raise ValueError(f"peak_out must be float32 {peak_shape}, got {peak_out.dtype} {tuple(peak_out.shape)}")
         windows = _Windows(a, b, len(times), self.device)
         num, padded, size = len(times), windows.rows, out.element_size()
         extended = 1 + max(padded, num)  # interval rows: before the first time, the blocks, after the last time
@@ -323,12 +330,15 @@ class ContinuousIntegral:
             if change_out is not None:  # θ (C(end) − C(start)): whole numbers of events
                 torch.sub(strip_count[b], strip_count[a], out=change_out[:, 0, r0:r1].view(len(lat), p))
                 change_out[:, 0, r0:r1].mul_(self.theta)
-            if peak_out is not None:  # θ (max C − C(reference)) over the window's start, quarters, reference, end
-                peak = peak_out[:, 0, r0:r1].view(len(lat), p)
-                torch.maximum(strip_count[a], strip_count[b], out=peak)
-                for rows_read in (r, *quarters):
-                    torch.maximum(peak, strip_count[rows_read], out=peak)
-                peak.sub_(strip_count[r]).mul_(self.theta)
+            first = -r0 % peak_stride  # the strip's first row that the peak is read at
+            if peak_out is not None and first < r1 - r0:
+                # θ (max C − C(reference)) over the window's start, quarters, reference and end, at the sampled pixels
+                counts = [_sampled(strip_count[rows_read], r1 - r0, first, peak_stride) for rows_read in (a, b, r)]
+                peak = peak_out[:, 0, (r0 + first) // peak_stride:-(-r1 // peak_stride)]
+                torch.maximum(counts[0], counts[1], out=peak)
+                for rows_read in quarters:
+                    torch.maximum(peak, _sampled(strip_count[rows_read], r1 - r0, first, peak_stride), out=peak)
+                torch.maximum(peak, counts[2], out=peak).sub_(counts[2]).mul_(self.theta)
             if dtype == torch.float64:  # log of the mean level over the window, relative to the level read
                 torch.sub(window.div_(end - start).log_(), strip_count[r].view(len(lat), r1 - r0, width),
                           alpha=self.theta, out=out[:, 0, r0:r1])
@@ -430,6 +440,12 @@ class _Windows:
             lo, hi = self.between
             total += (running[hi] - running[lo]).to(total.dtype)
         return total
+
+
+def _sampled(rows: Tensor, height: int, first: int, stride: int) -> Tensor:
+    """Every ``stride``-th row (from ``first``) and column of table rows :math:`(K, height·W)`, as a view
+    :math:`(K, ⌈(height − first)/stride⌉, ⌈W/stride⌉)`."""
+    return rows.view(rows.shape[0], height, -1)[:, first::stride, ::stride]
 
 
 def _block_range(blocks: list[int]) -> tuple[int, int]:

@@ -21,17 +21,22 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["OVERSHOOT_RANGE", "overshoot"]
+__all__ = ["OVERSHOOT_RANGE", "overshoot", "overshoot_stride"]
 
 # the percentile over the pixels: the brightest 1 %, not the single brightest pixel (noise, a hot pixel)
 QUANTILE = 0.99
 # the reader reads the cue clamped to this range of log intensity (e^3: a latent 20x brighter than the frame allows)
 OVERSHOOT_RANGE = (-1.0, 3.0)
-# pixels the percentile is taken over at most, about: larger images are read every s-th row and column (a
-# DAVIS346 frame every 2nd), a regular sample of the same distribution at a quarter of the sort
-_MAX_PIXELS = 16384
+# pixels the percentile is taken over at most: larger images are read every s-th row and column (a DAVIS346 frame
+# every 3rd), a regular sample of the same distribution; the reader was trained on 96x128 frames, read whole
+MAX_PIXELS = 96 * 128
 # darkest grey level taken into the log latent (a black pixel has no log), as the ghost cue's
 _FLOOR = 1e-4
+
+
+def overshoot_stride(height: int, width: int) -> int:
+    """The s such that every s-th row and column of an image, at most :data:`MAX_PIXELS` pixels, are read."""
+    return max(1, math.ceil(math.sqrt(height * width / MAX_PIXELS) - 1e-9))
 
 
 def overshoot(grey: Tensor, inverse: Tensor, log_peak: Tensor) -> Tensor:
@@ -40,7 +45,8 @@ def overshoot(grey: Tensor, inverse: Tensor, log_peak: Tensor) -> Tensor:
     Args:
         grey: the blurry frame :math:`(1, F, H, W)` in [0, 1] (``F`` frames side by side, each its own).
         inverse: ``1 / R`` of each candidate :math:`(K, F, H, W)` (the latent at the reference is ``grey · inverse``).
-        log_peak: ``θ (max C − C(reference))`` of each candidate :math:`(K, F, H, W)`, ≥ 0
+        log_peak: ``θ (max C − C(reference))`` of each candidate, ≥ 0, at every s-th row and column
+            (:func:`overshoot_stride`): :math:`(K, F, ⌈H/s⌉, ⌈W/s⌉)`
             (:meth:`evlatcorr.continuous.ContinuousIntegral.inverse_ratio`'s ``peak_out``).
 
     Returns:
@@ -56,13 +62,15 @@ def overshoot(grey: Tensor, inverse: Tensor, log_peak: Tensor) -> Tensor:
         >>> [round(v, 4) for v in overshoot(grey, inverse, log_peak).tolist()]  # a flat latent, then 4x brighter
         [0.0, 1.3863]
     """
-    if (grey.dim() != 4 or grey.shape[0] != 1 or inverse.dim() != 4 or inverse.shape[1:] != grey.shape[1:]
-            or log_peak.shape != inverse.shape):
-        raise ValueError(f"grey must be (1, F, H, W) and inverse and log_peak both (K, F, H, W), got "
-                         f"{tuple(grey.shape)}, {tuple(inverse.shape)} and {tuple(log_peak.shape)}")
     height, width = grey.shape[-2:]
-    stride = max(1, int(math.sqrt(height * width / _MAX_PIXELS)))
-    grey, inverse, log_peak = (x[..., ::stride, ::stride] for x in (grey, inverse, log_peak))
+    stride = overshoot_stride(height, width)
+    sampled = (-(-height // stride), -(-width // stride))
+    if (grey.dim() != 4 or grey.shape[0] != 1 or inverse.dim() != 4 or inverse.shape[1:] != grey.shape[1:]
+            or log_peak.shape != (*inverse.shape[:2], *sampled)):
+        raise ValueError(f"grey must be (1, F, H, W), inverse (K, F, H, W) and log_peak (K, F, {sampled[0]}, "
+                         f"{sampled[1]}) (every {stride}th row and column), got {tuple(grey.shape)}, "
+                         f"{tuple(inverse.shape)} and {tuple(log_peak.shape)}")
+    grey, inverse = grey[..., ::stride, ::stride], inverse[..., ::stride, ::stride]
     log_grey = torch.log(grey.to(inverse.dtype).clamp_min(_FLOOR))
     top = torch.log(inverse).add_(log_grey).add_(log_peak).flatten(2)  # (K, F, n)
     brightest = log_grey.flatten(2).amax(2)  # (1, F)

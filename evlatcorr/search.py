@@ -49,7 +49,7 @@ from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.events import Events
 from evlatcorr.ghost import ghost_root, inverse_ratio_moment
 from evlatcorr.integral import _row_strips, cumsum_, cumulative_event_grid
-from evlatcorr.overshoot import overshoot
+from evlatcorr.overshoot import overshoot, overshoot_stride
 from evlatcorr.sharpness import _scores_of, sharpness_score, sharpness_scores
 from evlatcorr.temporal import LatencyHistory
 
@@ -416,17 +416,23 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
 
     # the last read's latencies, ratios and (learned score) the windows' event change, from the same tables
     last_read: dict[str, Tensor] = {}
+    # the overshoot's pixels: every stride-th row and column
+    stride = overshoot_stride(*grey.shape[-2:])
+
+    def empty_peak(num: int) -> Tensor:
+        sampled = (-(-grey.shape[-2] // stride), -(-grey.shape[-1] // stride))
+        return torch.empty((num, 1, *sampled), dtype=torch.float32, device=events.device)
 
     def inverse_ratio(lat: Tensor) -> Tensor:
         if last_read and torch.equal(last_read["latencies"], lat.cpu()):  # e.g. the learned score's ghost moment
             return last_read["inverse"]
         out = torch.empty((len(lat), 1, *grey.shape[-2:]), dtype=torch.float32, device=events.device)
         change = torch.empty_like(out) if with_change else None
-        peak = torch.empty_like(out) if with_change else None
+        peak = empty_peak(len(lat)) if with_change else None
         for k in range(0, len(lat), chunk):  # each read writes its slice: no concatenated copy
             integral.inverse_ratio(start, end, lat[k:k + chunk], out=out[k:k + chunk],
                                    change_out=None if change is None else change[k:k + chunk],
-                                   peak_out=None if peak is None else peak[k:k + chunk])
+                                   peak_out=None if peak is None else peak[k:k + chunk], peak_stride=stride)
         last_read.clear()
         last_read.update(latencies=lat.cpu(), inverse=out)
         if change is not None:
@@ -453,9 +459,9 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
 
     def log_peak(lat: Tensor) -> Tensor:
         if not ("peak" in last_read and torch.equal(last_read["latencies"], lat.cpu())):
-            peak = torch.empty((len(lat), 1, *grey.shape[-2:]), dtype=torch.float32, device=events.device)
+            peak = empty_peak(len(lat))
             for k in range(0, len(lat), chunk):
-                integral.inverse_ratio(start, end, lat[k:k + chunk], peak_out=peak[k:k + chunk])
+                integral.inverse_ratio(start, end, lat[k:k + chunk], peak_out=peak[k:k + chunk], peak_stride=stride)
             return peak
         return last_read["peak"]
 
@@ -470,6 +476,7 @@ def _binned_reader(events: Events, span: _Window, theta: float, config: SearchCo
     the range by up to one, and the latency is clamped into ``[low, high]``."""
     start, end, low, high, reach, n = span.start, span.end, span.low, span.high, span.reach, config.num_bins
     width_us = (end - start) / n
+    stride = overshoot_stride(*events.sensor_size)  # the overshoot's pixels
     step = max(1, round((high - low) / (config.num_candidates - 1) / width_us))  # in sub-intervals
     first = math.floor(low / width_us)
     num = max(2, math.ceil((high - low) / (step * width_us) - 1e-9) + 1)
@@ -492,7 +499,8 @@ def _binned_reader(events: Events, span: _Window, theta: float, config: SearchCo
     return _CandidateReader(torch.arange(num, device=events.device) * step, top, 0,
                             lambda v: (first + v).to(torch.float64) * width_us,
                             lambda shifts: torch.exp(-table.log_ratio(shifts)).float(), fine_of, lambda latency: None,
-                            lambda shifts: table.log_change(shifts), log_peak=lambda shifts: table.log_peak(shifts))
+                            lambda shifts: table.log_change(shifts),
+                            log_peak=lambda shifts: table.log_peak(shifts, stride))
 
 
 def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str, ...], config: SearchConfig,
@@ -865,10 +873,10 @@ class _ShiftTable:
             out.append(self.theta * (cum[shifts + self.n] - cum[shifts]))
         return torch.cat(out, dim=1)[:, None].float()
 
-    def log_peak(self, shifts: Tensor) -> Tensor:
-        """θ (max C − C(mid-exposure)) over each shift's window :math:`(K, 1, H, W)` float32, the maximum over the
-        window's start, quarters, middle and end bin edges (the overshoot cue's; the continuous integral's
-        ``peak_out`` on the bins' edges)."""
+    def log_peak(self, shifts: Tensor, stride: int = 1) -> Tensor:
+        """θ (max C − C(mid-exposure)) over each shift's window :math:`(K, 1, ⌈H/s⌉, ⌈W/s⌉)` float32 at every
+        ``stride``-th row and column, the maximum over the window's start, quarters, middle and end bin edges (the
+        overshoot cue's; the continuous integral's ``peak_out`` on the bins' edges)."""
         n, out = self.n, []
         offsets = [round(f * n) for f in (0.0, *continuous.PEAK_FRACTIONS, 1.0)]
         for strip in self.strips:
@@ -878,7 +886,7 @@ class _ShiftTable:
             for offset in offsets:
                 torch.maximum(peak, cum[shifts + offset], out=peak)
             out.append(self.theta * (peak - middle))
-        return torch.cat(out, dim=1)[:, None].float()
+        return torch.cat(out, dim=1)[:, None, ::stride, ::stride].float()
 
     def log_ratio(self, shifts: Tensor, reference: float = 0.5) -> Tensor:
         """log R for each shift, latent at ``start + reference * exposure`` (0.5 = mid-exposure)."""

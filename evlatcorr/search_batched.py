@@ -28,7 +28,7 @@ from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.curve_reader import curve_features
 from evlatcorr.events import Events
 from evlatcorr.ghost import stacked_inverse_ratio_moment
-from evlatcorr.overshoot import overshoot
+from evlatcorr.overshoot import overshoot, overshoot_stride
 from evlatcorr.search import (
     _SPARSITY,
     HOT_PIXEL_LOG_RANGE,
@@ -131,7 +131,10 @@ def _search_pass(grey: Tensor, events: Events, bounds: list[int], spans: list[_W
         block = grey[first:last, 0][None]  # (1, F, H, W): frame j's pixels are block j of the tall image
         tall = (len(kept), frames, height, width)
         values, moment = _scores_and_moments(block, inverse.view(tall), change.view(tall), config)
-        over = overshoot(block.to(inverse), inverse.view(tall), peak.view(tall)).view(len(kept), frames)
+        # the peak rise was read at every pixel of the tall image: each frame's own rows and columns for the overshoot
+        stride = overshoot_stride(height, width)
+        sampled_peak = peak.view(tall)[..., ::stride, ::stride]
+        over = overshoot(block.to(inverse), inverse.view(tall), sampled_peak).view(len(kept), frames)
         for j, n in enumerate(own):
             scores[j, :, :n] = values[:, :n, j]
             moments[j, :n] = moment[:n, j]

@@ -5,7 +5,7 @@ import torch
 
 from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.events import Events
-from evlatcorr.overshoot import OVERSHOOT_RANGE, _upper_quantile, overshoot
+from evlatcorr.overshoot import OVERSHOOT_RANGE, _upper_quantile, overshoot, overshoot_stride
 from tests.conftest import random_events
 
 THETA = 0.25
@@ -60,6 +60,10 @@ def test_peak_out_of_the_wrong_shape_is_refused():
     ci = ContinuousIntegral(random_events(100, (4, 4), (0.0, 2000.0), seed=0), 0.2)
     with pytest.raises(ValueError, match="peak_out must be float32"):
         ci.inverse_ratio(0.0, 1000.0, torch.tensor([0.0, 10.0]), peak_out=torch.empty(1, 1, 4, 4))
+    with pytest.raises(ValueError, match="peak_out must be float32"):  # every 2nd row and column: 2 x 2
+        ci.inverse_ratio(0.0, 1000.0, torch.tensor([0.0, 10.0]), peak_out=torch.empty(2, 1, 4, 4), peak_stride=2)
+    with pytest.raises(ValueError, match="peak_stride must be"):
+        ci.inverse_ratio(0.0, 1000.0, torch.tensor([0.0]), peak_out=torch.empty(1, 1, 4, 4), peak_stride=0)
 
 
 def test_overshoot_is_the_upper_percentile_over_the_brightest_pixel():
@@ -87,13 +91,23 @@ def test_overshoot_of_several_frames_is_each_frames_and_is_clamped():
     assert bool((together[:, 2] == OVERSHOOT_RANGE[1]).all())
 
 
-def test_overshoot_of_a_large_frame_reads_every_other_row_and_column():
+def test_overshoot_of_a_large_frame_reads_every_third_row_and_column():
+    # a DAVIS346 frame: every 3rd row and column, 87 x 116 pixels (the reader's training frames: 96 x 128, whole)
+    assert overshoot_stride(260, 346) == 3 and overshoot_stride(96, 128) == 1 and overshoot_stride(4, 4) == 1
     g = torch.Generator().manual_seed(2)
     grey = 0.1 + 0.8 * torch.rand(1, 1, 260, 346, generator=g)
     inverse = 0.5 + torch.rand(2, 1, 260, 346, generator=g)
-    log_peak = torch.rand(2, 1, 260, 346, generator=g)
-    sampled = [x[..., ::2, ::2] for x in (grey, inverse, log_peak)]
-    torch.testing.assert_close(overshoot(grey, inverse, log_peak), overshoot(*sampled), rtol=0, atol=0)
+    log_peak = torch.rand(2, 1, 87, 116, generator=g)
+    sampled = [x[..., ::3, ::3] for x in (grey, inverse)]
+    assert sampled[0].shape[-2:] == (87, 116)
+    torch.testing.assert_close(overshoot(grey, inverse, log_peak), overshoot(*sampled, log_peak), rtol=0, atol=0)
+    # the continuous integral reads the peak rise at those pixels only: the same values as at every pixel
+    events = random_events(20000, (260, 346), (0.0, 30000.0), seed=5)
+    ci, lat = ContinuousIntegral(events, 0.2), torch.arange(0.0, 4001.0, 200.0)
+    every, strided = torch.empty(len(lat), 1, 260, 346), torch.empty(len(lat), 1, 87, 116)
+    ci.inverse_ratio(0.0, 20000.0, lat, out=torch.empty(len(lat), 1, 260, 346), peak_out=every)
+    ci.inverse_ratio(0.0, 20000.0, lat, out=torch.empty(len(lat), 1, 260, 346), peak_out=strided, peak_stride=3)
+    assert torch.equal(strided, every[..., ::3, ::3])
 
 
 def test_upper_quantile_equals_torch_quantile():

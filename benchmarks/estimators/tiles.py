@@ -34,7 +34,7 @@ from evlatcorr.config import SearchConfig
 from evlatcorr.curve_reader import curve_features, probability_centre
 from evlatcorr.frames import EventFrames
 from evlatcorr.ghost import inverse_ratio_moment
-from evlatcorr.overshoot import overshoot
+from evlatcorr.overshoot import MAX_PIXELS, overshoot, overshoot_stride
 
 GRIDS = ((2, 2), (3, 3))  # tiles per (rows, columns)
 
@@ -45,7 +45,7 @@ def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ..
 
     Raises:
         ValueError: for more than one frame, a frame without events or with fewer than three candidates to score,
-            or a grid whose tiles are under 3x3 pixels.
+            a grid whose tiles are under 3x3 pixels, or a frame larger than the suite's (the overshoot's sample).
 
     Returns:
         the candidates :math:`(K,)` µs, which are valid :math:`(K,)`, the whole frame's log-probability
@@ -60,6 +60,9 @@ def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ..
         if not (whole_tiles and 1 <= rows <= height // 3 and 1 <= cols <= width // 3):
             raise ValueError(f"a grid must be whole numbers of tiles, each at least 3x3 pixels of the {height}x{width} "
                              f"frame, got {(rows, cols)}")
+    if overshoot_stride(height, width) != 1:  # the whole frame's overshoot reads a sample of its pixels, not tiles
+        raise ValueError(f"the tiles read frames of at most {MAX_PIXELS} pixels (the suite's 96x128), got "
+                         f"{height}x{width}")
     events = frames.events.sample(0)
     if not len(events):
         raise ValueError("the frame has no events")
