@@ -39,9 +39,9 @@ BYTES_PER_EVENT = 112
 # pages are faster; and elsewhere (a GPU), where each strip costs two dozen kernel launches and a DAVIS346 frame's
 # 200 times take about 400 MB in one strip.
 STRIP_BYTES = 64 * 2**20
+DEVICE_STRIP_BYTES = 2**30
 # where in the window, besides its ends and reference, the peak log rise (``peak_out``) is read
 PEAK_FRACTIONS = (0.25, 0.75)
-DEVICE_STRIP_BYTES = 2**30
 # Window ends are rounded to 1/_LATTICE µs (exact in binary) so equal times computed two ways coincide.
 _LATTICE = 1024.0
 

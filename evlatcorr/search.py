@@ -390,7 +390,8 @@ class _CandidateReader:
     final_ratio: Callable[[float], Tensor | None]
     log_change: Callable[[Tensor], Tensor] | None = None
     ignored_pixels: int = 0  # hot pixels read as having no events
-    # θ (max C − C(reference)) over each window :math:`(K, 1, H, W)` float32 (the overshoot cue's; None: none)
+    # θ (max C − C(reference)) over each window at the overshoot's pixels (every s-th row and column,
+    # :func:`~evlatcorr.overshoot.overshoot_stride`) :math:`(K, 1, ⌈H/s⌉, ⌈W/s⌉)` float32 (None: none)
     log_peak: Callable[[Tensor], Tensor] | None = None
 
 
@@ -414,7 +415,8 @@ def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float
                 // candidate_bytes)
     integral = ContinuousIntegral(events, theta, HOT_PIXEL_LOG_RANGE) if top >= low else None
 
-    # the last read's latencies, ratios and (learned score) the windows' event change, from the same tables
+    # the last read's latencies, ratios and (learned score) the windows' event change and peak rise, from the same
+    # tables
     last_read: dict[str, Tensor] = {}
     # the overshoot's pixels: every stride-th row and column
     stride = overshoot_stride(*grey.shape[-2:])
