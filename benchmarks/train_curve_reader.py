@@ -10,6 +10,7 @@ the photoreceptor frames' best-shift scans), then about a minute of training.
 
     python benchmarks/train_curve_reader.py                                  # writes checkpoints/curve-reader.*
     python benchmarks/train_curve_reader.py --cache curves.pt --out /tmp/reader.safetensors
+    python benchmarks/train_curve_reader.py --cache curves.pt --without-overshoot --out /tmp/reader5.safetensors
 
 Then ``python benchmarks/accuracy.py --split dev --score learned`` measures it.
 """
@@ -25,7 +26,7 @@ import torch
 from tqdm import tqdm
 
 from evlatcorr.benchmark.accuracy import TRAIN_SPLITS, make_cases, simulate_case, training_target
-from evlatcorr.curve_reader import WEIGHTS_NAME, save_curve_reader, train_curve_reader
+from evlatcorr.curve_reader import WEIGHTS_NAME, save_curve_reader, train_curve_reader, without_overshoot
 from evlatcorr.search import candidate_curves
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,16 +60,21 @@ def main() -> None:
     parser.add_argument("--members", type=int, default=5)
     parser.add_argument("--epochs", type=int, default=300)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--without-overshoot", action="store_true",
+                        help="train on the other inputs only (what the overshoot adds; measure with "
+                             "benchmarks/estimators/reader.py)")
     args = parser.parse_args()
     t0 = time.perf_counter()
     data = extract(args.cache)
     print(f"{len(data['targets'])} training frames in {time.perf_counter() - t0:.0f} s", flush=True)
-    ensemble = train_curve_reader(data["curves"], data["valid"], data["latencies"], data["targets"],
+    curves = without_overshoot(data["curves"]) if args.without_overshoot else data["curves"]
+    ensemble = train_curve_reader(curves, data["valid"], data["latencies"], data["targets"],
                                   members=args.members, epochs=args.epochs, seed=args.seed)
     provenance = {"cases": list(TRAIN_SPLITS), "frames": len(data["targets"]),
                   "targets": "true latency (constant cases), best constant shift (photoreceptor cases)",
                   "members": args.members,
-                  "epochs": args.epochs, "seed": args.seed, "command": "python benchmarks/train_curve_reader.py"}
+                  "epochs": args.epochs, "seed": args.seed, "without_overshoot": args.without_overshoot,
+                  "command": "python benchmarks/train_curve_reader.py"}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     save_curve_reader(ensemble, args.out, provenance)
     print(f"wrote {args.out} ({time.perf_counter() - t0:.0f} s)")

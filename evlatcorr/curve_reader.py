@@ -45,7 +45,8 @@ import torch
 from torch import Tensor, nn
 
 __all__ = ["NUM_FEATURES", "CurveReader", "CurveReaderEnsemble", "FusedCurveReaderEnsemble", "curve_features",
-           "probability_centre", "train_curve_reader", "load_curve_reader", "WEIGHTS_NAME", "CENTRE_HALF_WIDTH"]
+           "probability_centre", "train_curve_reader", "load_curve_reader", "without_overshoot", "WEIGHTS_NAME",
+           "CENTRE_HALF_WIDTH"]
 
 # three sparsity curves, the ghost moment, the overshoot, the valid mask
 NUM_FEATURES = 6
@@ -129,6 +130,23 @@ def curve_features(scores: Tensor, moment: Tensor, valid: Tensor, overshoot: Ten
     return torch.cat([rows, *cues, valid.double().unsqueeze(-2)], -2).float()
 
 
+def without_overshoot(curves: Tensor) -> Tensor:
+    """:func:`curve_features` :math:`(..., NUM\\_FEATURES, K)` without the overshoot's row: what a reader trained
+    without it reads (``benchmarks/train_curve_reader.py --without-overshoot``, to measure what the cue adds).
+
+    Raises:
+        ValueError: when ``curves`` do not have :data:`NUM_FEATURES` rows.
+
+    Example:
+        >>> without_overshoot(torch.zeros(2, NUM_FEATURES, 7)).shape
+        torch.Size([2, 5, 7])
+    """
+    if curves.dim() < 2 or curves.shape[-2] != NUM_FEATURES:
+        raise ValueError(f"curves must be (..., {NUM_FEATURES}, K), got {tuple(curves.shape)}")
+    overshoot_row = NUM_FEATURES - 2  # the rows: three scores, the ghost moment, the overshoot, the mask
+    return torch.cat([curves[..., :overshoot_row, :], curves[..., overshoot_row + 1:, :]], -2)
+
+
 class CurveReader(nn.Module):
     """Log-odds :math:`(B, K)` of each candidate being the true latency, from :func:`curve_features` :math:`(B, F, K)`.
 
@@ -151,9 +169,9 @@ class CurveReader(nn.Module):
 class CurveReaderEnsemble(nn.Module):
     """The mean log-probability :math:`(B, K)` of several :class:`CurveReader`."""
 
-    def __init__(self, members: int = 5) -> None:
+    def __init__(self, members: int = 5, num_features: int = NUM_FEATURES) -> None:
         super().__init__()
-        self.members = nn.ModuleList(CurveReader() for _ in range(members))
+        self.members = nn.ModuleList(CurveReader(num_features) for _ in range(members))
 
     def forward(self, curves: Tensor, valid: Tensor) -> Tensor:
         return torch.stack([torch.log_softmax(m(curves, valid), 1) for m in self.members]).mean(0)
@@ -205,7 +223,7 @@ def train_curve_reader(curves: Tensor, valid: Tensor, latencies: Tensor, targets
     """Fit an ensemble to frames of known latency (full-batch Adam; seconds on a CPU for a thousand frames).
 
     Args:
-        curves: :func:`curve_features` of each frame :math:`(N, F, K)`.
+        curves: :func:`curve_features` of each frame :math:`(N, F, K)` (the readers take ``F`` inputs).
         valid: :math:`(N, K)` bool.
         latencies: the candidates :math:`(K,)` µs (the same for every frame).
         targets: each frame's target latency :math:`(N,)` µs (its true one, or its best constant shift).
@@ -220,11 +238,11 @@ def train_curve_reader(curves: Tensor, valid: Tensor, latencies: Tensor, targets
                          f"{tuple(valid.shape)} and {tuple(targets.shape)}")
     target = torch.exp(-0.5 * ((latencies.float()[None] - targets.float()[:, None]) / TARGET_SIGMA_US) ** 2) * valid
     target = target / target.sum(1, keepdim=True).clamp_min(1e-12)
-    ensemble = CurveReaderEnsemble(members)
+    ensemble = CurveReaderEnsemble(members, curves.shape[1])
     generator = torch.Generator().manual_seed(seed)
     for i, reader in enumerate(ensemble.members):
         torch.manual_seed(seed + i)  # the layers' initialisation
-        reader.load_state_dict(CurveReader().state_dict())
+        reader.load_state_dict(CurveReader(curves.shape[1]).state_dict())
         optimiser = torch.optim.Adam(reader.parameters(), lr=3e-3, weight_decay=1e-3)
         for _ in range(epochs):
             noisy = curves + TRAIN_NOISE * torch.randn(curves.shape, generator=generator) * valid[:, None]
@@ -258,7 +276,7 @@ def load_curve_reader(path: str | None = None) -> CurveReaderEnsemble:
         raise FileNotFoundError(f"no curve reader weights at {path}")
     state = load_file(path)
     members = len({key.split(".")[1] for key in state})
-    ensemble = CurveReaderEnsemble(members)
+    ensemble = CurveReaderEnsemble(members, state["members.0.net.0.weight"].shape[1])  # its inputs, as trained
     ensemble.load_state_dict(state, strict=True)
     return ensemble.eval()
 

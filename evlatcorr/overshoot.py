@@ -35,7 +35,13 @@ _FLOOR = 1e-4
 
 
 def overshoot_stride(height: int, width: int) -> int:
-    """The s such that every s-th row and column of an image, at most :data:`MAX_PIXELS` pixels, are read."""
+    """The s such that every s-th row and column of an image, at most :data:`MAX_PIXELS` pixels, are read.
+
+    Raises:
+        ValueError: when the size is not positive.
+    """
+    if min(height, width) < 1:
+        raise ValueError(f"an image must have at least one pixel, got {height}x{width}")
     return max(1, math.ceil(math.sqrt(height * width / MAX_PIXELS) - 1e-9))
 
 

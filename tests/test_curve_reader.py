@@ -16,6 +16,7 @@ from evlatcorr.curve_reader import (
     load_curve_reader,
     save_curve_reader,
     train_curve_reader,
+    without_overshoot,
 )
 from evlatcorr.search import candidate_curves, search_constant_latency
 from tests.conftest import random_events
@@ -134,6 +135,24 @@ def test_save_and_load_round_trip(tmp_path):
     assert len(loaded.members) == 2 and path.with_suffix(".json").exists()
     with torch.no_grad():
         torch.testing.assert_close(loaded(curves, valid), ensemble(curves, valid))
+
+
+def test_a_reader_without_the_overshoot_trains_saves_and_loads_with_its_inputs(tmp_path):
+    g = torch.Generator().manual_seed(2)
+    curves, valid, latencies, targets = _planted(8, g)
+    curves[:, NUM_FEATURES - 2] = 7.0  # the overshoot's row: gone from what the reader reads
+    fewer = without_overshoot(curves)
+    assert fewer.shape == (8, NUM_FEATURES - 1, curves.shape[-1])
+    assert not bool((fewer == 7.0).any()) and torch.equal(fewer[:, -1], curves[:, -1])  # the mask stays last
+    ensemble = train_curve_reader(fewer, valid, latencies, targets, members=2, epochs=2)
+    path = tmp_path / "reader5.safetensors"
+    save_curve_reader(ensemble, path)
+    loaded = load_curve_reader(str(path))
+    assert loaded.members[0].net[0].in_channels == NUM_FEATURES - 1
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(fewer, valid), ensemble(fewer, valid))
+    with pytest.raises(ValueError, match="curves must be"):
+        without_overshoot(fewer)
 
 
 def test_shipped_weights_load_strictly():

@@ -56,3 +56,35 @@ def test_tiles_refuse_a_batch_and_tiles_too_small_to_read(text_case):
     for grid in ((0, 2), (40, 2), (2, 2.5)):
         with pytest.raises(ValueError, match="at least 3x3 pixels"):
             tile_latency_map(delayed, grid)
+
+
+def test_reader_script_reads_the_shipped_reader_or_one_trained_without_the_overshoot(text_case, tmp_path,
+                                                                                      monkeypatch):
+    from evlatcorr.curve_reader import (
+        NUM_FEATURES,
+        curve_features,
+        load_curve_reader,
+        save_curve_reader,
+        train_curve_reader,
+    )
+
+    case, delayed = text_case
+    estimate = load_estimator("benchmarks/estimators/reader.py:estimate")
+    monkeypatch.delenv("EVLATCORR_READER", raising=False)
+    shipped = float(estimate(delayed).unique())
+    # the shipped reader's centre: the corrector's estimate here (no fallback decides this frame)
+    corrected = EventLatencyCorrector(threshold=case.threshold)(delayed)
+    assert abs(shipped - float(corrected.latency.mean())) < 1.0 and abs(shipped - case.latency_us) < 500.0
+    # a reader trained (briefly) without the overshoot reads the curves without its row
+    k = 101
+    curves = curve_features(torch.rand(4, 3, k), torch.zeros(4, k), torch.ones(4, k, dtype=torch.bool),
+                            torch.zeros(4, k))
+    five = train_curve_reader(curves[:, [0, 1, 2, 3, 5]], torch.ones(4, k, dtype=torch.bool),
+                              torch.arange(k) * 200.0, torch.full((4,), 5000.0), members=1, epochs=1)
+    path = tmp_path / "five.safetensors"
+    save_curve_reader(five, path)
+    monkeypatch.setenv("EVLATCORR_READER", str(path))
+    assert load_curve_reader(str(path)).members[0].net[0].in_channels == NUM_FEATURES - 1
+    assert 0.0 <= float(estimate(delayed).unique()) <= float(delayed.events.t.max() - delayed.exposure_end[0])
+    with pytest.raises(ValueError, match="one frame"):
+        estimate(EventFrames.cat([delayed, delayed]))

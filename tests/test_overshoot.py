@@ -94,6 +94,8 @@ def test_overshoot_of_several_frames_is_each_frames_and_is_clamped():
 def test_overshoot_of_a_large_frame_reads_every_third_row_and_column():
     # a DAVIS346 frame: every 3rd row and column, 87 x 116 pixels (the reader's training frames: 96 x 128, whole)
     assert overshoot_stride(260, 346) == 3 and overshoot_stride(96, 128) == 1 and overshoot_stride(4, 4) == 1
+    with pytest.raises(ValueError, match="at least one pixel"):
+        overshoot_stride(0, 346)
     g = torch.Generator().manual_seed(2)
     grey = 0.1 + 0.8 * torch.rand(1, 1, 260, 346, generator=g)
     inverse = 0.5 + torch.rand(2, 1, 260, 346, generator=g)
