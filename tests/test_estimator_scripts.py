@@ -88,3 +88,20 @@ def test_reader_script_reads_the_shipped_reader_or_one_trained_without_the_overs
     assert 0.0 <= float(estimate(delayed).unique()) <= float(delayed.events.t.max() - delayed.exposure_end[0])
     with pytest.raises(ValueError, match="one frame"):
         estimate(EventFrames.cat([delayed, delayed]))
+
+
+def test_saturated_script_clips_the_brightest_share_and_keeps_the_text_case_near_the_truth(text_case, monkeypatch):
+    saturate = load_estimator("benchmarks/estimators/saturated.py:saturate")
+    ramp = torch.linspace(0.0, 0.5, 100).view(1, 1, 10, 10)
+    clipped = saturate(ramp, 0.05)
+    # the 95th percentile reaches 1: the 5 brightest of 100 pixels (and the one it interpolates into) are clipped
+    assert float(clipped.max()) == 1.0 and 5 <= int((clipped == 1.0).sum()) <= 6
+    torch.testing.assert_close(clipped[clipped < 1], (ramp / torch.quantile(ramp, 0.95))[clipped < 1])
+    for share in (0.0, 1.0, -0.1):
+        with pytest.raises(ValueError, match="saturated share"):
+            saturate(ramp, share)
+    case, delayed = text_case
+    monkeypatch.setenv("EVLATCORR_SATURATED", "0.03")
+    latency = load_estimator("benchmarks/estimators/saturated.py:estimate")(delayed)
+    assert latency.shape == (1, 1, 96, 128)
+    assert abs(float(latency.mean()) - case.latency_us) < 500.0
