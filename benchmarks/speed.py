@@ -233,14 +233,15 @@ def bench_stages(device: torch.device, args: argparse.Namespace) -> None:
     """Where the default search's time goes on the speed frame: each stage's share of every call, medians over
     ``--repeats`` calls (after three untimed), the stages timed by wrapping the functions that do them."""
     import evlatcorr.continuous as continuous
-    import evlatcorr.search as search
+    import evlatcorr.search_candidates as search_candidates
+    import evlatcorr.search_learned as search_learned
 
     blurry, ev, start, end = make_frame(args.height, args.width, args.exposure_us, 4000.0, device)
     stages = {"prepare the events (sort by pixel, levels)": (continuous.ContinuousIntegral, "__init__"),
               "read the candidates' windows": (continuous.ContinuousIntegral, "inverse_ratio"),
-              "sharpness scores": (search, "_latent_scores"),
-              "ghost moments": (search, "inverse_ratio_moment"),
-              "overshoots": (search, "overshoot"),
+              "sharpness scores": (search_candidates, "_latent_scores"),
+              "ghost moments": (search_learned, "inverse_ratio_moment"),
+              "overshoots": (search_learned, "overshoot"),
               "the estimate's latent (its window read once more)": (continuous.ContinuousIntegral, "log_ratio")}
     spent: dict[str, float] = {}
 

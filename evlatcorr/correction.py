@@ -13,7 +13,8 @@ from evlatcorr.config import DEFAULT_GHOST_CONFIDENCE, DEFAULT_SCORE, SearchConf
 from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
-from evlatcorr.search import HOT_PIXEL_LOG_RANGE, _search_constant_latency
+from evlatcorr.search import _search_constant_latency
+from evlatcorr.search_candidates import HOT_PIXEL_LOG_RANGE
 from evlatcorr.temporal import LatencyHistory
 
 __all__ = ["EventLatencyCorrector", "ConstantLatencyCorrector", "correct_constant_latency", "SearchConfig"]

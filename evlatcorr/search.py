@@ -3,29 +3,24 @@
 Every candidate latency ``l`` needs the EDI ratio ``R`` of the window ``[τ + l, t + l]`` of stamped
 events (Eq. 7). Two ways to read all candidates at once:
 
-- ``"continuous"`` (default): :class:`~evlatcorr.continuous.ContinuousIntegral` evaluates each pixel's
-  exact integral of ``exp(θC)`` at every window end from one scatter of the events. No temporal bins, so
-  the candidates may lie anywhere; they are spaced so that windows share their ends (about two time
-  points per candidate).
-- ``"binned"``: for a latency ``l = dΔ`` that is a whole number ``d`` of sub-intervals ``Δ = T / n``
-  the EDI reads the cumulative sum ``C`` at grid points ``d .. d + n``, so
-
-      R_d = mean_j exp(θ (C[d + j] − C[d + n/2]))  =  (P[d + n + 1] − P[d] − ½(Y_d + Y_{d+n})) / n / Y_{d+n/2}
-
-  with ``Y = exp(θC − max θC)`` and ``P`` its prefix sum (trapezoidal rule, log domain): one table of
-  ``(n + span) × H × W`` serves every candidate. Needed for the ``"linear"`` integral.
+- ``"continuous"`` (default, :mod:`evlatcorr.search_candidates`): :class:`~evlatcorr.continuous.ContinuousIntegral`
+  evaluates each pixel's exact integral of ``exp(θC)`` at every window end from one scatter of the events. No
+  temporal bins, so the candidates may lie anywhere; they are spaced so that windows share their ends (about two
+  time points per candidate).
+- ``"binned"`` (:mod:`evlatcorr.search_binned`): candidates that are whole sub-intervals of the exposure, all read
+  from one prefix-sum table. Needed for the ``"linear"`` integral.
 
 The scores of all candidates are batched calls. With a sharpness score the best candidate is refined at every
 ``T / n`` around it (40 µs at the defaults, far below what any score can tell apart), and the latent image at the
 latency chosen is the one its candidate was scored on (no further read of the events). With the learned reader
-(the default) the estimate is the centre of the reader's probability around its pick, between candidates; the
-latent image there takes one more read of the events' window.
+(the default, :mod:`evlatcorr.search_learned`) the estimate is the centre of the reader's probability around its
+pick, between candidates; the latent image there takes one more read of the events' window. Frames alike share one
+pass on a GPU (:mod:`evlatcorr.search_batched`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -34,52 +29,25 @@ import kornia
 import torch
 from torch import Tensor
 
-from evlatcorr import continuous
-from evlatcorr.checks import (
-    check_batch_vector,
-    check_exposure,
-    check_image,
-    check_memory,
-    check_threshold,
-    resolve_memory_budget,
-)
+from evlatcorr.checks import check_batch_vector, check_exposure, check_image, check_threshold, resolve_memory_budget
 from evlatcorr.config import DEFAULT_SCORE, SCORES, SPARSITY_SCORES, SearchConfig
-from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.events import Events
-from evlatcorr.ghost import ghost_root, inverse_ratio_moment
-from evlatcorr.integral import _row_strips, cumsum_, cumulative_event_grid
-from evlatcorr.overshoot import overshoot, overshoot_stride
-from evlatcorr.sharpness import _scores_of, sharpness_score, sharpness_scores
+from evlatcorr.search_binned import _binned_reader
+from evlatcorr.search_candidates import (
+    _CandidateReader,
+    _continuous_reader,
+    _score_candidates,
+    _Window,
+)
+from evlatcorr.search_learned import _ghost_latency, _learned_log_p, _learned_pick, candidate_curves
+from evlatcorr.sharpness import sharpness_score, sharpness_scores
 from evlatcorr.temporal import LatencyHistory
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score",
            "sharpness_scores", "candidate_curves", "SCORES", "DEFAULT_SCORE", "SearchConfig"]
 
 _SPARSITY = SPARSITY_SCORES
-# Memory bound of one strip of the prefix-sum table (float64), in elements.
-_STRIP_ELEMENTS = 4_000_000
-# Bytes per grid point and pixel that the search table keeps: the cumulative event sum (float32) and the
-# prefix sum of exp(θC − peak) (float64).
-_TABLE_BYTES = 4 + 8
-# The largest search table kept between reads (larger ones are rebuilt per read, in strips).
-_KEEP_TABLE_BYTES = 512 * 2**20
-# The most one read of the continuous integral may take (events kept and the candidates read at once): at
-# DAVIS346 size with 2 M events, about 170 candidates per read, so the default 101 are read in one pass.
-_CONTINUOUS_READ_BYTES = 256 * 2**20
-# A pixel whose events span more log intensity than this over the stream (e^15, 130 dB: more than a DAVIS
-# sensor's ~120 dB can see) is a hot pixel firing one polarity: the continuous search reads it as having no
-# events. One such pixel of 300 events moved a dev estimate by 11 ms; the suite's and the real recordings'
-# pixels span at most 5.3 and 5.7.
-HOT_PIXEL_LOG_RANGE = 15.0
-# Candidates scored at once on a CPU (their latent images and score work arrays stay in cache).
-_SCORE_CHUNK = 16
-# Elsewhere (a GPU), as many as fit in this many bytes of score work arrays (about 8 float32 images each): there
-# each kernel launch costs more than the memory, and 101 candidates at DAVIS346 size take about 290 MB
-_DEVICE_SCORE_BYTES = 2**30
-# Peak bytes per grid point and pixel while one strip of the table is built (the integral's work
-# arrays, θC in float64, its exponential and prefix sum).
-_BUILD_BYTES = 64
 
 
 @dataclass
@@ -103,7 +71,7 @@ class ConstantSearchResult:
             (``score="learned"``: the scores had no minimum and the curve reader's estimate stands) or
             ``"fallback"``.
         ignored_pixels: per sample, the hot pixels the search read as having no events (their events span more
-            than :data:`HOT_PIXEL_LOG_RANGE` of log intensity; continuous method only).
+            than :data:`~evlatcorr.search_candidates.HOT_PIXEL_LOG_RANGE` of log intensity; continuous method only).
         latency_spread: :math:`(B,)` µs, ``score="learned"``: the standard deviation of the curve reader's
             probability over the candidates, how unsure it is (NaN for the other scores, or where nothing could be
             scored). On the suite's tuning cases the estimate's error grows with it (see the README).
@@ -357,201 +325,6 @@ class _Evidence:
     moment: Tensor
 
 
-@dataclass(frozen=True)
-class _Window:
-    """One sample's exposure ``[start, end]``, latency range ``[low, high]`` and ``reach`` = last event − end, µs."""
-
-    start: float
-    end: float
-    low: float
-    high: float
-    reach: float
-
-
-@dataclass
-class _CandidateReader:
-    """How one sample's candidates are laid out and read (``"continuous"`` or ``"binned"``).
-
-    ``coarse`` are the candidates in the reader's own units (µs, or sub-intervals for ``"binned"``),
-    ``step`` their spacing, ``top`` the last one whose window stays inside the events (below ``floor``: none
-    does), ``to_us`` converts to µs, ``inverse_ratio`` reads 1 / R :math:`(K, 1, H, W)` float32 of candidates
-    (the latent at mid-exposure is ``grey`` times it),
-    ``fine_of`` gives the refinement's candidates around a best one, ``final_ratio`` the log R of the
-    chosen latency in µs (None where the reader cannot give it) and ``log_change`` the windows' event
-    change θN :math:`(K, 1, H, W)` (None: the reader has no ghost cue).
-    """
-
-    coarse: Tensor
-    top: float
-    floor: float
-    to_us: Callable[[Tensor], Tensor]
-    inverse_ratio: Callable[[Tensor], Tensor]
-    fine_of: Callable[[float], Tensor]
-    final_ratio: Callable[[float], Tensor | None]
-    log_change: Callable[[Tensor], Tensor] | None = None
-    ignored_pixels: int = 0  # hot pixels read as having no events
-    # θ (max C − C(reference)) over each window at the overshoot's pixels (every s-th row and column,
-    # :func:`~evlatcorr.overshoot.overshoot_stride`) :math:`(K, 1, ⌈H/s⌉, ⌈W/s⌉)` float32 (None: none)
-    log_peak: Callable[[Tensor], Tensor] | None = None
-
-
-def _continuous_reader(grey: Tensor, events: Events, span: _Window, theta: float, config: SearchConfig,
-                       budget: int | None) -> _CandidateReader:
-    """Candidates evenly spaced over ``[low, high]``, each window's EDI exact in continuous time; the refinement
-    spaces them by ``exposure / n``."""
-    start, end, low, high = span.start, span.end, span.low, span.high
-    coarse, step = _aligned_candidates(low, high, config.num_candidates, end - start)
-    top = span.reach if math.isfinite(span.reach) else -math.inf
-    fine_step = min((end - start) / config.num_bins, step)
-    limit = resolve_memory_budget(budget)
-    # the learned score also keeps each candidate's event change and peak log rise (float32)
-    with_change = config.score == "learned"
-    candidate_bytes = grey.numel() * (continuous.BYTES_PER_CANDIDATE + 8 * with_change)
-    check_memory(len(events) * continuous.BYTES_PER_EVENT + candidate_bytes, f"the continuous integral of "
-                 f"{len(events)} events", "pass only the events of the exposure and the latencies searched, or a "
-                 "smaller sensor crop", limit)
-    # candidates read at once: a few reads of the events for 100 candidates, a few hundred MB at DAVIS346 size
-    chunk = max(1, (min(limit, _CONTINUOUS_READ_BYTES) - len(events) * continuous.BYTES_PER_EVENT_KEPT)
-                // candidate_bytes)
-    integral = ContinuousIntegral(events, theta, HOT_PIXEL_LOG_RANGE) if top >= low else None
-
-    # the last read's latencies, ratios and (learned score) the windows' event change and peak rise, from the same
-    # tables
-    last_read: dict[str, Tensor] = {}
-    # the overshoot's pixels: every stride-th row and column
-    stride = overshoot_stride(*grey.shape[-2:])
-
-    def empty_peak(num: int) -> Tensor:
-        sampled = (-(-grey.shape[-2] // stride), -(-grey.shape[-1] // stride))
-        return torch.empty((num, 1, *sampled), dtype=torch.float32, device=events.device)
-
-    def inverse_ratio(lat: Tensor) -> Tensor:
-        if last_read and torch.equal(last_read["latencies"], lat.cpu()):  # e.g. the learned score's ghost moment
-            return last_read["inverse"]
-        out = torch.empty((len(lat), 1, *grey.shape[-2:]), dtype=torch.float32, device=events.device)
-        change = torch.empty_like(out) if with_change else None
-        peak = empty_peak(len(lat)) if with_change else None
-        for k in range(0, len(lat), chunk):  # each read writes its slice: no concatenated copy
-            integral.inverse_ratio(start, end, lat[k:k + chunk], out=out[k:k + chunk],
-                                   change_out=None if change is None else change[k:k + chunk],
-                                   peak_out=None if peak is None else peak[k:k + chunk], peak_stride=stride)
-        last_read.clear()
-        last_read.update(latencies=lat.cpu(), inverse=out)
-        if change is not None:
-            last_read.update(change=change, peak=peak)
-        return out
-
-    def fine_of(best: float) -> Tensor:
-        k = torch.arange(-math.floor(step / fine_step), math.floor(step / fine_step) + 1, dtype=torch.float64)
-        return torch.unique((best + k * fine_step).clamp(low, min(high, top)))
-
-    def final_ratio(latency: float) -> Tensor:
-        # the chosen latency is usually a candidate of the last read: its latent is the one the score saw
-        if last_read:
-            hit = torch.nonzero(last_read["latencies"] == latency).flatten()
-            if len(hit):
-                k = int(hit[0])
-                return torch.log(last_read["inverse"][k:k + 1].double()).neg_()
-        return integral.log_ratio(start, end, torch.tensor([latency], dtype=torch.float64))
-
-    def log_change(lat: Tensor) -> Tensor:
-        if "change" in last_read and torch.equal(last_read["latencies"], lat.cpu()):
-            return last_read["change"]
-        return integral.log_change(start, end, lat)
-
-    def log_peak(lat: Tensor) -> Tensor:
-        if not ("peak" in last_read and torch.equal(last_read["latencies"], lat.cpu())):
-            peak = empty_peak(len(lat))
-            for k in range(0, len(lat), chunk):
-                integral.inverse_ratio(start, end, lat[k:k + chunk], peak_out=peak[k:k + chunk], peak_stride=stride)
-            return peak
-        return last_read["peak"]
-
-    ignored = 0 if integral is None else int(integral.ignored.sum())
-    return _CandidateReader(coarse, top, low, lambda v: v, inverse_ratio, fine_of, final_ratio, log_change, ignored,
-                            log_peak)
-
-
-def _binned_reader(events: Events, span: _Window, theta: float, config: SearchConfig, integral: str,
-                   budget: int | None) -> _CandidateReader:
-    """Candidates that are whole sub-intervals ``exposure / n`` of one prefix-sum table; the grid may overhang
-    the range by up to one, and the latency is clamped into ``[low, high]``."""
-    start, end, low, high, reach, n = span.start, span.end, span.low, span.high, span.reach, config.num_bins
-    width_us = (end - start) / n
-    stride = overshoot_stride(*events.sensor_size)  # the overshoot's pixels
-    step = max(1, round((high - low) / (config.num_candidates - 1) / width_us))  # in sub-intervals
-    first = math.floor(low / width_us)
-    num = max(2, math.ceil((high - low) / (step * width_us) - 1e-9) + 1)
-    span_steps = (num - 1) * step  # shifts 0..span_steps (in sub-intervals, from the first candidate)
-    # shifts whose window stays inside the events (a bin of slack: the last event is in the last bin)
-    top = min(span_steps, math.floor(reach / width_us) + 1 - first) if math.isfinite(reach) else -1
-    table = None
-    if top >= 0:
-        advice = (f"the table spans num_bins={n} sub-intervals of {width_us:.4g} us for the exposure plus "
-                  f"{min(span_steps, top)} for the latencies searched (search_range [{low:.0f}, {high:.0f}] us, "
-                  f"events up to {reach:.0f} us past exposure_end): narrow search_range, use fewer num_bins, or "
-                  "pass only the events up to exposure_end + search_range[1]")
-        table = _ShiftTable(events, start + first * width_us, width_us, n, min(span_steps, top), theta, integral,
-                            budget, advice)
-
-    def fine_of(best: float) -> Tensor:
-        best = int(best)
-        return torch.arange(max(0, best - step), min(span_steps, top, best + step) + 1, device=events.device)
-
-    return _CandidateReader(torch.arange(num, device=events.device) * step, top, 0,
-                            lambda v: (first + v).to(torch.float64) * width_us,
-                            lambda shifts: torch.exp(-table.log_ratio(shifts)).float(), fine_of, lambda latency: None,
-                            lambda shifts: table.log_change(shifts),
-                            log_peak=lambda shifts: table.log_peak(shifts, stride))
-
-
-def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str, ...], config: SearchConfig,
-                      prev: Tensor | None, requests: list[Tensor]) -> list[Tensor]:
-    """Each member score's values on its own candidates (inf past the last event), from one read of their
-    union."""
-    union = torch.unique(torch.cat(requests))  # sorted
-    valid = union <= reader.top
-    out = torch.full((len(members), len(union)), math.inf, dtype=torch.float64)
-    if bool(valid.any()):
-        kept = union[valid]
-        kept_cols = torch.nonzero(valid.cpu()).flatten()
-        wanted = torch.zeros((len(members), len(kept)), dtype=torch.bool)
-        for m, cand in enumerate(requests):
-            wanted[m, torch.searchsorted(kept.cpu(), cand.cpu()[cand.cpu() <= reader.top])] = True
-        lat = reader.to_us(kept).to(torch.float64)
-        inverse = reader.inverse_ratio(kept)  # (K, 1, H, W): the latents at mid-exposure are grey times it
-        previous = None if prev is None else prev.expand(len(kept)).float()
-        # on a CPU a few candidates' latent images at a time: scoring all at once held ~7 (K, H, W) arrays
-        chunk = _score_chunk(grey)
-        for k0 in range(0, len(kept), chunk):
-            k1 = min(k0 + chunk, len(kept))
-            needed = [m for m in range(len(members)) if bool(wanted[m, k0:k1].any())]
-            if not needed:
-                continue
-            values = _latent_scores(grey, inverse[k0:k1], lat[k0:k1].float().to(grey.device),
-                                    None if previous is None else previous[k0:k1], tuple(members[m] for m in needed),
-                                    config).double().cpu()
-            for value, m in zip(values, needed):
-                out[m, kept_cols[k0:k1]] = torch.where(wanted[m, k0:k1], value, math.inf)
-    return [out[m, torch.searchsorted(union.cpu(), cand.cpu())] for m, cand in enumerate(requests)]
-
-
-def _score_chunk(image: Tensor) -> int:
-    """Candidates of the image ``image`` :math:`(1, 1, H, W)` to score at once on its device."""
-    if image.device.type == "cpu":
-        return _SCORE_CHUNK
-    return max(1, _DEVICE_SCORE_BYTES // (8 * 4 * image.numel()))
-
-
-def _latent_scores(grey: Tensor, inverse: Tensor, latency: Tensor, previous: Tensor | None, scores: tuple[str, ...],
-                   config: SearchConfig) -> Tensor:
-    """:func:`sharpness_scores` of the latent images ``grey · inverse`` :math:`(K, 1, H, W)` without making them:
-    each image's mean is one product with ``grey``, and ``log(grey · inverse + c · mean)`` one fused pass."""
-    mean = (inverse.flatten(1) @ grey.flatten().to(inverse)).div_(grey.numel()).clamp_min_(1e-12)[:, None, None, None]
-    return _scores_of(lambda floor: torch.addcmul(floor * mean, inverse, grey).log_(), lambda: grey * inverse, latency,
-                      previous, scores, config.epsilon, config.window, config.sigma_us)
-
-
 def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float, config: SearchConfig,
                 prev: Tensor | None, integral: str, budget: int | None = None,
                 method: str = "continuous", evidence: _Evidence | None = None,
@@ -645,154 +418,6 @@ def _read_later(latency: float) -> None:
     return None
 
 
-def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor
-                  ) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`~evlatcorr.curve_reader.curve_features` of one frame's coarse candidates on the frame's device, which
-    are valid (on the scores' device, the host), and their ghost moments :math:`(K,)` (0 past the last event)."""
-    from evlatcorr.curve_reader import curve_features
-
-    valid = torch.isfinite(coarse_scores[0])
-    kept = coarse[coarse <= reader.top]  # the valid candidates: a prefix of the sorted coarse ones
-    moment = torch.zeros(len(coarse), dtype=torch.float64, device=grey.device)
-    moment[:len(kept)] = _candidate_moments(reader, grey, kept)
-    over = torch.zeros(len(coarse), dtype=torch.float64, device=grey.device)
-    if len(kept):
-        over[:len(kept)] = overshoot(grey, reader.inverse_ratio(kept), reader.log_peak(kept))
-    # the features are made where the moments are: on a GPU the moments are not waited for, and the reader runs
-    # there too (on a many-core host its few tiny convolutions cost milliseconds of thread wake-ups)
-    return curve_features(coarse_scores.to(grey.device), moment, valid.to(grey.device), over), valid, moment
-
-
-def _learned_log_p(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor
-                   ) -> tuple[Tensor, Tensor]:
-    """The shipped curve reader's log-odds of one frame's coarse candidates :math:`(K,)` float64 on the host, and
-    their ghost moments :math:`(K,)` on the frame's device (0 past the last event)."""
-    curves, valid, moment = _curve_inputs(reader, grey, coarse, coarse_scores)
-    return _read_curves(curves[None], valid[None])[0], moment
-
-
-def _read_curves(curves: Tensor, valid: Tensor) -> Tensor:
-    """The shipped curve reader's log-odds :math:`(N, K)` float64 on the host of :math:`(N, F, K)` curves (on the
-    device they were made on) and their valid candidates :math:`(N, K)`: the one wait for the device."""
-    ensemble = _curve_reader_on(curves.device)
-    with torch.no_grad():
-        log_p = ensemble(curves.to(next(ensemble.parameters()).dtype), valid.to(curves.device))
-    return log_p.double().cpu()
-
-
-def _candidate_moments(reader: _CandidateReader, grey: Tensor, kept: Tensor) -> Tensor:
-    """:func:`~evlatcorr.ghost.ghost_moment` of candidates whose windows hold events, float64 :math:`(K,)` on the
-    frame's device: in float32, a few candidates at a time on a CPU (their images stay in cache)."""
-    moment = torch.zeros(len(kept), dtype=torch.float64, device=grey.device)
-    if len(kept):
-        inverse, change = reader.inverse_ratio(kept), reader.log_change(kept)
-        chunk = _score_chunk(grey)
-        for k0 in range(0, len(kept), chunk):
-            k1 = min(k0 + chunk, len(kept))
-            moment[k0:k1] = inverse_ratio_moment(grey, inverse[k0:k1], change[k0:k1])
-    return moment
-
-
-@functools.lru_cache(maxsize=4)
-def _curve_reader_on(device: torch.device) -> torch.nn.Module:
-    """The shipped curve reader on ``device``, its members fused into grouped convolutions (a fifth of the calls,
-    each a fixed cost far above the arithmetic of one frame's curves): float32 on a CPU, as trained; float64
-    elsewhere, where a GPU's convolutions may otherwise round through TF32 and pick another candidate than a CPU on
-    near ties. The search reads its curves on the frame's device."""
-    from evlatcorr.curve_reader import FusedCurveReaderEnsemble, load_curve_reader
-
-    fused = FusedCurveReaderEnsemble(load_curve_reader()).eval()
-    return fused if device.type == "cpu" else fused.to(device, torch.float64)
-
-
-def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid: Tensor,
-                  prior: tuple[Tensor, float, float] | None = None) -> tuple[float, float, float, Tensor]:
-    """The coarse candidate :mod:`evlatcorr.curve_reader`'s shipped ensemble finds likeliest (its log-odds
-    ``log_p`` :math:`(K,)` on the host, :func:`_learned_log_p`; ``valid``: the scored candidates) and the centre of
-    its probability over that candidate's neighbours (both in reader units), the standard deviation of its
-    probability over all candidates (µs), and the reader's log-probability of each candidate without the prior
-    :math:`(K,)` (normalised over the scored candidates, −inf elsewhere).
-
-    The centre is the probability-weighted mean of the likeliest candidate and
-    :data:`~evlatcorr.curve_reader.CENTRE_HALF_WIDTH` valid
-    candidates either side (fewer at the edges, as many on both sides): a latency between candidates, the
-    sub-candidate estimate of ``refine=True``.
-
-    ``prior``: ``(candidates in µs, previous latency, σ)``: the temporal prior of the sparsity scores,
-    ``exp((l − l')² / 4σ²)`` on a score, enters as ``−(l − l')² / 4σ²`` on the reader's log-probability.
-    """
-    from evlatcorr.curve_reader import probability_centre
-
-    valid = valid.cpu()
-    # what the frame alone says, for fusing frames (evlatcorr.temporal): normalised over the scored candidates
-    own = torch.full_like(log_p, -math.inf)
-    own[valid] = torch.log_softmax(log_p[valid], 0)
-    if prior is not None:
-        latencies, previous, sigma = prior
-        log_p = log_p - (latencies.double() - previous) ** 2 / (4 * sigma**2)
-    candidates = coarse.cpu().double()
-    pick, centre = probability_centre(log_p, candidates, int(valid.sum()))
-    probability, latencies = torch.softmax(log_p, 0), reader.to_us(candidates).double()
-    mean = (probability * latencies).sum()
-    spread = float((probability * (latencies - mean) ** 2).sum().sqrt())
-    return pick, centre, spread, own
-
-
-def candidate_curves(blurry: Tensor, events: Events, exposure_start: float, exposure_end: float,
-                     threshold: float) -> tuple[Tensor, Tensor, Tensor]:
-    """What ``score="learned"`` reads for one frame at the default settings: the coarse candidates
-    :math:`(K,)` µs, their :func:`~evlatcorr.curve_reader.curve_features` :math:`(F, K)` and which are valid
-    :math:`(K,)` (what :func:`evlatcorr.curve_reader.train_curve_reader` is trained on).
-
-    Args:
-        blurry: :math:`(1, C, H, W)` in [0, 1].
-        events: the frame's events (``batch_size == 1``), reaching past ``exposure_end``.
-        exposure_start, exposure_end: µs.
-        threshold: contrast threshold θ.
-    """
-    check_image(blurry, "blurry")
-    if blurry.shape[0] != 1 or events.batch_size != 1:
-        raise ValueError(f"candidate_curves takes one frame, got {blurry.shape[0]} images and {events.batch_size} "
-                         "event samples")
-    config = SearchConfig(score="learned")
-    grey = kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
-    last = float(events.t.max()) if len(events) else -math.inf
-    span = _Window(exposure_start, exposure_end, 0.0, exposure_end - exposure_start, last - exposure_end)
-    reader = _continuous_reader(grey, events, span, float(threshold), config, None)
-    coarse_scores = torch.stack(_score_candidates(reader, grey, tuple(_SPARSITY), config, None,
-                                                  [reader.coarse] * len(_SPARSITY)))
-    curves, valid, _ = _curve_inputs(reader, grey, reader.coarse, coarse_scores)
-    return reader.coarse.cpu(), curves.cpu(), valid.cpu()
-
-
-def _ghost_latency(reader: _CandidateReader, grey: Tensor, coarse: Tensor, moment: Tensor | None = None
-                   ) -> float | None:
-    """:func:`~evlatcorr.ghost.ghost_root` over the coarse candidates whose windows hold events, µs (``moment``:
-    the coarse candidates' moments when already made, :func:`_learned_log_p`)."""
-    kept = coarse[coarse <= reader.top]
-    if len(kept) < 3:
-        return None
-    moment = _candidate_moments(reader, grey, kept) if moment is None else moment[:len(kept)]
-    return ghost_root(reader.to_us(kept).cpu(), moment.cpu())
-
-
-def _aligned_candidates(low: float, high: float, num: int, exposure: float) -> tuple[Tensor, float]:
-    """About ``num`` candidates from ``low`` to ``high`` (both included), spaced by ``exposure / (2q)``.
-
-    With that spacing one candidate's window end and mid-exposure reference fall on other candidates' window
-    starts, so all windows read about ``2 num`` distinct times instead of ``3 num``.
-    """
-    if high <= low:
-        return torch.tensor([low, high], dtype=torch.float64), 0.0
-    half_steps = math.ceil(exposure / 2 / ((high - low) / (max(2, num) - 1)) - 1e-9)
-    step = exposure / 2 / half_steps
-    count = math.floor((high - low) / step + 1e-9)
-    coarse = low + torch.arange(count + 1, dtype=torch.float64) * step
-    if high - float(coarse[-1]) > 1e-6 * step:
-        coarse = torch.cat([coarse, torch.tensor([high], dtype=torch.float64)])
-    return coarse, step
-
-
 def _refine(coarse: Tensor, coarse_scores: Tensor, fine: Tensor, fine_scores: Tensor | None,
             refine: bool) -> tuple[float, float, Tensor, Tensor]:
     """One score's best candidate (a fine one when refined), its confidence, and the candidates it refined."""
@@ -817,93 +442,3 @@ def _confidence(scores: Tensor, k_best: int) -> float:
     median = float(scores.median())
     depth = (median - float(scores.min())) / max(abs(median), 1e-12)
     return max(0.0, min(1.0, depth))
-
-
-class _ShiftTable:
-    """log R for whole-sub-interval shifts, from one prefix-sum table per strip of rows.
-
-    The table keeps about ``_TABLE_BYTES`` per grid point and pixel. When the whole table is over the
-    memory budget, its strips are not kept but rebuilt at each :meth:`log_ratio` call (the same values,
-    more time); when even one row of it is over the budget the search is refused with ``advice``.
-    """
-
-    def __init__(self, events: Events, grid_start: float, width_us: float, n: int, span: int, theta: float,
-                 integral: str = "step", budget: int | None = None, advice: str = "narrow the search range"):
-        self.n, self.theta = n, theta
-        self.grid_start, self.width_us, self.integral = grid_start, width_us, integral
-        height, width = events.sensor_size
-        self.num_bins = num_bins = n + span
-        limit = resolve_memory_budget(budget)
-        elements = _STRIP_ELEMENTS * (16 if events.device.type == "cuda" else 1)
-        rows = max(1, min(height, elements // ((num_bins + 2) * width)))
-        # sizes from Python ints only: nothing is read from the device to decide
-        # a table over _KEEP_TABLE_BYTES is rebuilt strip by strip at each read: at DAVIS346 size that takes
-        # no longer than building and keeping it (page faults of a GB-sized table), at a third of the memory
-        self.keep = (num_bins + 2) * height * width * _TABLE_BYTES <= min(limit, _KEEP_TABLE_BYTES)
-        if not self.keep:
-            row_bytes = (num_bins + 2) * width * _BUILD_BYTES
-            check_memory(row_bytes, f"one row of the latency search table ({num_bins + 1} grid points x {width} "
-                         "pixels)", advice, limit)
-            rows = max(1, min(rows, limit // row_bytes))
-        # a strip is bounded by _STRIP_ELEMENTS (kept table) or by the budget (streamed): let it through
-        self.strip_budget = max(limit, rows * (num_bins + 2) * width * _BUILD_BYTES)
-        # events ordered by row once, so each strip is a contiguous slice (not a mask over all events)
-        self.strips: list[Events | tuple[Tensor, Tensor, Tensor]] = [
-            self._build(sub) if self.keep else sub for _, _, sub in _row_strips(events, rows)]
-
-    def _build(self, sub: Events) -> tuple[Tensor, Tensor, Tensor]:
-        """(C float32, peak of θC, prefix sum of exp(θC − peak)) of one strip.
-
-        exp(θC − peak) itself is not kept: :meth:`log_ratio` recomputes it on the two slices it reads
-        (the same float64 values), which saves 8 bytes per grid point and pixel.
-        """
-        cum = cumulative_event_grid(sub, self.grid_start, self.width_us, self.num_bins, self.integral,
-                                    memory_budget=self.strip_budget)[0]  # (M+1, h, W)
-        x = self.theta * cum.double()
-        peak = x.amax(0, keepdim=True)
-        prefix = torch.zeros((x.shape[0] + 1, *x.shape[1:]), dtype=x.dtype, device=x.device)
-        prefix[1:] = torch.exp_(x.sub_(peak))  # summed in place: one float64 copy at a time
-        del x
-        cumsum_(prefix[1:], 0)
-        return cum, peak, prefix
-
-    def log_change(self, shifts: Tensor) -> Tensor:
-        """θ times each pixel's net events in each shift's window :math:`(K, 1, H, W)` float32 (the ghost cue's)."""
-        out = []
-        for strip in self.strips:
-            cum = (strip if isinstance(strip, tuple) else self._build(strip))[0]
-            out.append(self.theta * (cum[shifts + self.n] - cum[shifts]))
-        return torch.cat(out, dim=1)[:, None].float()
-
-    def log_peak(self, shifts: Tensor, stride: int = 1) -> Tensor:
-        """θ (max C − C(mid-exposure)) over each shift's window :math:`(K, 1, ⌈H/s⌉, ⌈W/s⌉)` float32 at every
-        ``stride``-th row and column, the maximum over the window's start, quarters, middle and end bin edges (the
-        overshoot cue's; the continuous integral's ``peak_out`` on the bins' edges)."""
-        n, out = self.n, []
-        offsets = [round(f * n) for f in (0.0, *continuous.PEAK_FRACTIONS, 1.0)]
-        for strip in self.strips:
-            cum = (strip if isinstance(strip, tuple) else self._build(strip))[0]
-            middle = cum[shifts + round(0.5 * n)]
-            peak = middle.clone()
-            for offset in offsets:
-                torch.maximum(peak, cum[shifts + offset], out=peak)
-            out.append(self.theta * (peak - middle))
-        return torch.cat(out, dim=1)[:, None, ::stride, ::stride].float()
-
-    def log_ratio(self, shifts: Tensor, reference: float = 0.5) -> Tensor:
-        """log R for each shift, latent at ``start + reference * exposure`` (0.5 = mid-exposure)."""
-        n = self.n
-        r_lo, r_hi = math.floor(reference * n), math.ceil(reference * n)
-        w_hi = reference * n - r_lo
-        out = []
-        for strip in self.strips:
-            cum, peak, prefix = strip if isinstance(strip, tuple) else self._build(strip)
-            y_lo = torch.exp(self.theta * cum[shifts].double() - peak)
-            y_hi = torch.exp(self.theta * cum[shifts + n].double() - peak)
-            total = prefix[shifts + n + 1] - prefix[shifts] - 0.5 * (y_lo + y_hi)
-            total = total.clamp_min(1e-300) / n
-            # θC from the float32 sum, as when the table was built (the same float64 values)
-            x_lo, x_hi = self.theta * cum[shifts + r_lo].double(), self.theta * cum[shifts + r_hi].double()
-            ref = (1 - w_hi) * x_lo + w_hi * x_hi
-            out.append(torch.log(total) + peak - ref)
-        return torch.cat(out, dim=1)[:, None]  # (K, 1, H, W)

@@ -29,20 +29,15 @@ from evlatcorr.curve_reader import curve_features
 from evlatcorr.events import Events
 from evlatcorr.ghost import stacked_inverse_ratio_moment
 from evlatcorr.overshoot import overshoot, overshoot_stride
-from evlatcorr.search import (
-    _SPARSITY,
+from evlatcorr.search import _SPARSITY, _Evidence, _fuse_with_history, _OneResult, _read_later, _search_one
+from evlatcorr.search_candidates import (
     HOT_PIXEL_LOG_RANGE,
     _aligned_candidates,
     _CandidateReader,
-    _Evidence,
-    _fuse_with_history,
-    _OneResult,
-    _read_curves,
-    _read_later,
     _score_chunk,
-    _search_one,
     _Window,
 )
+from evlatcorr.search_learned import _read_curves
 from evlatcorr.sharpness import _scores_of
 from evlatcorr.temporal import LatencyHistory
 
@@ -190,8 +185,8 @@ def _scores_and_moments(grey: Tensor, inverse: Tensor, change: Tensor, config: S
                         ) -> tuple[Tensor, Tensor]:
     """The sparsity scores :math:`(3, K, F)` (float64, host) and ghost moments :math:`(K, F)` (float64, device) of
     the latents ``grey · inverse`` :math:`(K, F, H, W)` (``grey`` :math:`(1, F, H, W)`), as
-    :func:`evlatcorr.search._latent_scores` and :func:`evlatcorr.ghost.inverse_ratio_moment` give them frame by
-    frame."""
+    :func:`evlatcorr.search_candidates._latent_scores` and :func:`evlatcorr.ghost.inverse_ratio_moment` give them
+    frame by frame."""
     k, frames, height, width = inverse.shape
     grey = grey.to(inverse)
     # a few candidates of every frame at a time, as the frame-by-frame search takes a few of one frame's
@@ -204,7 +199,7 @@ def _scores_and_moments(grey: Tensor, inverse: Tensor, change: Tensor, config: S
 
 def _chunk_scores(grey: Tensor, inverse: Tensor, config: SearchConfig) -> Tensor:
     """The sparsity scores :math:`(3, K, F)` of the latents ``grey · inverse`` :math:`(K, F, H, W)`: each latent's
-    mean and ``log(latent + c · mean)`` as :func:`evlatcorr.search._latent_scores` makes them."""
+    mean and ``log(latent + c · mean)`` as :func:`evlatcorr.search_candidates._latent_scores` makes them."""
     k, frames, height, width = inverse.shape
     mean = torch.einsum("kfhw,fhw->kf", inverse, grey[0]).div_(height * width).clamp_min_(1e-12)[..., None, None]
     flat = (k * frames, 1, height, width)

@@ -205,7 +205,7 @@ class _PlantedReader(torch.nn.Module):
 
 @pytest.mark.parametrize("mode", [3, 9])  # an inner candidate; the last one whose window holds events
 def test_learned_estimate_is_the_centre_of_the_reader_probability_near_its_pick(monkeypatch, mode):
-    import evlatcorr.search as search
+    import evlatcorr.search_learned as search_learned
 
     # 11 candidates 0..100 us; the events stop just before 200 us, so the window of l = 100 reaches past them
     ev = random_events(3000, (8, 9), (0.0, 200.0), seed=6)
@@ -217,7 +217,7 @@ def test_learned_estimate_is_the_centre_of_the_reader_probability_near_its_pick(
         if 0 <= k < 11:
             log_p[k] = v
     log_p[0 if mode > 5 else 10] = -0.2  # a second mode far away: not averaged in
-    monkeypatch.setattr(search, "_curve_reader_on", lambda device: _PlantedReader(log_p))
+    monkeypatch.setattr(search_learned, "_curve_reader_on", lambda device: _PlantedReader(log_p))
     args = (blurry, ev, torch.zeros(1), torch.full((1,), 100.0), 0.2)
     res = search_constant_latency(*args, num_bins=50, num_candidates=11, score="learned")
     assert bool(torch.isfinite(res.etf[0, 9])) and not bool(torch.isfinite(res.etf[0, 10]))

@@ -62,7 +62,7 @@ def test_spatial_corrector_matches_the_cpu(device, delayed):
 
 def test_curve_reader_inputs_and_pick_stay_on_the_device(device):
     from evlatcorr.curve_reader import curve_features
-    from evlatcorr.search import _curve_reader_on
+    from evlatcorr.search_learned import _curve_reader_on
 
     generator = torch.Generator().manual_seed(0)
     scores = torch.rand(3, 101, generator=generator, dtype=torch.float64)

@@ -128,7 +128,7 @@ def test_overshoot_refuses_mismatched_shapes():
 
 
 def test_binned_table_reads_the_same_peak_rise_as_the_continuous_integral():
-    from evlatcorr.search import _ShiftTable
+    from evlatcorr.search_binned import _ShiftTable
 
     events = random_events(3000, (6, 8), (0.0, 15000.0), seed=4)
     n, width_us, shifts = 100, 100.0, torch.arange(0, 40, 4)

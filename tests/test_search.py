@@ -8,11 +8,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import evlatcorr.checks
-import evlatcorr.search
+import evlatcorr.search_candidates
+import evlatcorr.search_learned
 import evlatcorr.sharpness
 from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.edi import edi_deblur
-from evlatcorr.search import SearchConfig, search_constant_latency, sharpness_score, sharpness_scores
+from evlatcorr.search import search_constant_latency, sharpness_score
 from tests.conftest import random_events
 
 START, END = torch.tensor([0.0]), torch.tensor([100.0])
@@ -206,7 +207,7 @@ def test_continuous_integral_reads_fewer_candidates_at_once_when_they_do_not_fit
     ev, blurry = long_exposure
     kw = dict(num_bins=50, search_range=(0.0, 20000.0), num_candidates=11)
     whole = search_constant_latency(blurry, ev, START, LONG_END, **kw)
-    monkeypatch.setattr(evlatcorr.search, "_CONTINUOUS_READ_BYTES", 131_456)
+    monkeypatch.setattr(evlatcorr.search_candidates, "_CONTINUOUS_READ_BYTES", 131_456)
     calls = []
     original = ContinuousIntegral.inverse_ratio
     monkeypatch.setattr(ContinuousIntegral, "inverse_ratio",
@@ -237,22 +238,6 @@ def test_table_whose_row_is_over_the_budget_is_refused_before_allocating(monkeyp
                                     method=method)
 
 
-def test_scores_of_the_inverse_ratio_equal_the_scores_of_the_latent_images():
-    # the search scores grey · (1 / R) without making the latents: the same values as sharpness_scores
-    from evlatcorr.search import _latent_scores
-
-    g = torch.Generator().manual_seed(6)
-    grey = torch.rand(1, 1, 20, 24, generator=g)
-    inverse = torch.exp(0.5 * torch.randn(6, 1, 20, 24, generator=g))
-    latency, names = torch.linspace(0.0, 5000.0, 6), ("sparsity", "sparsity_bright", "sparsity_multiscale", "etf")
-    config = SearchConfig()
-    for previous in (None, torch.full((6,), 1000.0)):
-        expected = sharpness_scores(grey * inverse, latency, previous, names, config.epsilon, config.window,
-                                    config.sigma_us)
-        torch.testing.assert_close(_latent_scores(grey, inverse, latency, previous, names, config), expected,
-                                   rtol=1e-5, atol=0)
-
-
 @pytest.mark.parametrize("score", ["learned", "consensus"])
 def test_scores_are_the_same_whatever_the_candidates_scored_at_once(score, monkeypatch):
     # a CPU scores 16 candidates at a time (cache), a GPU all of them (kernel launches): the same scores
@@ -260,18 +245,12 @@ def test_scores_are_the_same_whatever_the_candidates_scored_at_once(score, monke
     blurry = grey_frame(5, (12, 14))
     kw = dict(num_bins=50, num_candidates=40, score=score)
     chunked = search_constant_latency(blurry, ev, START, END, **kw)
-    monkeypatch.setattr(evlatcorr.search, "_score_chunk", lambda image: 1000)
+    for module in (evlatcorr.search_candidates, evlatcorr.search_learned):  # the scores and the ghost moments
+        monkeypatch.setattr(module, "_score_chunk", lambda image: 1000)
     at_once = search_constant_latency(blurry, ev, START, END, **kw)
     torch.testing.assert_close(at_once.etf, chunked.etf, rtol=1e-6, atol=0)
     # the learned reader's estimate weighs candidates by float32 scores' probabilities: equal to rounding
     assert at_once.latency.item() == pytest.approx(chunked.latency.item(), abs=0.01)
-
-
-def test_score_chunk_fills_a_device_budget():
-    assert evlatcorr.search._score_chunk(torch.zeros(1, 1, 260, 346)) == evlatcorr.search._SCORE_CHUNK
-    on_device = torch.zeros(1, 1, 260, 346, device="meta")  # a device other than the CPU, with no memory
-    assert evlatcorr.search._score_chunk(on_device) == 2**30 // (8 * 4 * 260 * 346)  # 372 candidates
-    assert evlatcorr.search._score_chunk(torch.zeros(1, 1, 2**14, 2**14, device="meta")) == 1
 
 
 @pytest.mark.parametrize("shape", [(5, 1, 20, 24), (3, 1, 1, 7), (3, 1, 6, 1), (2, 1, 1, 1), (2, 1, 2, 2)])

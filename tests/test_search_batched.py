@@ -8,8 +8,9 @@ import torch
 import evlatcorr.search_batched
 from evlatcorr import Events
 from evlatcorr.config import SearchConfig
-from evlatcorr.search import _Window, search_constant_latency
+from evlatcorr.search import search_constant_latency
 from evlatcorr.search_batched import frames_can_share_a_pass
+from evlatcorr.search_candidates import _Window
 from evlatcorr.simulate import simulate
 
 EXPOSURE = 10_000.0

@@ -29,8 +29,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from evlatcorr import search
-from evlatcorr.config import SearchConfig
+from evlatcorr import search_candidates, search_learned
+from evlatcorr.config import SPARSITY_SCORES, SearchConfig
 from evlatcorr.curve_reader import curve_features, probability_centre
 from evlatcorr.frames import EventFrames
 from evlatcorr.ghost import inverse_ratio_moment
@@ -69,9 +69,9 @@ def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ..
     blurry = frames.blurry[:1]
     grey = kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
     start, end = float(frames.exposure_start[0]), float(frames.exposure_end[0])
-    span = search._Window(start, end, 0.0, end - start, float(events.t.max()) - end)
+    span = search_candidates._Window(start, end, 0.0, end - start, float(events.t.max()) - end)
     config = SearchConfig(score="learned")
-    reader = search._continuous_reader(grey, events, span, float(frames.meta["threshold"]), config, None)
+    reader = search_candidates._continuous_reader(grey, events, span, float(frames.meta["threshold"]), config, None)
     kept = reader.coarse[reader.coarse <= reader.top]
     if len(kept) < 3:
         raise ValueError("fewer than three candidates' windows hold events")
@@ -82,14 +82,14 @@ def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ..
 
     def read(region: tuple[slice, slice]) -> Tensor:
         part = (..., *region)
-        scores = torch.full((len(search._SPARSITY), num), math.inf, dtype=torch.float64)
-        scores[:, :len(kept)] = search._latent_scores(grey[part], inverse[part], latency, None,
-                                                      tuple(search._SPARSITY), config).double()
+        scores = torch.full((len(SPARSITY_SCORES), num), math.inf, dtype=torch.float64)
+        scores[:, :len(kept)] = search_candidates._latent_scores(grey[part], inverse[part], latency, None,
+                                                      tuple(SPARSITY_SCORES), config).double()
         moment = torch.zeros(num, dtype=torch.float64)
         moment[:len(kept)] = inverse_ratio_moment(grey[part], inverse[part], change[part]).double()
         over = torch.zeros(num, dtype=torch.float64)
         over[:len(kept)] = overshoot(grey[part], inverse[part], peak[part])
-        log_p = search._read_curves(curve_features(scores, moment, valid, over)[None], valid[None])[0]
+        log_p = search_learned._read_curves(curve_features(scores, moment, valid, over)[None], valid[None])[0]
         return torch.full_like(log_p, -math.inf).masked_scatter_(valid, torch.log_softmax(log_p[valid], 0))
 
     whole = read((slice(None), slice(None)))

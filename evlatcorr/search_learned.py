@@ -1,0 +1,156 @@
+"""``score="learned"`` in the constant-latency search: the curves the curve reader reads, and its pick.
+
+Over one frame's coarse candidates (:mod:`evlatcorr.search_candidates`) the three sparsity scores, the ghost moment
+(:mod:`evlatcorr.ghost`) and the overshoot (:mod:`evlatcorr.overshoot`) make the reader's input
+(:func:`~evlatcorr.curve_reader.curve_features`); the shipped reader (:mod:`evlatcorr.curve_reader`) gives each
+candidate a probability, and the estimate is the centre of that probability around the likeliest candidate.
+:func:`candidate_curves` gives what the reader was trained on.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import kornia
+import torch
+from torch import Tensor
+
+from evlatcorr.checks import check_image
+from evlatcorr.config import SPARSITY_SCORES, SearchConfig
+from evlatcorr.events import Events
+from evlatcorr.ghost import ghost_root, inverse_ratio_moment
+from evlatcorr.overshoot import overshoot
+from evlatcorr.search_candidates import _CandidateReader, _continuous_reader, _score_candidates, _score_chunk, _Window
+
+__all__ = ["candidate_curves"]
+
+def _curve_inputs(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor
+                  ) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`~evlatcorr.curve_reader.curve_features` of one frame's coarse candidates on the frame's device, which
+    are valid (on the scores' device, the host), and their ghost moments :math:`(K,)` (0 past the last event)."""
+    from evlatcorr.curve_reader import curve_features
+
+    valid = torch.isfinite(coarse_scores[0])
+    kept = coarse[coarse <= reader.top]  # the valid candidates: a prefix of the sorted coarse ones
+    moment = torch.zeros(len(coarse), dtype=torch.float64, device=grey.device)
+    moment[:len(kept)] = _candidate_moments(reader, grey, kept)
+    over = torch.zeros(len(coarse), dtype=torch.float64, device=grey.device)
+    if len(kept):
+        over[:len(kept)] = overshoot(grey, reader.inverse_ratio(kept), reader.log_peak(kept))
+    # the features are made where the moments are: on a GPU the moments are not waited for, and the reader runs
+    # there too (on a many-core host its few tiny convolutions cost milliseconds of thread wake-ups)
+    return curve_features(coarse_scores.to(grey.device), moment, valid.to(grey.device), over), valid, moment
+
+
+def _learned_log_p(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coarse_scores: Tensor
+                   ) -> tuple[Tensor, Tensor]:
+    """The shipped curve reader's log-odds of one frame's coarse candidates :math:`(K,)` float64 on the host, and
+    their ghost moments :math:`(K,)` on the frame's device (0 past the last event)."""
+    curves, valid, moment = _curve_inputs(reader, grey, coarse, coarse_scores)
+    return _read_curves(curves[None], valid[None])[0], moment
+
+
+def _read_curves(curves: Tensor, valid: Tensor) -> Tensor:
+    """The shipped curve reader's log-odds :math:`(N, K)` float64 on the host of :math:`(N, F, K)` curves (on the
+    device they were made on) and their valid candidates :math:`(N, K)`: the one wait for the device."""
+    ensemble = _curve_reader_on(curves.device)
+    with torch.no_grad():
+        log_p = ensemble(curves.to(next(ensemble.parameters()).dtype), valid.to(curves.device))
+    return log_p.double().cpu()
+
+
+def _candidate_moments(reader: _CandidateReader, grey: Tensor, kept: Tensor) -> Tensor:
+    """:func:`~evlatcorr.ghost.ghost_moment` of candidates whose windows hold events, float64 :math:`(K,)` on the
+    frame's device: in float32, a few candidates at a time on a CPU (their images stay in cache)."""
+    moment = torch.zeros(len(kept), dtype=torch.float64, device=grey.device)
+    if len(kept):
+        inverse, change = reader.inverse_ratio(kept), reader.log_change(kept)
+        chunk = _score_chunk(grey)
+        for k0 in range(0, len(kept), chunk):
+            k1 = min(k0 + chunk, len(kept))
+            moment[k0:k1] = inverse_ratio_moment(grey, inverse[k0:k1], change[k0:k1])
+    return moment
+
+
+@functools.lru_cache(maxsize=4)
+def _curve_reader_on(device: torch.device) -> torch.nn.Module:
+    """The shipped curve reader on ``device``, its members fused into grouped convolutions (a fifth of the calls,
+    each a fixed cost far above the arithmetic of one frame's curves): float32 on a CPU, as trained; float64
+    elsewhere, where a GPU's convolutions may otherwise round through TF32 and pick another candidate than a CPU on
+    near ties. The search reads its curves on the frame's device."""
+    from evlatcorr.curve_reader import FusedCurveReaderEnsemble, load_curve_reader
+
+    fused = FusedCurveReaderEnsemble(load_curve_reader()).eval()
+    return fused if device.type == "cpu" else fused.to(device, torch.float64)
+
+
+def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid: Tensor,
+                  prior: tuple[Tensor, float, float] | None = None) -> tuple[float, float, float, Tensor]:
+    """The coarse candidate :mod:`evlatcorr.curve_reader`'s shipped ensemble finds likeliest (its log-odds
+    ``log_p`` :math:`(K,)` on the host, :func:`_learned_log_p`; ``valid``: the scored candidates) and the centre of
+    its probability over that candidate's neighbours (both in reader units), the standard deviation of its
+    probability over all candidates (µs), and the reader's log-probability of each candidate without the prior
+    :math:`(K,)` (normalised over the scored candidates, −inf elsewhere).
+
+    The centre is the probability-weighted mean of the likeliest candidate and
+    :data:`~evlatcorr.curve_reader.CENTRE_HALF_WIDTH` valid
+    candidates either side (fewer at the edges, as many on both sides): a latency between candidates, the
+    sub-candidate estimate of ``refine=True``.
+
+    ``prior``: ``(candidates in µs, previous latency, σ)``: the temporal prior of the sparsity scores,
+    ``exp((l − l')² / 4σ²)`` on a score, enters as ``−(l − l')² / 4σ²`` on the reader's log-probability.
+    """
+    from evlatcorr.curve_reader import probability_centre
+
+    valid = valid.cpu()
+    # what the frame alone says, for fusing frames (evlatcorr.temporal): normalised over the scored candidates
+    own = torch.full_like(log_p, -math.inf)
+    own[valid] = torch.log_softmax(log_p[valid], 0)
+    if prior is not None:
+        latencies, previous, sigma = prior
+        log_p = log_p - (latencies.double() - previous) ** 2 / (4 * sigma**2)
+    candidates = coarse.cpu().double()
+    pick, centre = probability_centre(log_p, candidates, int(valid.sum()))
+    probability, latencies = torch.softmax(log_p, 0), reader.to_us(candidates).double()
+    mean = (probability * latencies).sum()
+    spread = float((probability * (latencies - mean) ** 2).sum().sqrt())
+    return pick, centre, spread, own
+
+
+def candidate_curves(blurry: Tensor, events: Events, exposure_start: float, exposure_end: float,
+                     threshold: float) -> tuple[Tensor, Tensor, Tensor]:
+    """What ``score="learned"`` reads for one frame at the default settings: the coarse candidates
+    :math:`(K,)` µs, their :func:`~evlatcorr.curve_reader.curve_features` :math:`(F, K)` and which are valid
+    :math:`(K,)` (what :func:`evlatcorr.curve_reader.train_curve_reader` is trained on).
+
+    Args:
+        blurry: :math:`(1, C, H, W)` in [0, 1].
+        events: the frame's events (``batch_size == 1``), reaching past ``exposure_end``.
+        exposure_start, exposure_end: µs.
+        threshold: contrast threshold θ.
+    """
+    check_image(blurry, "blurry")
+    if blurry.shape[0] != 1 or events.batch_size != 1:
+        raise ValueError(f"candidate_curves takes one frame, got {blurry.shape[0]} images and {events.batch_size} "
+                         "event samples")
+    config = SearchConfig(score="learned")
+    grey = kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
+    last = float(events.t.max()) if len(events) else -math.inf
+    span = _Window(exposure_start, exposure_end, 0.0, exposure_end - exposure_start, last - exposure_end)
+    reader = _continuous_reader(grey, events, span, float(threshold), config, None)
+    coarse_scores = torch.stack(_score_candidates(reader, grey, tuple(SPARSITY_SCORES), config, None,
+                                                  [reader.coarse] * len(SPARSITY_SCORES)))
+    curves, valid, _ = _curve_inputs(reader, grey, reader.coarse, coarse_scores)
+    return reader.coarse.cpu(), curves.cpu(), valid.cpu()
+
+
+def _ghost_latency(reader: _CandidateReader, grey: Tensor, coarse: Tensor, moment: Tensor | None = None
+                   ) -> float | None:
+    """:func:`~evlatcorr.ghost.ghost_root` over the coarse candidates whose windows hold events, µs (``moment``:
+    the coarse candidates' moments when already made, :func:`_learned_log_p`)."""
+    kept = coarse[coarse <= reader.top]
+    if len(kept) < 3:
+        return None
+    moment = _candidate_moments(reader, grey, kept) if moment is None else moment[:len(kept)]
+    return ghost_root(reader.to_us(kept).cpu(), moment.cpu())
