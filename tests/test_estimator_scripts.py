@@ -105,3 +105,16 @@ def test_saturated_script_clips_the_brightest_share_and_keeps_the_text_case_near
     latency = load_estimator("benchmarks/estimators/saturated.py:estimate")(delayed)
     assert latency.shape == (1, 1, 96, 128)
     assert abs(float(latency.mean()) - case.latency_us) < 500.0
+
+
+def test_reader_point_script_centre_is_the_reader_script_s_and_the_others_lie_in_the_range(text_case, monkeypatch):
+    monkeypatch.delenv("EVLATCORR_READER", raising=False)
+    case, delayed = text_case
+    points = {name: float(load_estimator(f"benchmarks/estimators/reader_point.py:{name}")(delayed).unique())
+              for name in ("centre", "mean", "median", "tempered")}
+    assert points["centre"] == pytest.approx(float(load_estimator("benchmarks/estimators/reader.py:estimate")(
+        delayed).unique()), abs=1e-3)
+    last = float(delayed.events.t.max() - delayed.exposure_end[0])
+    assert all(0.0 <= v <= last for v in points.values())
+    # a clear single mode on this frame: all four points lie near the truth
+    assert all(abs(v - case.latency_us) < 1000.0 for v in points.values())
