@@ -1,7 +1,6 @@
 import copy
 import dataclasses
 import json
-import math
 
 import pytest
 import torch
@@ -18,8 +17,6 @@ from evlatcorr.curve_reader import (
     train_curve_reader,
     without_overshoot,
 )
-from evlatcorr.search import candidate_curves, search_constant_latency
-from tests.conftest import random_events
 
 
 def test_features_are_relative_to_the_valid_part():
@@ -178,81 +175,6 @@ def test_training_splits_are_disjoint_from_the_suite_and_have_targets():
     delay = dataclasses.replace(make_cases("dev")[0], size=(32, 32))
     with pytest.raises(ValueError, match="no training target"):
         training_target(delay, simulate_case(delay)[0])
-
-
-def test_learned_score_known_answer_on_a_suite_case():
-    # dev-28: two objects over static grass, dark, 7.2 ms, shot noise, leak and refractory period; the default
-    # consensus is 4.8 ms early on it (the objects' ghosts barely change a whole-image score); the reader's
-    # estimate is measured at +1030 us
-    case = make_cases("dev")[28]
-    delayed, _, _ = simulate_case(case)
-    res = search_constant_latency(delayed.blurry, delayed.events, delayed.exposure_start, delayed.exposure_end,
-                                  case.threshold, score="learned")
-    assert abs(res.latency.item() - case.latency_us) <= 1500.0
-    assert res.source == ["sharpness"] and math.isfinite(res.confidence.item())
-
-
-class _PlantedReader(torch.nn.Module):
-    """Stands in for the shipped ensemble: fixed log-probabilities, masked where no candidate could be scored."""
-
-    def __init__(self, log_p: torch.Tensor) -> None:
-        super().__init__()
-        self.log_p = torch.nn.Parameter(log_p, requires_grad=False)
-
-    def forward(self, curves, valid):
-        return self.log_p.to(curves.dtype)[None].masked_fill(~valid, -1e4)
-
-
-@pytest.mark.parametrize("mode", [3, 9])  # an inner candidate; the last one whose window holds events
-def test_learned_estimate_is_the_centre_of_the_reader_probability_near_its_pick(monkeypatch, mode):
-    import evlatcorr.search_learned as search_learned
-
-    # 11 candidates 0..100 us; the events stop just before 200 us, so the window of l = 100 reaches past them
-    ev = random_events(3000, (8, 9), (0.0, 200.0), seed=6)
-    blurry = torch.rand(1, 1, 8, 9, generator=torch.Generator().manual_seed(6)) * 0.8 + 0.1
-    log_p = torch.full((11,), -30.0)
-    log_p[mode] = 0.0
-    weights = {mode - 2: -3.0, mode - 1: -1.0, mode + 1: -0.5, mode + 2: -2.0}
-    for k, v in weights.items():
-        if 0 <= k < 11:
-            log_p[k] = v
-    log_p[0 if mode > 5 else 10] = -0.2  # a second mode far away: not averaged in
-    monkeypatch.setattr(search_learned, "_curve_reader_on", lambda device: _PlantedReader(log_p))
-    args = (blurry, ev, torch.zeros(1), torch.full((1,), 100.0), 0.2)
-    res = search_constant_latency(*args, num_bins=50, num_candidates=11, score="learned")
-    assert bool(torch.isfinite(res.etf[0, 9])) and not bool(torch.isfinite(res.etf[0, 10]))
-    # as many neighbours on both sides: none at the last valid candidate (the estimate never needs events past the
-    # last one), so a pick at an edge is not pulled inwards
-    near = list(range(mode - 2, mode + 3)) if mode == 3 else [mode]
-    p = torch.softmax(log_p[near].double(), 0)
-    expected = float((p * res.candidates[0, near].double()).sum())
-    assert res.source == ["sharpness"] or res.source == ["reader"]
-    assert res.latency.item() == pytest.approx(expected, abs=1e-9)
-    assert expected != pytest.approx(float(res.candidates[0, mode])) or mode == 9
-    # without refinement the estimate is the likeliest candidate itself
-    pick = search_constant_latency(*args, num_bins=50, num_candidates=11, score="learned", refine=False)
-    assert pick.latency.item() == pytest.approx(float(res.candidates[0, mode]))
-
-
-def test_candidate_curves_match_what_the_search_reads():
-    case = make_cases("dev")[10]
-    delayed, _, _ = simulate_case(case)
-    latencies, curves, valid = candidate_curves(delayed.blurry, delayed.events, float(delayed.exposure_start[0]),
-                                                float(delayed.exposure_end[0]), case.threshold)
-    assert curves.shape == (NUM_FEATURES, len(latencies)) and valid.shape == latencies.shape
-    assert latencies[0] == 0.0 and latencies[-1] == pytest.approx(case.exposure_us)
-    assert bool(valid[0]) and not bool(valid[-1])  # events stop 15 ms after the 20 ms exposure
-    with pytest.raises(ValueError, match="one frame"):
-        candidate_curves(delayed.blurry.expand(2, -1, -1, -1), delayed.events, 0.0, 1.0, 0.2)
-
-
-def test_learned_score_reads_the_binned_table_too():
-    case = make_cases("dev")[28]
-    delayed, _, _ = simulate_case(case)
-    args = (delayed.blurry, delayed.events, delayed.exposure_start, delayed.exposure_end, case.threshold)
-    binned = search_constant_latency(*args, score="learned", method="binned")
-    continuous = search_constant_latency(*args, score="learned")
-    assert abs(binned.latency.item() - continuous.latency.item()) <= 200.0  # one coarse candidate
 
 
 def test_shipped_weights_are_small_and_say_how_they_were_made():
