@@ -29,7 +29,8 @@ checkout and of the git revision ``REV`` on the same frame, each in fresh proces
 ``--rounds`` rounds (the machine's slow drifts hit both alike), and prints each one's median over every call and
 their ratio (``speed-up against REV: <x>``): the "old and new in one run" of a speed claim. Both run under this
 checkout's memory settings (2 MB pages, freed memory kept; ``EVLATCORR_KEEP_FREED_MEMORY=0`` leaves glibc's
-default for both).
+default for both). With ``--score NAME`` both search with that score (e.g. ``consensus``, the default of ``cfd57f4``):
+the same work on both sides, where the defaults compare different amounts of it.
 
 ``--part memory`` runs one constant correction (``EventLatencyCorrector()``, the defaults) on a
 DAVIS346 frame (260x346) with ``--events`` events spread over its exposure and search window, in a
@@ -112,6 +113,8 @@ def main() -> None:
                         default="all", help="what to time; 'against' is not part of 'all' (it needs --against)")
     parser.add_argument("--against", metavar="REV", help="git revision whose default search --part against times")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of --part against")
+    parser.add_argument("--score", default="default",
+                        help="--part against: the score both revisions search with (default: each one's default)")
     parser.add_argument("--events", type=int, default=3_000_000, help="events of --part memory")
     parser.add_argument("--memory-child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[4], metavar="B",
@@ -159,7 +162,7 @@ def main() -> None:
 # memory settings our entry points ask for
 _AGAINST_CHILD = """
 import importlib.util, json, sys, time
-tree, frame_file, repeats, pages_file = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]
+tree, frame_file, repeats, pages_file, score = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4], sys.argv[5]
 spec = importlib.util.spec_from_file_location("_memory_settings", pages_file)
 settings = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(settings)
@@ -172,8 +175,10 @@ from evlatcorr.search import search_constant_latency
 assert evlatcorr.__file__.startswith(tree), evlatcorr.__file__
 d = torch.load(frame_file)
 events = Events(d["x"], d["y"], d["t"], d["p"], sensor_size=tuple(d["size"]))
+kwargs = {} if score == "default" else {"score": score}
 def call():
-    return search_constant_latency(d["blurry"], events, d["start"], d["end"], 0.2, d["bins"], None, d["candidates"])
+    return search_constant_latency(d["blurry"], events, d["start"], d["end"], 0.2, d["bins"], None, d["candidates"],
+                                   **kwargs)
 for _ in range(3):
     call()
 times = []
@@ -187,7 +192,8 @@ print(json.dumps({"times": times, "latency": float(out.latency[0])}))
 
 def bench_against(args: argparse.Namespace) -> None:
     """The default search of this checkout and of git revision ``args.against`` on one frame (CPU), in fresh
-    processes taken in turn."""
+    processes taken in turn (``--score``: both search with that score instead of their defaults)."""
+    what = "default search" if args.score == "default" else f"search with score={args.score!r}"
     root = Path(__file__).resolve().parents[1]
     with tempfile.TemporaryDirectory() as tmp:
         tree = Path(tmp) / "revision"
@@ -209,12 +215,12 @@ def bench_against(args: argparse.Namespace) -> None:
         labels = {"this checkout": root, args.against: tree}
         times: dict[str, list[float]] = {label: [] for label in labels}
         latency: dict[str, float] = {}
-        print(f"[cpu] default search, this checkout against {args.against}: {len(ev)} events, {args.rounds} rounds "
+        print(f"[cpu] {what}, this checkout against {args.against}: {len(ev)} events, {args.rounds} rounds "
               f"of {args.repeats} calls each (after 3 untimed), fresh processes in turn", flush=True)
         for k in range(args.rounds):
             for label, path in labels.items():
                 run = subprocess.run([sys.executable, "-c", _AGAINST_CHILD, str(path), str(frame), str(args.repeats),
-                                      str(root / "evlatcorr" / "pages.py")], capture_output=True, text=True)
+                                      str(root / "evlatcorr" / "pages.py"), args.score], capture_output=True, text=True)
                 if run.returncode != 0:
                     sys.exit(f"speed.py: the search of {label} failed:\n{run.stderr.strip()[-2000:]}")
                 out = json.loads(run.stdout.strip().splitlines()[-1])
@@ -223,7 +229,7 @@ def bench_against(args: argparse.Namespace) -> None:
                 print(f"[cpu] round {k + 1}, {label}: median {statistics.median(out['times']) * 1000:.1f} ms",
                       flush=True)
     new, old = (statistics.median(times[label]) for label in labels)
-    print(f"[cpu] default search: this checkout {new * 1000:.1f} ms, {args.against} {old * 1000:.1f} ms (medians of "
+    print(f"[cpu] {what}: this checkout {new * 1000:.1f} ms, {args.against} {old * 1000:.1f} ms (medians of "
           f"{len(times[args.against])} calls; estimates {latency['this checkout']:.0f} and "
           f"{latency[args.against]:.0f} us)")
     print(f"[cpu] speed-up against {args.against}: {old / new:.2f}x")

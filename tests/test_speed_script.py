@@ -32,6 +32,16 @@ def test_against_a_revision_times_both_in_turn_and_prints_the_ratio():
     assert float(lines[-1].split("speed-up against HEAD: ")[1].rstrip("x")) > 0
 
 
+def test_against_a_revision_with_one_score_for_both():
+    run = run_speed("--against", "HEAD", "--height", "24", "--width", "32", "--repeats", "1", "--rounds", "1",
+                    "--score", "consensus")
+    assert run.returncode == 0, run.stderr
+    summary = next(line for line in run.stdout.splitlines() if "medians of 1 calls" in line)
+    assert summary.startswith("[cpu] search with score='consensus': this checkout")
+    estimates = summary.split("estimates ")[1].split(" us")[0].split(" and ")
+    assert estimates[0] == estimates[1]
+
+
 @pytest.mark.parametrize("args, code, message", [
     (("--against", "no-such-revision-xyz"), 1, "cannot read revision 'no-such-revision-xyz'"),
     ((), 2, "--part against needs --against REV"),
