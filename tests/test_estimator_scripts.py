@@ -111,7 +111,7 @@ def test_reader_point_script_centre_is_the_reader_script_s_and_the_others_lie_in
     monkeypatch.delenv("EVLATCORR_READER", raising=False)
     case, delayed = text_case
     points = {name: float(load_estimator(f"benchmarks/estimators/reader_point.py:{name}")(delayed).unique())
-              for name in ("centre", "mean", "median", "tempered")}
+              for name in ("centre", "mean", "median", "tempered", "centre_1", "centre_3", "centre_5")}
     assert points["centre"] == pytest.approx(float(load_estimator("benchmarks/estimators/reader.py:estimate")(
         delayed).unique()), abs=1e-3)
     last = float(delayed.events.t.max() - delayed.exposure_end[0])

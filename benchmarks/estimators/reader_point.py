@@ -11,7 +11,8 @@ latency holds, the mean is pulled by a second mode. All four in one run (the cur
     python benchmarks/accuracy.py --split tuning --mode none \\
         --estimator $E:centre --estimator $E:mean --estimator $E:median --estimator $E:tempered
 
-``docs/estimator.md`` has the figures: none is better than the centre across the board.
+``centre_1``, ``centre_3`` and ``centre_5`` take the centre over 1, 3 or 5 neighbours each side instead of 2.
+``docs/estimator.md`` has the figures: none is better than the search's centre across the board.
 """
 
 from __future__ import annotations
@@ -77,3 +78,23 @@ def tempered(frames: EventFrames) -> Tensor:
     """The mean of the reader's probability squared (log-odds doubled) and renormalised."""
     candidates, log_p, _ = reader_probability(frames)
     return _as_map(frames, (torch.softmax(2 * log_p, 0) * candidates).sum())
+
+
+def _centre_of(frames: EventFrames, half_width: int) -> Tensor:
+    candidates, log_p, num_valid = reader_probability(frames)
+    return _as_map(frames, probability_centre(log_p, candidates, num_valid, half_width=half_width)[1])
+
+
+def centre_1(frames: EventFrames) -> Tensor:
+    """The centre over the likeliest candidate and 1 neighbour each side (the search: 2)."""
+    return _centre_of(frames, 1)
+
+
+def centre_3(frames: EventFrames) -> Tensor:
+    """The centre over the likeliest candidate and 3 neighbours each side."""
+    return _centre_of(frames, 3)
+
+
+def centre_5(frames: EventFrames) -> Tensor:
+    """The centre over the likeliest candidate and 5 neighbours each side."""
+    return _centre_of(frames, 5)
