@@ -118,3 +118,22 @@ def test_reader_point_script_centre_is_the_reader_script_s_and_the_others_lie_in
     assert all(0.0 <= v <= last for v in points.values())
     # a clear single mode on this frame: all four points lie near the truth
     assert all(abs(v - case.latency_us) < 1000.0 for v in points.values())
+
+
+def test_threshold_error_script_gives_the_corrector_a_scaled_threshold(text_case, monkeypatch):
+    import evlatcorr.correction
+
+    case, delayed = text_case
+    given = []
+    original = evlatcorr.correction.EventLatencyCorrector.__init__
+
+    def spy(self, *args, **kwargs):
+        given.append(kwargs.get("threshold"))
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(evlatcorr.correction.EventLatencyCorrector, "__init__", spy)
+    for name, scale in (("low", 0.7), ("high", 1.4)):
+        latency = load_estimator(f"benchmarks/estimators/threshold_error.py:{name}")(delayed)
+        assert latency.shape == (1, 1, 96, 128)
+        assert abs(float(latency.mean()) - case.latency_us) < 1500.0
+        assert given[-1] == pytest.approx(scale * case.threshold)
