@@ -132,8 +132,9 @@ def test_threshold_error_script_gives_the_corrector_a_scaled_threshold(text_case
         original(self, *args, **kwargs)
 
     monkeypatch.setattr(evlatcorr.correction.EventLatencyCorrector, "__init__", spy)
-    for name, scale in (("low", 0.7), ("high", 1.4)):
+    for name, scale in (("low", 0.7), ("high", 1.4), ("far_low", 0.4), ("far_high", 2.5)):
         latency = load_estimator(f"benchmarks/estimators/threshold_error.py:{name}")(delayed)
         assert latency.shape == (1, 1, 96, 128)
-        assert abs(float(latency.mean()) - case.latency_us) < 1500.0
+        if name in ("low", "high"):  # a third off: the text case's latency barely moves
+            assert abs(float(latency.mean()) - case.latency_us) < 1500.0
         assert given[-1] == pytest.approx(scale * case.threshold)
