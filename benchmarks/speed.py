@@ -59,7 +59,7 @@ import torch  # noqa: E402
 
 from evlatcorr import EventLatencyCorrector, Events  # noqa: E402
 from evlatcorr.edi import edi_deblur  # noqa: E402
-from evlatcorr.search import DEFAULT_SCORE, search_constant_latency, sharpness_score  # noqa: E402
+from evlatcorr.search import DEFAULT_SCORE, SCORES, search_constant_latency, sharpness_score  # noqa: E402
 
 # the naive loop re-runs EDI and one score per candidate; the default scores three ways and reads their curves,
 # so the one-pass/naive ratio is measured with one score and the default is timed on its own
@@ -113,7 +113,7 @@ def main() -> None:
                         default="all", help="what to time; 'against' is not part of 'all' (it needs --against)")
     parser.add_argument("--against", metavar="REV", help="git revision whose default search --part against times")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of --part against")
-    parser.add_argument("--score", default="default",
+    parser.add_argument("--score", default="default", choices=("default", *SCORES),
                         help="--part against: the score both revisions search with (default: each one's default)")
     parser.add_argument("--events", type=int, default=3_000_000, help="events of --part memory")
     parser.add_argument("--memory-child", action="store_true", help=argparse.SUPPRESS)

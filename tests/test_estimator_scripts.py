@@ -116,8 +116,10 @@ def test_reader_point_script_centre_is_the_reader_script_s_and_the_others_lie_in
         delayed).unique()), abs=1e-3)
     last = float(delayed.events.t.max() - delayed.exposure_end[0])
     assert all(0.0 <= v <= last for v in points.values())
-    # a clear single mode on this frame: all four points lie near the truth
+    # a clear single mode on this frame: all the points lie near the truth
     assert all(abs(v - case.latency_us) < 1000.0 for v in points.values())
+    with pytest.raises(ValueError, match="one frame"):
+        load_estimator("benchmarks/estimators/reader_point.py:median")(EventFrames.cat([delayed, delayed]))
 
 
 def test_threshold_error_script_gives_the_corrector_a_scaled_threshold(text_case, monkeypatch):

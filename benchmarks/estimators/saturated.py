@@ -14,13 +14,12 @@ The ``constant`` row is the same corrector on the unclipped frames, in the same 
 
 from __future__ import annotations
 
-import functools
 import os
 
 import torch
 from torch import Tensor
 
-from evlatcorr.correction import EventLatencyCorrector
+from evlatcorr.benchmark.accuracy import corrector_estimator
 from evlatcorr.frames import EventFrames
 
 DEFAULT_SHARE = 0.03
@@ -38,13 +37,8 @@ def saturate(blurry: Tensor, share: float) -> Tensor:
     return (blurry / level.view(-1, 1, 1, 1).to(blurry)).clamp(0, 1)
 
 
-@functools.lru_cache(maxsize=8)
-def _corrector(threshold: float) -> EventLatencyCorrector:
-    return EventLatencyCorrector(threshold=threshold)
-
-
 def estimate(frames: EventFrames) -> Tensor:
     """The default corrector's latency map :math:`(B, 1, H, W)` µs on the frames saturated (the case's threshold)."""
     share = float(os.environ.get("EVLATCORR_SATURATED", DEFAULT_SHARE))
     clipped = frames.replace(blurry=saturate(frames.blurry, share))
-    return _corrector(float(frames.meta["threshold"]))(clipped).latency
+    return corrector_estimator("constant", float(frames.meta["threshold"]))(clipped).latency

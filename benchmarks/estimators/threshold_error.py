@@ -13,23 +13,16 @@ not how much it blurs EDI. With the corrector's own estimate of θ
 
 from __future__ import annotations
 
-import functools
-
 from torch import Tensor
 
-from evlatcorr.correction import EventLatencyCorrector
+from evlatcorr.benchmark.accuracy import corrector_estimator
 from evlatcorr.frames import EventFrames
 
 LOW, HIGH, FAR_LOW, FAR_HIGH = 0.7, 1.4, 0.4, 2.5
 
 
-@functools.lru_cache(maxsize=16)
-def _corrector(threshold: float) -> EventLatencyCorrector:
-    return EventLatencyCorrector(threshold=threshold)
-
-
 def _with_threshold_times(frames: EventFrames, scale: float) -> Tensor:
-    return _corrector(scale * float(frames.meta["threshold"]))(frames).latency
+    return corrector_estimator("constant", scale * float(frames.meta["threshold"]))(frames).latency
 
 
 def low(frames: EventFrames) -> Tensor:
