@@ -219,6 +219,30 @@ def test_the_estimate_on_ideal_events_is_reported(tiny):
     assert "Ideal events (no latency)" in to_markdown([dict(row, estimator="e")])
 
 
+def test_what_correcting_ideal_events_costs_is_reported(tiny):
+    case, simulated, ref = tiny
+    ideal = simulated[1]
+    # no shift costs nothing; a shift costs what EDI of the ideal events at that shift loses
+    row = evaluate_case(case, lambda f: f.meta["true_latency"], simulated=simulated, reference=ref)
+    assert row["ideal_psnr_change_db"] == 0.0
+    late = evaluate_case(case, lambda f: torch.full((1, 1, *TINY), 3000.0), simulated=simulated, reference=ref)
+    assert late["ideal_psnr_change_db"] == pytest.approx(edi_psnr(ideal, case.threshold, 3000.0) - ref["psnr_ideal"])
+    assert late["ideal_psnr_change_db"] < -0.5  # a 3 ms shift of a moving scene's events blurs it
+    rows = [dict(row, estimator="e", ideal_psnr_change_db=v) for v in (0.5, -1.0, -3.0, 0.0)]
+    group = next(g for g in summarize(rows)["groups"] if g["latency_model"] == "all")
+    assert group["mean_ideal_psnr_change_db"] == pytest.approx(-0.875)
+    assert (group["worst_ideal_psnr_change_db"], group["ideal_losing_half_db"]) == (-3.0, 2)
+    assert "-0.88 / -3.00 / -3.00 | 2 |" in to_markdown(rows)
+    # an estimator that fails on the ideal events leaves both columns NaN, not the case
+    def fails_on_ideal(frames):
+        if frames.meta["true_latency"].abs().max() == 0:
+            raise ValueError("no")
+        return frames.meta["true_latency"]
+    failed = evaluate_case(case, fails_on_ideal, simulated=simulated, reference=ref)
+    assert math.isnan(failed["ideal_estimate_us"]) and math.isnan(failed["ideal_psnr_change_db"])
+    assert not failed["error"]
+
+
 def test_an_estimator_that_raises_fails_its_case_not_the_suite(tiny, tmp_path):
     case, simulated, ref = tiny
 

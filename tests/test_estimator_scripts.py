@@ -140,3 +140,22 @@ def test_threshold_error_script_gives_the_corrector_a_scaled_threshold(text_case
         if name in ("low", "high"):  # a third off: the text case's latency barely moves
             assert abs(float(latency.mean()) - case.latency_us) < 1500.0
         assert given[-1] == pytest.approx(scale * case.threshold)
+
+
+def test_training_script_reads_ideal_frames_of_evenly_spread_constant_cases(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend("benchmarks")  # the script imports its _setup
+    extract_ideal = load_estimator("benchmarks/train_curve_reader.py:extract_ideal")
+    cache = tmp_path / "ideal.pt"
+    data = extract_ideal(2, cache)
+    # the first and the middle constant-latency training case, their ideal events against a target of 0
+    from evlatcorr.benchmark.accuracy import TRAIN_SPLITS
+    constant = [c.name for s in TRAIN_SPLITS for c in make_cases(s) if c.latency_model == "constant"]
+    assert data["names"] == [f"{constant[0]}-ideal", f"{constant[len(constant) // 2]}-ideal"]
+    assert data["targets"].tolist() == [0.0, 0.0]
+    assert data["curves"].shape[:1] == (2,) and data["valid"].shape == (2, data["curves"].shape[-1])
+    assert data["valid"].any(1).all()
+    # read back from the cache as written
+    again = extract_ideal(2, cache)
+    assert torch.equal(again["curves"], data["curves"]) and again["names"] == data["names"]
+    with pytest.raises(SystemExit, match="--ideal-frames"):
+        extract_ideal(0, None)

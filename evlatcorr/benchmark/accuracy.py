@@ -21,7 +21,8 @@ latency map :math:`(B, 1, H, W)` µs out): the latency error, and EDI PSNR again
 mid-exposure frame with ideal events, with the delayed events uncorrected and corrected by the
 estimated map; the recovery ``(corr − uncorr) / (ideal − uncorr)``; for the photoreceptor model
 (``"intensity"``) also the best constant shift's PSNR (an oracle) and the share of its gain the
-estimator achieves.
+estimator achieves; and the estimator on the case's ideal events, where 0 is right, with what correcting them by
+its answer does to their EDI PSNR.
 
 Example:
     >>> cases = make_cases("test")
@@ -465,7 +466,8 @@ def evaluate_case(case: Case, estimate: Estimator, *,
         ``recovery`` (NaN when there is no gap), ``no_gap``, ``best_shift_share`` (the share of the best
         constant shift's PSNR gain; NaN for ``"intensity_delay"``), ``latency_spread_us`` (the learned reader's,
         when ``estimate`` returns the corrector's frames; else NaN), ``ideal_estimate_us`` (the estimator's
-        latency on the case's ideal events, where 0 is right), ``time_s`` (the estimate's wall time) and
+        latency on the case's ideal events, where 0 is right), ``ideal_psnr_change_db`` (their EDI PSNR corrected by
+        it, minus as they are), ``time_s`` (the estimate's wall time) and
         ``warnings`` (messages raised by it) and ``error`` (empty; when the estimator raised, its exception as
         ``"Type: message"``, with NaN estimates and scores: one case's failure does not stop a suite).
     """
@@ -483,23 +485,27 @@ def evaluate_case(case: Case, estimate: Estimator, *,
         elapsed = time.perf_counter() - t0
     scores = dict.fromkeys(_ESTIMATE_COLUMNS, math.nan) if error else _estimate_columns(case, delayed, ref, raw)
     return {
-        **_case_columns(case), **ref, **scores, "ideal_estimate_us": _ideal_estimate(case, estimate, simulated[1]),
+        **_case_columns(case), **ref, **scores, **_ideal_columns(case, estimate, simulated[1], ref["psnr_ideal"]),
         "no_gap": not ref["psnr_ideal"] > ref["psnr_uncorrected"] + NO_GAP_DB, "time_s": elapsed,
         "warnings": sorted({str(w.message) for w in caught}), "error": error,
     }
 
 
-def _ideal_estimate(case: Case, estimate: Estimator, ideal: EventFrames) -> float:
-    """The estimator's mean latency on the case's ideal events (no latency: 0 is right), µs; NaN if it raises."""
+def _ideal_columns(case: Case, estimate: Estimator, ideal: EventFrames, psnr_ideal: float) -> dict[str, float]:
+    """The estimator on the case's ideal events (no latency: 0 is right): ``ideal_estimate_us``, its mean latency,
+    and ``ideal_psnr_change_db``, the EDI PSNR of the ideal events corrected by it minus that of the ideal events
+    as they are (what correcting costs, or gains, where there is no latency to correct); NaN if it raises."""
     # the ideal events' own latency is 0 (their meta carries the case's, for the delayed events)
     true = torch.zeros_like(ideal.meta["true_latency"])
     frames = ideal.replace(meta={**ideal.meta, "threshold": case.threshold, "true_latency": true})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the main estimate's warnings are the case's
         try:
-            return float(_as_map(estimate(frames), ideal).mean())
+            latency = _as_map(estimate(frames), ideal)
         except Exception:  # noqa: BLE001 - reported as NaN; the main estimate's failure is the case's error
-            return math.nan
+            return {"ideal_estimate_us": math.nan, "ideal_psnr_change_db": math.nan}
+        change = edi_psnr(ideal, case.threshold, latency.float()) - psnr_ideal
+    return {"ideal_estimate_us": float(latency.mean()), "ideal_psnr_change_db": change}
 
 
 _ESTIMATE_COLUMNS = ("est_latency_us", "est_latency_min_us", "est_latency_max_us", "latency_error_us",
@@ -641,6 +647,7 @@ def _group_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     oracle = [abs(r["best_shift_us"] - r["true_latency_us"]) for r in const]
     recovery = _finite(r["recovery"] for r in gap)
     ideal = _finite(r.get("ideal_estimate_us", math.nan) for r in rows)
+    ideal_change = sorted(_finite(r.get("ideal_psnr_change_db", math.nan) for r in rows))
     return {
         "cases": len(rows),
         "median_abs_error_us": _median(errors), "worst_abs_error_us": max(errors, default=math.nan),
@@ -655,6 +662,10 @@ def _group_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "median_ideal_estimate_us": _median(abs(v) for v in ideal),
         "worst_ideal_estimate_us": max((abs(v) for v in ideal), default=math.nan),
         "ideal_within_150us": sum(abs(v) <= 150.0 for v in ideal), "ideal_cases": len(ideal),
+        "mean_ideal_psnr_change_db": statistics.fmean(ideal_change) if ideal_change else math.nan,
+        "p10_ideal_psnr_change_db": ideal_change[len(ideal_change) // 10] if ideal_change else math.nan,
+        "worst_ideal_psnr_change_db": ideal_change[0] if ideal_change else math.nan,
+        "ideal_losing_half_db": sum(v < -0.5 for v in ideal_change),
     }
 
 
@@ -668,7 +679,10 @@ def summarize(results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "worst_recovery" (constant and intensity_delay cases with a gap), "no_gap",
         "median_best_shift_share" (intensity), "median_time_s", "failed" (cases whose estimator raised; left out
         of the other figures), "median_ideal_estimate_us", "worst_ideal_estimate_us", "ideal_within_150us",
-        "ideal_cases" (the estimates on ideal events, whose right answer is 0)}, ...], "spatial_vs_constant": [...],
+        "ideal_cases" (the estimates on ideal events, whose right answer is 0), "mean_ideal_psnr_change_db",
+        "p10_ideal_psnr_change_db", "worst_ideal_psnr_change_db", "ideal_losing_half_db" (the EDI PSNR change of
+        the ideal events corrected by that estimate, and the cases where it loses more than 0.5 dB)}, ...],
+        "spatial_vs_constant": [...],
         "spread_bands": [...]}``;
         the second lists, for map cases evaluated by both ``"constant"`` and ``"spatial"``, their
         map errors and whether spatial's is lower; the third, the constant-latency cases in three bands of the
@@ -763,12 +777,17 @@ def to_markdown(results: Sequence[Mapping[str, Any]], summary: Mapping[str, Any]
     ideal = [g for g in summary["groups"] if g["latency_model"] == "all" and g.get("ideal_cases")]
     if ideal:
         lines += ["", "## Ideal events (no latency): the estimate should be 0", "",
-                  "| estimator | split | cases | median abs estimate µs | worst µs | within 150 µs |",
-                  "|" + " --- |" * 6]
+                  "EDI PSNR change: the ideal events corrected by the estimate against the ideal events as they are "
+                  "(what correcting costs where there is no latency, e.g. in daylight).", "",
+                  "| estimator | split | cases | median abs estimate µs | worst µs | within 150 µs | "
+                  "EDI PSNR change mean / p10 / worst dB | losing > 0.5 dB |",
+                  "|" + " --- |" * 8]
         for g in ideal:
             lines.append(f"| {g['estimator']} | {g['split']} | {g['ideal_cases']} | "
                          f"{_num(g['median_ideal_estimate_us'])} | {_num(g['worst_ideal_estimate_us'])} | "
-                         f"{g['ideal_within_150us']} |")
+                         f"{g['ideal_within_150us']} | {_num(g['mean_ideal_psnr_change_db'], 2)} / "
+                         f"{_num(g['p10_ideal_psnr_change_db'], 2)} / {_num(g['worst_ideal_psnr_change_db'], 2)} | "
+                         f"{g['ideal_losing_half_db']} |")
     if summary.get("spread_bands"):
         lines += ["", "## The learned reader's spread against the error (constant latency)", "",
                   "`meta[\"latency_spread_us\"]`: the standard deviation of the reader's probability over the "
