@@ -67,6 +67,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--ghost-confidence", type=float, default=None, metavar="C",
                    help="built-in correctors: frames whose score confidence is at most C take the ghost cue's "
                         "latency (default: theirs, 0: only frames with no minimum; see evlatcorr.ghost)")
+    p.add_argument("--before-us", type=float, default=0.0, metavar="US",
+                   help="each frame also keeps this long of events before its exposure, as a recording's stream does "
+                        "(default 0: from the exposure start)")
     p.add_argument("--cases", nargs="+", default=None, metavar="NAME", help="case names or glob patterns")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     p.add_argument("--out", type=Path, default=Path("outputs/accuracy"))
@@ -110,7 +113,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{len(cases)} cases ({', '.join(splits)}), {args.size[0]}x{args.size[1]}, estimators: "
           f"{', '.join(estimators)}; torch threads {torch.get_num_threads()}", flush=True)
     t0 = time.perf_counter()
-    results = run_suite(cases, estimators, progress=lambda line: print(line, flush=True))
+    results = run_suite(cases, estimators, progress=lambda line: print(line, flush=True), before_us=args.before_us)
     total = time.perf_counter() - t0
     summary = summarize(results)
     sim = sum(r["sim_time_s"] for r in results if r["estimator"] == next(iter(estimators)))
@@ -118,11 +121,12 @@ def main(argv: list[str] | None = None) -> None:
     est = {name: sum(r["time_s"] for r in results if r["estimator"] == name) for name in estimators}
     warned = sum(bool(r["warnings"]) for r in results)
     messages = sorted({w for r in results for w in r["warnings"]})
+    before = f" and from {args.before_us:.0f} us before its start" if args.before_us else ""
     header = "\n".join([
         "# Latency estimator accuracy (simulated suite)", "",
         f"`{shlex.join(['python', 'benchmarks/accuracy.py', *(sys.argv[1:] if argv is None else argv)])}`", "",
         f"- {len(cases)} cases ({', '.join(splits)}) at {args.size[1]}x{args.size[0]} px, one 20 ms exposure each, "
-        "events up to 15 ms after its end; EDI with 500 bins and the true threshold.",
+        f"events up to 15 ms after its end{before}; EDI with 500 bins and the true threshold.",
         f"- estimators: {', '.join(estimators)}; threshold given to the built-in correctors: "
         f"{'auto' if args.auto_threshold else 'the true one'}; search range: "
         f"{'default (0 to the exposure time)' if args.search_range is None else args.search_range} µs.",

@@ -14,8 +14,9 @@ the photoreceptor frames' best-shift scans), then about a minute of training.
     python benchmarks/train_curve_reader.py --cache curves.pt --ideal-frames 300 --out /tmp/ideal300.safetensors
 
 ``--ideal-frames N`` also trains on the ideal events (no latency, target 0) of N of the constant-latency training
-cases, evenly spread over them: measured and not shipped (``docs/estimator.md``: the reader then answers 0 wherever
-it is unsure, delayed frames included).
+cases, evenly spread over them; ``--before-us B`` keeps B µs of events before each exposure and reads the curves from
+−B (read them with ``benchmarks/estimators/reader.py:estimate_before``). Both measured and not shipped
+(``docs/estimator.md``).
 
 Then ``python benchmarks/accuracy.py --split dev --score learned`` measures it.
 """
@@ -37,48 +38,62 @@ from evlatcorr.search import candidate_curves
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def extract(cache: Path | None) -> dict:
-    """Every training case's candidate curves and true latency (read from ``cache`` when it exists)."""
-    if cache is not None and cache.exists():
-        return torch.load(cache)
-    cases = [c for split in TRAIN_SPLITS for c in make_cases(split)]
-    curves, valid, targets = [], [], []
-    latencies = None
-    for case in tqdm(cases, desc="training cases", unit="case"):
-        delayed, _, _ = simulate_case(case)
-        latencies, x, v = candidate_curves(delayed.blurry, delayed.events, float(delayed.exposure_start[0]),
-                                           float(delayed.exposure_end[0]), case.threshold)
-        curves.append(x)
-        valid.append(v)
-        targets.append(training_target(case, delayed))
-    data = {"latencies": latencies, "curves": torch.stack(curves), "valid": torch.stack(valid),
-            "targets": torch.tensor(targets, dtype=torch.float64), "names": [c.name for c in cases]}
-    if cache is not None:
-        torch.save(data, cache)
+def _cached(cache: Path | None, before_us: float) -> dict | None:
+    """The curves saved at ``cache``, if any; refused if they were read with other candidates."""
+    if cache is None or not cache.exists():
+        return None
+    data = torch.load(cache)
+    if data.get("before_us", 0.0) != before_us:
+        raise SystemExit(f"{cache} holds curves read from {data.get('before_us', 0.0)} us before the exposure, not "
+                         f"{before_us}: pass another --cache")
     return data
 
 
-def extract_ideal(num: int, cache: Path | None) -> dict:
-    """The candidate curves of the ideal events of ``num`` constant-latency training cases, evenly spread over
-    them, with a target of 0 (read from ``cache`` when it exists)."""
-    if cache is not None and cache.exists():
-        return torch.load(cache)
-    constant = [c for split in TRAIN_SPLITS for c in make_cases(split) if c.latency_model == "constant"]
-    if not 0 < num <= len(constant):
-        raise SystemExit(f"--ideal-frames must be in 1..{len(constant)}, got {num}")
-    picked = [constant[k * len(constant) // num] for k in range(num)]
-    curves, valid = [], []
+def _read_curves(cases: list, which: str, before_us: float, target) -> dict:
+    """The candidate curves of each case's ``which`` (``"delayed"`` or ``"ideal"``) frame and its ``target(case,
+    frame)``."""
+    curves, valid, targets = [], [], []
     latencies = None
-    for case in tqdm(picked, desc="ideal events", unit="case"):
-        _, ideal, _ = simulate_case(case)
-        latencies, x, v = candidate_curves(ideal.blurry, ideal.events, float(ideal.exposure_start[0]),
-                                           float(ideal.exposure_end[0]), case.threshold)
+    for case in tqdm(cases, desc=f"{which} frames", unit="case"):
+        delayed, ideal, _ = simulate_case(case, before_us=before_us)
+        frame = delayed if which == "delayed" else ideal
+        latencies, x, v = candidate_curves(frame.blurry, frame.events, float(frame.exposure_start[0]),
+                                           float(frame.exposure_end[0]), case.threshold, before_us)
         curves.append(x)
         valid.append(v)
+        targets.append(target(case, frame))
     data = {"latencies": latencies, "curves": torch.stack(curves), "valid": torch.stack(valid),
-            "targets": torch.zeros(num, dtype=torch.float64), "names": [f"{c.name}-ideal" for c in picked]}
-    if cache is not None:
-        torch.save(data, cache)
+            "targets": torch.tensor(targets, dtype=torch.float64),
+            "names": [c.name if which == "delayed" else f"{c.name}-ideal" for c in cases]}
+    if before_us:
+        data["before_us"] = before_us
+    return data
+
+
+def extract(cache: Path | None, before_us: float = 0.0) -> dict:
+    """Every training case's candidate curves and true latency (read from ``cache`` when it exists); with
+    ``before_us``, the frames keep that long of events before the exposure and the candidates reach below 0."""
+    data = _cached(cache, before_us)
+    if data is None:
+        cases = [c for split in TRAIN_SPLITS for c in make_cases(split)]
+        data = _read_curves(cases, "delayed", before_us, training_target)
+        if cache is not None:
+            torch.save(data, cache)
+    return data
+
+
+def extract_ideal(num: int, cache: Path | None, before_us: float = 0.0) -> dict:
+    """The candidate curves of the ideal events of ``num`` constant-latency training cases, evenly spread over
+    them, with a target of 0 (read from ``cache`` when it exists)."""
+    data = _cached(cache, before_us)
+    if data is None:
+        constant = [c for split in TRAIN_SPLITS for c in make_cases(split) if c.latency_model == "constant"]
+        if not 0 < num <= len(constant):
+            raise SystemExit(f"--ideal-frames must be in 1..{len(constant)}, got {num}")
+        picked = [constant[k * len(constant) // num] for k in range(num)]
+        data = _read_curves(picked, "ideal", before_us, lambda case, frame: 0.0)
+        if cache is not None:
+            torch.save(data, cache)
     return data
 
 
@@ -91,16 +106,19 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--ideal-frames", type=int, default=0,
                         help="also train on the ideal events (target 0) of this many constant-latency training cases")
+    parser.add_argument("--before-us", type=float, default=0.0,
+                        help="frames keep this long of events before the exposure, and the curves reach down to "
+                             "minus it (measured, not shipped: benchmarks/estimators/reader.py:estimate_before)")
     parser.add_argument("--without-overshoot", action="store_true",
                         help="train on the other inputs only (what the overshoot adds; measure with "
                              "benchmarks/estimators/reader.py)")
     args = parser.parse_args()
     t0 = time.perf_counter()
-    data = extract(args.cache)
+    data = extract(args.cache, args.before_us)
     if args.ideal_frames:
         name = f"{args.cache.stem}-ideal{args.ideal_frames}.pt" if args.cache is not None else None
         ideal_cache = args.cache.with_name(name) if name is not None else None
-        ideal = extract_ideal(args.ideal_frames, ideal_cache)
+        ideal = extract_ideal(args.ideal_frames, ideal_cache, args.before_us)
         data = {key: torch.cat([data[key], ideal[key]]) for key in ("curves", "valid", "targets")} | {
             "latencies": data["latencies"]}
     print(f"{len(data['targets'])} training frames in {time.perf_counter() - t0:.0f} s", flush=True)
@@ -114,6 +132,8 @@ def main() -> None:
                   "command": "python benchmarks/train_curve_reader.py"}
     if args.ideal_frames:
         provenance["ideal_frames"] = args.ideal_frames
+    if args.before_us:
+        provenance["before_us"] = args.before_us
     args.out.parent.mkdir(parents=True, exist_ok=True)
     save_curve_reader(ensemble, args.out, provenance)
     print(f"wrote {args.out} ({time.perf_counter() - t0:.0f} s)")

@@ -119,7 +119,7 @@ def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid
 
 
 def candidate_curves(blurry: Tensor, events: Events, exposure_start: float, exposure_end: float,
-                     threshold: float) -> tuple[Tensor, Tensor, Tensor]:
+                     threshold: float, before_us: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
     """What ``score="learned"`` reads for one frame at the default settings: the coarse candidates
     :math:`(K,)` µs, their :func:`~evlatcorr.curve_reader.curve_features` :math:`(F, K)` and which are valid
     :math:`(K,)` (what :func:`evlatcorr.curve_reader.train_curve_reader` is trained on).
@@ -129,15 +129,22 @@ def candidate_curves(blurry: Tensor, events: Events, exposure_start: float, expo
         events: the frame's events (``batch_size == 1``), reaching past ``exposure_end``.
         exposure_start, exposure_end: µs.
         threshold: contrast threshold θ.
+        before_us: also candidates below 0, down to ``−before_us`` and spaced as the others (windows that start
+            before the exposure: the events must start that early); for measuring readers of such curves
+            (``benchmarks/train_curve_reader.py --before-us``), not what the search reads.
     """
     check_image(blurry, "blurry")
     if blurry.shape[0] != 1 or events.batch_size != 1:
         raise ValueError(f"candidate_curves takes one frame, got {blurry.shape[0]} images and {events.batch_size} "
                          "event samples")
-    config = SearchConfig(score="learned")
+    exposure = exposure_end - exposure_start
+    if not (math.isfinite(before_us) and 0.0 <= before_us <= exposure):
+        raise ValueError(f"before_us must be between 0 and the exposure time {exposure} us, got {before_us}")
+    # the default's 100 spacings over the exposure, and as many more below 0 at that spacing
+    config = SearchConfig(score="learned", num_candidates=round(100 * (exposure + before_us) / exposure))
     grey = kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
     last = float(events.t.max()) if len(events) else -math.inf
-    span = _Window(exposure_start, exposure_end, 0.0, exposure_end - exposure_start, last - exposure_end)
+    span = _Window(exposure_start, exposure_end, -before_us, exposure, last - exposure_end)
     reader = _continuous_reader(grey, events, span, float(threshold), config, None)
     coarse_scores = torch.stack(_score_candidates(reader, grey, tuple(SPARSITY_SCORES), config, None,
                                                   [reader.coarse] * len(SPARSITY_SCORES)))

@@ -219,6 +219,25 @@ def test_the_estimate_on_ideal_events_is_reported(tiny):
     assert "Ideal events (no latency)" in to_markdown([dict(row, estimator="e")])
 
 
+def test_frames_can_keep_the_events_from_before_the_exposure():
+    case = tiny_case()
+    plain, plain_ideal, _ = simulate_case(case)
+    delayed, ideal, _ = simulate_case(case, before_us=1000.0)
+    start = float(plain.exposure_start[0])
+    # the same simulation: the same frames, and the same events from the exposure start on
+    assert torch.equal(delayed.blurry, plain.blurry) and torch.equal(delayed.exposure_start, plain.exposure_start)
+    for early, late in ((delayed, plain), (ideal, plain_ideal)):
+        assert start - 1000.0 <= float(early.events.t.min()) < start
+        assert torch.equal(early.events.t[early.events.t >= start], late.events.t)
+    with pytest.raises(ValueError, match="before_us"):
+        simulate_case(case, before_us=case.after_us + 1.0)
+    # the suite hands the estimators such frames
+    seen = []
+    run_suite([case], {"e": lambda c: lambda f: seen.append(float(f.events.t.min())) or f.meta["true_latency"]},
+              progress=None, before_us=1000.0)
+    assert seen and all(start - 1000.0 <= t < start for t in seen)
+
+
 def test_what_correcting_ideal_events_costs_is_reported(tiny):
     case, simulated, ref = tiny
     ideal = simulated[1]

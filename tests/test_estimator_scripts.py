@@ -159,3 +159,17 @@ def test_training_script_reads_ideal_frames_of_evenly_spread_constant_cases(tmp_
     assert torch.equal(again["curves"], data["curves"]) and again["names"] == data["names"]
     with pytest.raises(SystemExit, match="--ideal-frames"):
         extract_ideal(0, None)
+
+
+def test_reader_estimate_from_curves_below_zero_is_never_negative():
+    estimate_before = load_estimator("benchmarks/estimators/reader.py:estimate_before")
+    case = tiny_case()
+    early = simulate_case(case, before_us=2000.0)[0]
+    early.meta["threshold"] = case.threshold
+    latency = estimate_before(early)
+    assert latency.shape == (1, 1, *early.blurry.shape[-2:]) and float(latency.min()) >= 0.0
+    # frames without events before the exposure cannot be read so
+    plain = simulate_case(case)[0]
+    plain.meta["threshold"] = case.threshold
+    with pytest.raises(ValueError, match="--before-us"):
+        estimate_before(plain)

@@ -77,6 +77,25 @@ def test_candidate_curves_match_what_the_search_reads():
         candidate_curves(delayed.blurry.expand(2, -1, -1, -1), delayed.events, 0.0, 1.0, 0.2)
 
 
+def test_candidate_curves_reach_below_zero_where_the_events_start_earlier():
+    case = make_cases("dev")[10]
+    plain, _, _ = simulate_case(case)
+    early, _, _ = simulate_case(case, before_us=2000.0)
+    start, end = float(plain.exposure_start[0]), float(plain.exposure_end[0])
+    assert float(early.events.t.min()) < start - 1500.0 <= start <= float(plain.events.t.min())
+    latencies, curves, valid = candidate_curves(plain.blurry, plain.events, start, end, case.threshold)
+    below, curves_below, valid_below = candidate_curves(early.blurry, early.events, start, end, case.threshold,
+                                                        before_us=2000.0)
+    # ten more candidates at the same spacing, down to -2 ms, each window holding events
+    assert len(below) == len(latencies) + 10 and below[0] == -2000.0
+    torch.testing.assert_close(below[10:], latencies)
+    assert curves_below.shape == (NUM_FEATURES, len(below)) and bool(valid_below[:11].all())
+    assert torch.equal(valid_below[10:], valid)
+    for bad in (-1.0, case.exposure_us + 1.0, math.nan):
+        with pytest.raises(ValueError, match="before_us"):
+            candidate_curves(early.blurry, early.events, start, end, case.threshold, before_us=bad)
+
+
 def test_learned_score_reads_the_binned_table_too():
     case = make_cases("dev")[28]
     delayed, _, _ = simulate_case(case)

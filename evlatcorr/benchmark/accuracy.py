@@ -324,7 +324,8 @@ def _object_specs(case: Case) -> list[ObjectSpec]:
     return specs
 
 
-def simulate_case(case: Case, num_frames: int = 1) -> tuple[EventFrames, EventFrames, SimulatedSequence]:
+def simulate_case(case: Case, num_frames: int = 1, before_us: float = 0.0
+                  ) -> tuple[EventFrames, EventFrames, SimulatedSequence]:
     """Simulate a case.
 
     Args:
@@ -332,16 +333,20 @@ def simulate_case(case: Case, num_frames: int = 1) -> tuple[EventFrames, EventFr
         num_frames: frames of the case's scene and motion, back to back (each exposure starts where the previous
             one ends): a sequence of one recording, for :mod:`evlatcorr.temporal`. Its first frame is not the
             one-frame case's: the simulator draws noise and random motion over the whole sequence.
+        before_us: the frames also keep the events of this long before each exposure (as a recording's stream
+            has them; the simulation is the same), at most ``case.after_us``.
 
     Returns:
         ``(delayed, ideal, seq)``: :class:`EventFrames` of ``num_frames`` samples of the delayed and the ideal
-        events of ``[exposure_start, exposure_end + case.after_us)`` (``sharp`` and
+        events of ``[exposure_start − before_us, exposure_end + case.after_us)`` (``sharp`` and
         ``meta["true_latency"]`` :math:`(F, 1, H, W)` filled) and the :class:`SimulatedSequence`.
     """
     if not isinstance(case, Case):
         raise ValueError(f"case must be a Case, got {type(case).__name__}")
     if isinstance(num_frames, bool) or not isinstance(num_frames, int) or num_frames < 1:
         raise ValueError(f"num_frames must be a whole number >= 1, got {num_frames!r}")
+    if not (math.isfinite(before_us) and 0.0 <= before_us <= case.after_us):
+        raise ValueError(f"before_us must be between 0 and the simulated margin {case.after_us} us, got {before_us}")
     kwargs: dict[str, Any] = dict(
         num_frames=num_frames, height=case.size[0], width=case.size[1], exposure_us=case.exposure_us,
         frame_interval_us=case.exposure_us, latency=case.latency_model, latency_us=case.latency_us,
@@ -356,7 +361,8 @@ def simulate_case(case: Case, num_frames: int = 1) -> tuple[EventFrames, EventFr
     else:
         kwargs.update(motion=case.motion, max_speed_px_per_ms=case.speed_px_per_ms)
     seq = simulate(_scene_image(case.scene, case.scene_seed, case.dark_background, case.size), **kwargs)
-    return seq.frames("delayed", after_us=case.after_us), seq.frames("ideal", after_us=case.after_us), seq
+    return (seq.frames("delayed", before_us=before_us, after_us=case.after_us),
+            seq.frames("ideal", before_us=before_us, after_us=case.after_us), seq)
 
 
 # --- evaluation ------------------------------------------------------------------------------------------------------
@@ -594,13 +600,14 @@ def load_estimator(spec: str) -> Estimator:
 
 
 def run_suite(cases: Sequence[Case], estimators: Mapping[str, Callable[[Case], Estimator]],
-              progress: Callable[[str], None] | None = print) -> list[dict[str, Any]]:
+              progress: Callable[[str], None] | None = print, before_us: float = 0.0) -> list[dict[str, Any]]:
     """Simulate each case once and evaluate every estimator on it.
 
     Args:
         cases: the cases.
         estimators: name → factory ``case -> estimator`` (e.g. to pass the case's threshold).
         progress: called with one line per case and estimator; None for silence.
+        before_us: the frames also keep this long of events before the exposure (:func:`simulate_case`).
 
     Returns:
         one :func:`evaluate_case` dict per case and estimator, with ``estimator``, ``sim_time_s``
@@ -609,7 +616,7 @@ def run_suite(cases: Sequence[Case], estimators: Mapping[str, Callable[[Case], E
     results = []
     for k, case in enumerate(cases):
         t0 = time.perf_counter()
-        simulated = simulate_case(case)
+        simulated = simulate_case(case, before_us=before_us)
         t1 = time.perf_counter()
         reference = case_reference(case, simulated)
         t2 = time.perf_counter()
