@@ -140,8 +140,9 @@ def candidate_curves(blurry: Tensor, events: Events, exposure_start: float, expo
     exposure = exposure_end - exposure_start
     if not (math.isfinite(before_us) and 0.0 <= before_us <= exposure):
         raise ValueError(f"before_us must be between 0 and the exposure time {exposure} us, got {before_us}")
-    # the default's 100 spacings over the exposure, and as many more below 0 at that spacing
-    config = SearchConfig(score="learned", num_candidates=round(100 * (exposure + before_us) / exposure))
+    # the default's spacing over the exposure, and as many more candidates below 0 at that spacing
+    spacings = SearchConfig.num_candidates
+    config = SearchConfig(score="learned", num_candidates=round(spacings * (exposure + before_us) / exposure))
     grey = kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
     last = float(events.t.max()) if len(events) else -math.inf
     span = _Window(exposure_start, exposure_end, -before_us, exposure, last - exposure_end)
