@@ -23,7 +23,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from evlatcorr.restore import INTERPOLATION_MODELS, MODELS
+from evlatcorr.restore import INTERPOLATION_MODELS, MODELS, search_reach_us
 from evlatcorr.temporal import DEFAULT_FUSED_FRAMES, frame_evidence
 
 __all__ = ["main"]
@@ -115,7 +115,8 @@ def _common(p: argparse.ArgumentParser) -> None:
                         "consecutive frames' EDI reconstructions agree best (per frame when it has one frame)")
     p.add_argument("--num-bins", type=int, default=500, help="EDI sub-intervals per exposure (default: 500)")
     p.add_argument("--search-us", type=float, nargs=2, metavar=("LOW", "HIGH"),
-                   help="latency search range in us (default: 0 to the exposure time)")
+                   help="the range the latency lies in, us: bounds the estimate, while the learned reader still "
+                        "reads 0 to the exposure time as trained (default: 0 to the exposure time)")
     p.add_argument("--exposure-us", type=float, help="exposure for files that only stamp frame times")
 
 
@@ -267,7 +268,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
     device = _device(args.device)
     _threshold(args.threshold)  # a bad value fails before any reading
     high = args.search_us[1] if args.search_us else None
-    rec = _open(args, after_us=high)
+    rec = _open(args)
+    if high is not None:  # the events the search reads (by default: the exposure time's)
+        rec.after_us = search_reach_us(rec, high)
     theta = _recording_threshold(args, rec, device)
     corrector = _corrector(args, args.mode, args.curve, theta)
     rows, latencies, starts, ends, images = [], [], [], [], []
@@ -310,7 +313,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     if not rows:
         raise ValueError(f"{args.input}: no frames")
     if args.mode == "constant" and args.fuse_frames > 0:
-        latencies = _fused(rows, latencies, evidence, args.fuse_frames)
+        latencies = _fused(rows, latencies, evidence, args.fuse_frames, args.search_us)
     corrected = _corrected_stream(rec, np.array(starts), latencies)
     with contextlib.ExitStack() as stack:  # both files appear only when both are complete
         report_tmp = stack.enter_context(atomic_path(report))
@@ -351,14 +354,16 @@ def _frames_per_call(device: torch.device, mode: str) -> int:
 
 
 def _fused(rows: list[dict], latencies: list[torch.Tensor], evidence: list[tuple[Any, Any]],
-           frames: int) -> list[torch.Tensor]:
-    """Each frame's constant latency fused with its neighbours' evidence (:func:`evlatcorr.temporal.fuse_latencies`);
-    a frame without events keeps the fused latency before it. The rows get ``frame_latency_us`` (the frame's own
-    estimate) and the fused ``latency_us``."""
+           frames: int, search_range: list[float] | None = None) -> list[torch.Tensor]:
+    """Each frame's constant latency fused with its neighbours' evidence (:func:`evlatcorr.temporal.fuse_latencies`),
+    kept inside ``search_range`` where one is given; a frame without events keeps the fused latency before it. The
+    rows get ``frame_latency_us`` (the frame's own estimate) and the fused ``latency_us``."""
     from evlatcorr.temporal import fuse_latencies
 
     own = torch.tensor([float(m.mean()) for m in latencies], dtype=torch.float64)
     fused = fuse_latencies(own, [c for c, _ in evidence], [p for _, p in evidence], frames, frames)
+    if search_range:
+        fused = fused.clamp(*search_range)
     for k, row in enumerate(rows):
         if row["skipped"]:
             fused[k] = fused[k - 1] if k else 0.0
@@ -463,7 +468,9 @@ def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _
 
     model = build_model(args.model, task, args.ckpt, 0.2, args.num_bins).to(device)  # loads the weights first
     high = args.search_us[1] if args.search_us else None
-    rec = _open(args, after_us=high)
+    rec = _open(args)
+    if high is not None:  # the events the search reads (by default: the exposure time's)
+        rec.after_us = search_reach_us(rec, high)
     theta = _recording_threshold(args, rec, device) if args.model == "edi" or args.correct != "none" else 0.2
     if args.model == "edi":
         model = build_model(args.model, task, None, theta, args.num_bins)

@@ -46,7 +46,10 @@ class SearchConfig:
 
     Attributes:
         num_bins: sub-intervals ``n`` of the exposure (paper: 500): the refinement step is ``T / n``.
-        search_range: ``(low, high)`` µs, finite, ``high > low``; None: 0 to each frame's exposure time.
+        search_range: ``(low, high)`` µs, finite, ``high > low``; None: 0 to each frame's exposure time. With
+            ``score="learned"`` a range inside that one bounds the answer while the reader still reads its
+            candidates over 0 to the exposure time, as it was trained (a range beyond it is read as given, with a
+            warning).
         num_candidates: coarse candidates over the range (at least 2).
         refine: search every sub-interval around the best candidate (``score="learned"``: take the centre of
             the reader's probability around its pick instead of the pick itself).

@@ -78,7 +78,7 @@ def correct_constant_latency(
     theta_vector = None if isinstance(threshold, str) else check_threshold(threshold, b)
     previous = None if previous_latency is None else check_batch_vector(previous_latency, b, "previous_latency")
     check_has_events(frames)
-    _warn_if_short(frames, config.search_range)
+    _warn_if_short(frames, config)
     theta: float | Tensor = threshold
     if theta_vector is None:
         theta = _auto_threshold(frames, config, previous)
@@ -188,7 +188,9 @@ class EventLatencyCorrector(nn.Module):
         threshold: contrast threshold θ of the events, or ``"auto"`` (see :func:`correct_constant_latency`;
             for a recording the command line estimates one θ from its first frame pairs).
         num_bins: sub-intervals of the exposure used by EDI (paper: 500).
-        search_range: ``(low, high)`` µs, finite, ``high > low``; default 0 to each frame's exposure time.
+        search_range: ``(low, high)`` µs, finite, ``high > low``; default 0 to each frame's exposure time. A
+            range inside that one bounds the estimate (the learned reader still reads its candidates over 0
+            to the exposure time, as it was trained); one beyond it is read as given, with a warning.
         num_candidates: coarse candidates over the search range (default 100).
         refine: refine the best candidate below the candidate spacing (the learned reader: the centre of its
             probability around its pick).
@@ -271,8 +273,11 @@ class EventLatencyCorrector(nn.Module):
         return (self.spatial or self.constant)(frames)
 
 
-def _warn_if_short(frames: EventFrames, search_range: tuple[float, float] | None) -> None:
+def _warn_if_short(frames: EventFrames, config: SearchConfig) -> None:
+    search_range = config.search_range
     high = frames.exposure_time if search_range is None else torch.full_like(frames.exposure_end, search_range[1])
+    if config.score == "learned":  # the reader reads its candidates over 0 to the exposure time whatever the range
+        high = torch.maximum(high, frames.exposure_time)
     need = frames.exposure_end + high
     ev = frames.events
     last = ev.last_times().to(need)

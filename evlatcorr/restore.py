@@ -124,19 +124,26 @@ def has_events(frames: EventFrames) -> bool:
     return bool((inside.counts() > 0).all())
 
 
+def search_reach_us(rec, search_high_us: float | None = None) -> float:
+    """How far past a frame's exposure end the latency search reads events: the longest exposure (the learned
+    reader reads its candidates over 0 to the exposure time, whatever range bounds its answer), or the top of the
+    search range where it reaches further."""
+    longest = max((e - s for s, e, _ in rec.frame_times()), default=0.0)
+    return longest if search_high_us is None else max(search_high_us, longest)
+
+
 def pair_reach_us(rec, search_high_us: float | None = None) -> float:
     """How far past a frame's exposure end its events must reach for pairs: to the next exposure's end,
-    plus the latest latency searched (default: the longest exposure)."""
+    plus what the latency search reads (:func:`search_reach_us`)."""
     times = rec.frame_times()
     reach = max((b[1] - a[1] for a, b in zip(times, times[1:]) if a[2] == b[2]), default=0.0)
-    high = search_high_us if search_high_us is not None else max((e - s for s, e, _ in times), default=0.0)
-    return reach + high
+    return reach + search_reach_us(rec, search_high_us)
 
 
 def pair_lead_us(rec) -> float:
     """How far before a pair's first exposure its events must start: the longest exposure (REFID's voxel
     grid starts a fraction of a sharp-frame interval before it, and a correction moves events back)."""
-    return max((e - s for s, e, _ in rec.frame_times()), default=0.0)
+    return search_reach_us(rec)
 
 
 def recording_threshold(rec, search_range: tuple[float, float] | None = None, num_bins: int = 200,

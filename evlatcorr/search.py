@@ -40,7 +40,14 @@ from evlatcorr.search_candidates import (
     _score_candidates,
     _Window,
 )
-from evlatcorr.search_learned import _ghost_latency, _learned_log_p, _learned_pick, candidate_curves
+from evlatcorr.search_learned import (
+    _answer_block,
+    _ghost_latency,
+    _learned_log_p,
+    _learned_pick,
+    _reader_windows,
+    candidate_curves,
+)
 from evlatcorr.sharpness import sharpness_score, sharpness_scores
 from evlatcorr.temporal import LatencyHistory
 
@@ -243,6 +250,8 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
     spans = torch.stack([start, end, lows.to(start), highs.to(start), reach]).T.cpu().tolist()
     thetas = theta.cpu().tolist()
     windows = [_Window(*span) for span in spans]
+    if config.score == "learned" and rng is not None:  # the reader reads the range it was trained on
+        windows = _reader_windows(windows)
     from evlatcorr import search_batched  # it builds on this module
 
     if search_batched.frames_can_share_a_pass(grey, windows, thetas, config, method):
@@ -256,7 +265,7 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
                               None if prev is None else prev[i:i + 1], integral, budget, method,
                               defer_latent=history is not None)
             if history is not None:
-                _fuse_with_history(res, history)
+                _fuse_with_history(res, history, windows[i])
                 if res.read_latent is not None:
                     res.log_ratio = res.read_latent(res.latency)
             results.append(res)
@@ -306,10 +315,12 @@ class _OneResult:
     read_latent: Callable[[float], Tensor | None] | None = None
 
 
-def _fuse_with_history(result: _OneResult, history: LatencyHistory) -> None:
-    """The frame's latency fused with the earlier frames' of ``history`` (its own estimate kept in ``own_latency``)."""
+def _fuse_with_history(result: _OneResult, history: LatencyHistory, span: _Window) -> None:
+    """The frame's latency fused with the earlier frames' of ``history`` (its own estimate kept in ``own_latency``),
+    within the frame's answer range."""
     result.own_latency = result.latency
-    result.latency = history.fuse(result.latency, result.candidates, result.log_probability)
+    low, high = span.answer_range
+    result.latency = min(max(history.fuse(result.latency, result.candidates, result.log_probability), low), high)
 
 
 @dataclass
@@ -341,6 +352,7 @@ def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float
         raise ValueError(f"search_range [{low:.4g}, {high:.4g}] us reaches {max(abs(low), abs(high)) / width_us:.3g} "
                          f"sub-intervals of {width_us:.4g} us (exposure time / num_bins), more than the search "
                          "can count (2**53): narrow search_range")
+    low, high = span.answer_range  # where the estimate must lie (the learned reader's candidates may span more)
     members = tuple(_SPARSITY) if config.score in ("consensus", "learned") else (config.score,)
     if evidence is not None:
         reader = evidence.reader
@@ -378,8 +390,13 @@ def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float
         else:
             log_p, moment = _learned_log_p(reader, grey, coarse, coarse_scores)
         prior = None if prev is None else (to_us(coarse).cpu().double(), float(prev), config.sigma_us)
+        if span.answer is not None and not bool((torch.isfinite(coarse_scores[0]).cpu()
+                                                 & _answer_block(to_us(coarse).cpu().double(), *span.answer)).any()):
+            # the events end before any window the user's range allows: nothing in it could be scored
+            return result(fallback, to_us(coarse).cpu(), coarse_scores[0], to_us(coarse).cpu(), coarse_scores[0],
+                          0.0, True, reader.final_ratio(fallback), "fallback")
         pick, centre, spread, log_probability = _learned_pick(reader, coarse, log_p,
-                                                              torch.isfinite(coarse_scores[0]), prior)
+                                                              torch.isfinite(coarse_scores[0]), prior, span.answer)
         estimates = [_refine(coarse, coarse_scores[m], coarse, None, False) for m in range(len(members))]
     else:
         fines = [reader.fine_of(float(coarse[int(torch.argmin(coarse_scores[m]))])) for m in range(len(members))]

@@ -148,7 +148,7 @@ def _search_pass(grey: Tensor, events: Events, bounds: list[int], spans: list[_W
         results.append(_search_one(grey[first + j:first + j + 1], None, spans[first + j], theta, config, prev,
                                    "step", evidence=evidence))
         if history is not None:
-            _fuse_with_history(results[-1], history)
+            _fuse_with_history(results[-1], history, spans[first + j])
     _read_latents(integral, exposure, results, tops, span.low, kept, own, inverse, (frames, height, width))
     return results
 

@@ -43,13 +43,20 @@ _DEVICE_SCORE_BYTES = 2**30
 
 @dataclass(frozen=True)
 class _Window:
-    """One sample's exposure ``[start, end]``, latency range ``[low, high]`` and ``reach`` = last event − end, µs."""
+    """One sample's exposure ``[start, end]``, the latency range ``[low, high]`` its candidates span and ``reach``
+    = last event − end, µs; ``answer``: the range the estimate must lie in where it is narrower than the
+    candidates' (the learned reader reads the range it was trained on, :func:`reader_windows`), else None."""
 
     start: float
     end: float
     low: float
     high: float
     reach: float
+    answer: tuple[float, float] | None = None
+
+    @property
+    def answer_range(self) -> tuple[float, float]:
+        return (self.low, self.high) if self.answer is None else self.answer
 
 
 @dataclass

@@ -9,8 +9,10 @@ candidate a probability, and the estimate is the centre of that probability arou
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
+import warnings
 
 import kornia
 import torch
@@ -86,7 +88,8 @@ def _curve_reader_on(device: torch.device) -> torch.nn.Module:
 
 
 def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid: Tensor,
-                  prior: tuple[Tensor, float, float] | None = None) -> tuple[float, float, float, Tensor]:
+                  prior: tuple[Tensor, float, float] | None = None, answer: tuple[float, float] | None = None
+                  ) -> tuple[float, float, float, Tensor]:
     """The coarse candidate :mod:`evlatcorr.curve_reader`'s shipped ensemble finds likeliest (its log-odds
     ``log_p`` :math:`(K,)` on the host, :func:`_learned_log_p`; ``valid``: the scored candidates) and the centre of
     its probability over that candidate's neighbours (both in reader units), the standard deviation of its
@@ -100,10 +103,16 @@ def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid
 
     ``prior``: ``(candidates in µs, previous latency, σ)``: the temporal prior of the sparsity scores,
     ``exp((l − l')² / 4σ²)`` on a score, enters as ``−(l − l')² / 4σ²`` on the reader's log-probability.
+    ``answer``: ``(low, high)`` µs, a range the estimate must lie in (the user's ``search_range``, narrower than
+    the candidates'): the probability is restricted to the candidates of :func:`_answer_block` (the caller
+    checks that one of them is valid).
     """
     from evlatcorr.curve_reader import probability_centre
 
     valid = valid.cpu()
+    if answer is not None:
+        valid = valid & _answer_block(reader.to_us(coarse.cpu().double()), *answer)
+        log_p = log_p.masked_fill(~valid, -math.inf)
     # what the frame alone says, for fusing frames (evlatcorr.temporal): normalised over the scored candidates
     own = torch.full_like(log_p, -math.inf)
     own[valid] = torch.log_softmax(log_p[valid], 0)
@@ -111,11 +120,47 @@ def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid
         latencies, previous, sigma = prior
         log_p = log_p - (latencies.double() - previous) ** 2 / (4 * sigma**2)
     candidates = coarse.cpu().double()
-    pick, centre = probability_centre(log_p, candidates, int(valid.sum()))
+    if answer is None:  # the valid candidates are the first ones
+        pick, centre = probability_centre(log_p, candidates, int(valid.sum()))
+    else:  # a run of them
+        first, last = (int(i) for i in torch.nonzero(valid).flatten()[[0, -1]])
+        pick, centre = probability_centre(log_p[first:last + 1], candidates[first:last + 1], last + 1 - first)
     probability, latencies = torch.softmax(log_p, 0), reader.to_us(candidates).double()
     mean = (probability * latencies).sum()
     spread = float((probability * (latencies - mean) ** 2).sum().sqrt())
     return pick, centre, spread, own
+
+
+def _answer_block(latencies: Tensor, low: float, high: float) -> Tensor:
+    """Which of the sorted candidate latencies :math:`(K,)` µs may answer for the range ``[low, high]``: those inside
+    it, and the nearest one outside each end (a range narrower than the candidates' spacing still has two)."""
+    below, above = latencies <= low, latencies >= high
+    first = int(torch.nonzero(below).flatten()[-1]) if bool(below.any()) else 0
+    last = int(torch.nonzero(above).flatten()[0]) if bool(above.any()) else len(latencies) - 1
+    block = torch.zeros(len(latencies), dtype=torch.bool)
+    block[first:last + 1] = True
+    return block
+
+
+def _reader_windows(windows: list[_Window]) -> list[_Window]:
+    """The windows the learned reader reads where the user gave a ``search_range``: its candidates over 0 to the
+    exposure time, the range it was trained on (it reads the candidates as fractions of their range), and the
+    user's range kept as the bounds of the answer. A range beyond 0 to the exposure time is read as given, with a
+    warning: the reader was never trained on such curves."""
+    out = []
+    for span in windows:
+        exposure = span.end - span.start
+        if span.low >= 0.0 and span.high <= exposure * (1 + 1e-9):
+            out.append(dataclasses.replace(span, low=0.0, high=exposure, answer=(span.low, span.high)))
+        else:
+            out.append(span)
+    wide = [span for span in out if span.answer is None]
+    if wide:
+        warnings.warn(f"search_range {wide[0].low:.0f}-{wide[0].high:.0f} us reaches beyond 0 to the exposure time "
+                      f"({wide[0].end - wide[0].start:.0f} us), the range the learned reader was trained on: it reads "
+                      "that range's curves as if they spanned the exposure time, and its estimates there are "
+                      "untested", stacklevel=4)
+    return out
 
 
 def candidate_curves(blurry: Tensor, events: Events, exposure_start: float, exposure_end: float,

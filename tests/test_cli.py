@@ -166,16 +166,21 @@ def test_deblur_a_davis346_recording(tmp_path, model):
     _check_restored(out, model, 2, (260, 346), corrected=True)  # 346 is no multiple of 4, 8 or 16: padded
 
 
-@pytest.fixture(scope="module")
-def first_frame_empty(tmp_path_factory):
-    """A recording whose first frame has no events in its window (a static start)."""
-    seq = simulate("coffee", num_frames=3, height=32, width=48, latency_us=2000.0, seed=3)
+def _first_frame_empty(folder: Path, num_frames: int, seed: int) -> Path:
+    """A recording whose first frame has no events in its window (a static start): none before 20 ms past its
+    exposure's end, as far as the search reads (the exposure time), even with ``--search-us 0 5000``."""
+    seq = simulate("coffee", num_frames=num_frames, height=32, width=48, latency_us=2000.0, seed=seed)
     ev = seq.delayed_events
-    keep = ev.t > float(seq.exposure_end[0]) + 5000.0  # none in frame 0's window with --search-us 0 5000
+    keep = ev.t > float(seq.exposure_end[0]) + 20000.0
     seq.delayed_events = type(ev)(ev.x[keep], ev.y[keep], ev.t[keep], ev.p[keep], sensor_size=ev.sensor_size)
-    path = tmp_path_factory.mktemp("empty") / "empty.h5"
+    path = folder / "first_frame_empty.h5"
     write_sequence(path, seq)
     return path
+
+
+@pytest.fixture(scope="module")
+def first_frame_empty(tmp_path_factory):
+    return _first_frame_empty(tmp_path_factory.mktemp("empty"), 3, seed=3)
 
 
 def test_correct_fuses_frames_unless_told_not_to(simulated, tmp_path):
@@ -346,14 +351,7 @@ def test_pair_reach_and_lead_cover_refids_window(simulated):
 
 @pytest.fixture(scope="module")
 def four_frames_first_empty(tmp_path_factory):
-    """Four frames, the first without events in its window (``--search-us 0 5000``)."""
-    seq = simulate("coffee", num_frames=4, height=32, width=48, latency_us=2000.0, seed=4)
-    ev = seq.delayed_events
-    keep = ev.t > float(seq.exposure_end[0]) + 5000.0
-    seq.delayed_events = type(ev)(ev.x[keep], ev.y[keep], ev.t[keep], ev.p[keep], sensor_size=ev.sensor_size)
-    path = tmp_path_factory.mktemp("four") / "four.h5"
-    write_sequence(path, seq)
-    return path
+    return _first_frame_empty(tmp_path_factory.mktemp("four"), 4, seed=4)
 
 
 def test_correct_searches_several_frames_per_call_as_frame_by_frame(four_frames_first_empty, tmp_path,
@@ -393,3 +391,14 @@ def test_correct_searches_several_frames_per_call_as_frame_by_frame(four_frames_
     with h5py.File(tmp_path / "alone.h5") as a, h5py.File(tmp_path / "batched.h5") as b:
         np.testing.assert_allclose(b["events/t"][:], a["events/t"][:], atol=0.2)
         np.testing.assert_array_equal(b["events/x"][:], a["events/x"][:])
+
+
+def test_the_search_reads_the_exposure_time_past_each_frame_even_with_a_narrower_range(simulated):
+    # the learned reader reads its candidates over 0 to the exposure time; --search-us only bounds its answer
+    from evlatcorr.restore import pair_reach_us, search_reach_us
+
+    rec = H5Recording(simulated)
+    exposure = max(e - s for s, e, _ in rec.frame_times())
+    assert search_reach_us(rec) == search_reach_us(rec, 5000.0) == exposure
+    assert search_reach_us(rec, 2 * exposure) == 2 * exposure
+    assert pair_reach_us(rec, 5000.0) == pair_reach_us(rec)

@@ -161,7 +161,7 @@ def test_continuous_candidates_span_the_range_exactly(long_exposure):
     # half the exposure (10 ms / 67 = 149.25 us <= 1500 us / 10)
     ev, blurry = long_exposure
     res = search_constant_latency(blurry, ev, START, LONG_END, num_bins=50, search_range=(4300.0, 5800.0),
-                                  num_candidates=11)
+                                  num_candidates=11, score="sparsity")  # the learned reader reads 0 to the exposure
     candidates = res.candidates[0]
     assert candidates[0].item() == 4300.0 and candidates[-1].item() == 5800.0
     torch.testing.assert_close(torch.diff(candidates)[:-1], torch.full((len(candidates) - 2,), 10000.0 / 67),
@@ -177,7 +177,8 @@ def test_range_narrower_than_a_candidate_step(long_exposure, search_range):
 
 
 @settings(max_examples=25, deadline=None)
-@given(low=st.floats(0.0, 20000.0), width=st.floats(0.5, 20000.0), score=st.sampled_from(["sparsity", "etf"]))
+@given(low=st.floats(0.0, 20000.0), width=st.floats(0.5, 20000.0),
+       score=st.sampled_from(["sparsity", "etf", "learned"]))
 def test_property_latency_lies_in_the_search_range(long_exposure, low, width, score):
     ev, blurry = long_exposure
     high = low + width

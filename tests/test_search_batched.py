@@ -72,6 +72,10 @@ def test_frames_searched_together_give_each_frame_its_own_result(together_on_cpu
     frames = recording()
     assert_as_frame_by_frame(frames)
     assert_as_frame_by_frame(frames, previous=torch.tensor([1500.0, 2500.0, 0.0, 9000.0]))
+    # a range that bounds the answers: read over 0 to the exposure time all the same
+    bounded = assert_as_frame_by_frame(frames, search_range=(500.0, 1500.0))
+    assert float(bounded.candidates[0, -1]) == EXPOSURE and bool(((bounded.latency >= 500.0)
+                                                                  & (bounded.latency <= 1500.0)).all())
 
 
 def test_frames_together_with_a_hot_pixel_and_events_that_stop_early(together_on_cpu):

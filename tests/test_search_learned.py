@@ -103,3 +103,55 @@ def test_learned_score_reads_the_binned_table_too():
     binned = search_constant_latency(*args, score="learned", method="binned")
     continuous = search_constant_latency(*args, score="learned")
     assert abs(binned.latency.item() - continuous.latency.item()) <= 200.0  # one coarse candidate
+
+
+def _planted_search(monkeypatch, log_p, search_range, events_until=200.0):
+    """The search over a small random frame (exposure 0-100 us, 11 default candidates) with a planted reader."""
+    ev = random_events(3000, (8, 9), (0.0, events_until), seed=6)
+    blurry = torch.rand(1, 1, 8, 9, generator=torch.Generator().manual_seed(6)) * 0.8 + 0.1
+    monkeypatch.setattr(search_learned, "_curve_reader_on", lambda device: _PlantedReader(log_p))
+    return search_constant_latency(blurry, ev, torch.zeros(1), torch.full((1,), 100.0), 0.2, num_bins=50,
+                                   num_candidates=11, score="learned", search_range=search_range)
+
+
+def test_learned_search_range_restricts_the_reader_to_it(monkeypatch):
+    # the reader likes 80 us best and 30 us second; told the latency lies in 20-50 us it answers near 30 us, from the
+    # curves over 0 to the exposure time it was trained on
+    log_p = torch.full((11,), -30.0)
+    log_p[[2, 3, 4, 7, 8, 9]] = torch.tensor([-2.0, -1.0, -1.5, -0.5, 0.0, -0.5])
+    res = _planted_search(monkeypatch, log_p, (20.0, 50.0))
+    torch.testing.assert_close(res.candidates[0], torch.linspace(0.0, 100.0, 11, dtype=torch.float64))
+    p = torch.softmax(log_p[2:5].double(), 0)  # the pick (30 us) and one neighbour each side
+    assert res.latency.item() == pytest.approx(float((p * torch.tensor([20.0, 30.0, 40.0])).sum()), abs=1e-9)
+    own = res.log_probability[0]  # what the frame says for fusing: only the range's candidates
+    assert bool(torch.isfinite(own[2:6]).all()) and not bool(torch.isfinite(own[[0, 1, 6, 7, 8]]).any())
+    # 0 to the exposure time is the default range itself
+    default = _planted_search(monkeypatch, log_p, None)
+    assert _planted_search(monkeypatch, log_p, (0.0, 100.0)).latency.item() == default.latency.item()
+    assert default.latency.item() == pytest.approx(80.0, abs=1.0)
+
+
+def test_learned_search_range_narrower_than_the_candidates_spacing(monkeypatch):
+    log_p = torch.full((11,), -30.0)
+    log_p[8] = 0.0
+    res = _planted_search(monkeypatch, log_p, (33.0, 37.0))  # between the candidates 30 and 40 us
+    assert 33.0 <= res.latency.item() <= 37.0 and not bool(res.fallback[0])
+
+
+def test_learned_search_range_past_the_events_falls_back_to_its_low_end(monkeypatch):
+    # the events stop at 150 us: no window of 60-100 us (ending at 160-200 us) holds the whole exposure's events
+    res = _planted_search(monkeypatch, torch.zeros(11), (60.0, 100.0), events_until=150.0)
+    assert res.latency.item() == 60.0 and bool(res.fallback[0]) and res.source == ["fallback"]
+
+
+def test_learned_search_range_beyond_the_exposure_warns(monkeypatch):
+    with pytest.warns(UserWarning, match="trained on"):
+        res = _planted_search(monkeypatch, torch.zeros(13), (0.0, 150.0), events_until=300.0)  # 13 candidates
+    assert float(res.candidates[0, -1]) == pytest.approx(150.0)  # read as given
+
+
+def test_answer_block_snaps_outwards_to_the_candidates():
+    latencies = torch.arange(0.0, 101.0, 10.0, dtype=torch.float64)
+    assert torch.nonzero(search_learned._answer_block(latencies, 20.0, 50.0)).flatten().tolist() == [2, 3, 4, 5]
+    assert torch.nonzero(search_learned._answer_block(latencies, 33.0, 37.0)).flatten().tolist() == [3, 4]
+    assert bool(search_learned._answer_block(latencies, 0.0, 100.0).all())

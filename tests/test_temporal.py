@@ -207,3 +207,17 @@ def test_latency_history_refuses_a_bad_window(before):
 
     with pytest.raises(ValueError, match="before must be a whole number"):
         LatencyHistory(before)
+
+
+def test_the_streamed_latency_stays_inside_the_search_range():
+    from evlatcorr.correction import EventLatencyCorrector
+    from evlatcorr.simulate import simulate
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    seq = simulate("camera", num_frames=3, height=32, width=48, latency_us=3000.0, seed=0)
+    # a range between two candidates (20 ms exposure: spaced 200 us), away from the true 3 ms
+    stream = StreamingLatencyCorrector(EventLatencyCorrector(threshold=0.2, search_range=(1250.0, 1350.0)), before=2)
+    for frame in seq.frames("delayed").split():
+        out = stream(frame)
+        assert 1250.0 <= float(out.latency.mean()) <= 1350.0
+        assert 1250.0 <= float(out.meta["frame_latency_us"][0]) <= 1350.0
