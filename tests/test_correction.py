@@ -292,3 +292,14 @@ def test_corrector_does_not_check_the_batch_again_inside(monkeypatch):
                 monkeypatch.setattr(module, name, refuse)
     out = EventLatencyCorrector(num_bins=50, num_candidates=20)(frames)
     assert out.latency.shape == (1, 1, 24, 32)
+
+
+def test_auto_threshold_warns_on_single_frames_and_not_on_pairs():
+    seq = simulate("camera", num_frames=2, height=32, width=40, latency_us=3000.0, threshold=0.4, seed=0)
+    with pytest.warns(UserWarning, match="single frames"):
+        single = EventLatencyCorrector(threshold="auto")(seq.frames("delayed"))
+    assert single.meta["threshold"].shape == (2,) and bool((single.meta["threshold"] > 0).all())
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*single frames")
+        pairs = EventLatencyCorrector(threshold="auto")(seq.pairs("delayed"))
+    assert float(torch.as_tensor(pairs.meta["threshold"]).reshape(-1)[0]) == pytest.approx(0.4, rel=0.3)
