@@ -124,11 +124,15 @@ def has_events(frames: EventFrames) -> bool:
     return bool((inside.counts() > 0).all())
 
 
+def _longest_exposure_us(rec) -> float:
+    return max((e - s for s, e, _ in rec.frame_times()), default=0.0)
+
+
 def search_reach_us(rec, search_high_us: float | None = None) -> float:
     """How far past a frame's exposure end the latency search reads events: the longest exposure (the learned
     reader reads its candidates over 0 to the exposure time, whatever range bounds its answer), or the top of the
     search range where it reaches further."""
-    longest = max((e - s for s, e, _ in rec.frame_times()), default=0.0)
+    longest = _longest_exposure_us(rec)
     return longest if search_high_us is None else max(search_high_us, longest)
 
 
@@ -143,7 +147,7 @@ def pair_reach_us(rec, search_high_us: float | None = None) -> float:
 def pair_lead_us(rec) -> float:
     """How far before a pair's first exposure its events must start: the longest exposure (REFID's voxel
     grid starts a fraction of a sharp-frame interval before it, and a correction moves events back)."""
-    return search_reach_us(rec)
+    return _longest_exposure_us(rec)
 
 
 def recording_threshold(rec, search_range: tuple[float, float] | None = None, num_bins: int = 200,

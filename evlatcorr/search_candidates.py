@@ -45,7 +45,8 @@ _DEVICE_SCORE_BYTES = 2**30
 class _Window:
     """One sample's exposure ``[start, end]``, the latency range ``[low, high]`` its candidates span and ``reach``
     = last event − end, µs; ``answer``: the range the estimate must lie in where it is narrower than the
-    candidates' (the learned reader reads the range it was trained on, :func:`reader_windows`), else None."""
+    candidates' (the learned reader reads the range it was trained on,
+    :func:`evlatcorr.search_learned._reader_windows`), else None."""
 
     start: float
     end: float

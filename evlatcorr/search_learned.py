@@ -105,7 +105,7 @@ def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid
     ``exp((l − l')² / 4σ²)`` on a score, enters as ``−(l − l')² / 4σ²`` on the reader's log-probability.
     ``answer``: ``(low, high)`` µs, a range the estimate must lie in (the user's ``search_range``, narrower than
     the candidates'): the probability is restricted to the candidates of :func:`_answer_block` (the caller
-    checks that one of them is valid).
+    checks that one of them is valid), and so is the standard deviation.
     """
     from evlatcorr.curve_reader import probability_centre
 
