@@ -33,7 +33,8 @@ def correct_constant_latency(
     """Estimate one latency per frame and remove it from the events (functional form).
 
     Args:
-        frames: the batch; each sample's events must reach ``exposure_end + search_range[1]``.
+        frames: the batch; each sample's events must reach ``exposure_end`` plus the exposure time (the learned
+            reader's candidates), or plus ``search_range[1]`` where that is further.
         threshold: contrast threshold θ, or ``"auto"``: for pairs (``blurry_next`` set) one θ for the batch
             that makes both frames' reconstructions agree
             (:func:`~evlatcorr.consistency.estimate_recording_threshold`), else per frame by

@@ -138,7 +138,8 @@ def search_constant_latency(
 
     Args:
         blurry: :math:`(B, C, H, W)` in [0, 1].
-        events: events of each sample; they must reach ``exposure_end + search_range[1]``.
+        events: events of each sample; they must reach ``exposure_end + search_range[1]`` (``score="learned"``:
+            at least one exposure time past ``exposure_end``, the range its reader reads).
         exposure_start: :math:`(B,)` µs.
         exposure_end: :math:`(B,)` µs.
         threshold: contrast threshold θ, float or :math:`(B,)`.
