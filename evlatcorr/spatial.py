@@ -422,11 +422,10 @@ class SpatialLatencyCorrector(nn.Module):
                 model, _ = _fit_spatial_latency(frames, PolynomialLatency(self.order), self.steps, self.lr, theta,
                                                 self.config.replace(num_bins=self.train_bins), self.weights,
                                                 self.progress, True, "table")
-        search_range = self.config.search_range
-        with torch.no_grad():
-            high = frames.exposure_time if search_range is None else torch.full_like(
-                frames.exposure_time, search_range[1])
-            latency = torch.minimum(model(frames.blurry).clamp_min(0.0), high.to(frames.blurry).view(-1, 1, 1, 1))
+        with torch.no_grad():  # the map inside the search range, as a constant estimate is
+            low, high = (bound.to(frames.blurry).view(-1, 1, 1, 1)
+                         for bound in _latency_bounds(frames, self.config.search_range))
+            latency = torch.minimum(torch.maximum(model(frames.blurry), low), high)
             corrected = frames.events.shift(latency.double())
             latent = _edi_deblur(frames.blurry, corrected, frames.exposure_start, frames.exposure_end,
                                  _mid_exposure(frames), theta, None, self.config.num_bins)

@@ -155,6 +155,10 @@ def test_corrector_spatial_mode(frames, tmp_path):
     assert out.latency.std() > 0 and out.latent.shape == frames.blurry.shape
     fitted = EventLatencyCorrector(mode="spatial", num_bins=50, steps=3, train_bins=30)(frames)
     assert fitted.latency.shape == (1, 1, 24, 32)
+    # a search range bounds the map at both ends
+    bounded = EventLatencyCorrector(mode="spatial", curve=str(tmp_path / "c.pt"), num_bins=50,
+                                    search_range=(800.0, 1200.0))(frames)
+    torch.testing.assert_close(bounded.latency, psi(frames.blurry).clamp(800.0, 1200.0))
 
 
 def test_fit_without_events_is_refused(frames):
