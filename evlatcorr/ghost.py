@@ -28,12 +28,17 @@ import kornia
 import torch
 from torch import Tensor
 
-__all__ = ["ghost_moment", "ghost_root", "inverse_ratio_moment", "stacked_inverse_ratio_moment"]
+__all__ = ["ghost_moment", "ghost_root", "inverse_ratio_moment", "log_grey", "stacked_inverse_ratio_moment"]
 
 # σ of the high-pass, px: 1 removed the shading offset on most dev scenes; 0 (none) and 2 were worse
 HIGH_PASS_SIGMA = 1.0
 # darkest grey level taken into the log latent (a black pixel has no log)
 _FLOOR = 1e-4
+
+
+def log_grey(grey: Tensor, dtype: torch.dtype) -> Tensor:
+    """``log`` of the blurry frame in ``dtype``, its black pixels read as the darkest level the cues take (1e-4)."""
+    return torch.log(grey.to(dtype).clamp_min(_FLOOR))
 
 
 def ghost_moment(grey: Tensor, log_ratio: Tensor, log_change: Tensor, sigma: float = HIGH_PASS_SIGMA) -> Tensor:
@@ -66,7 +71,7 @@ def ghost_moment(grey: Tensor, log_ratio: Tensor, log_change: Tensor, sigma: flo
         raise ValueError(f"sigma must be positive, got {sigma}")
     # float64 unless both curves come in float32 (a correlation over the image needs no more)
     dtype = torch.float32 if log_ratio.dtype == log_change.dtype == torch.float32 else torch.float64
-    log_latent = torch.log(grey.to(dtype).clamp_min(_FLOOR)) - log_ratio.to(dtype)
+    log_latent = log_grey(grey, dtype) - log_ratio.to(dtype)
     return _high_pass_correlation(log_latent, log_change.to(dtype), sigma)
 
 
@@ -78,7 +83,7 @@ def inverse_ratio_moment(grey: Tensor, inverse: Tensor, log_change: Tensor) -> T
         ValueError: when the shapes do not match.
     """
     _check_moment_inputs(grey, inverse, log_change, "inverse")
-    log_latent = torch.log(inverse).add_(torch.log(grey.to(inverse).clamp_min(_FLOOR)))
+    log_latent = torch.log(inverse).add_(log_grey(grey, inverse.dtype))
     return _high_pass_correlation(log_latent, log_change, HIGH_PASS_SIGMA)
 
 
@@ -94,7 +99,7 @@ def stacked_inverse_ratio_moment(grey: Tensor, inverse: Tensor, log_change: Tens
         raise ValueError(f"grey must be (1, F, H, W) and inverse and log_change both (K, F, H, W), got "
                          f"{tuple(grey.shape)}, {tuple(inverse.shape)} and {tuple(log_change.shape)}")
     k, frames, height, width = inverse.shape
-    log_latent = torch.log(inverse).add_(torch.log(grey.to(inverse).clamp_min(_FLOOR)))
+    log_latent = torch.log(inverse).add_(log_grey(grey, inverse.dtype))
     flat = (k * frames, 1, height, width)
     return _high_pass_correlation(log_latent.view(flat), log_change.reshape(flat), HIGH_PASS_SIGMA).view(k, frames)
 

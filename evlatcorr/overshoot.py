@@ -21,6 +21,8 @@ import math
 import torch
 from torch import Tensor
 
+from evlatcorr.ghost import log_grey
+
 __all__ = ["OVERSHOOT_RANGE", "overshoot", "overshoot_stride"]
 
 # the percentile over the pixels: the brightest 1 %, not the single brightest pixel (noise, a hot pixel)
@@ -30,8 +32,6 @@ OVERSHOOT_RANGE = (-1.0, 3.0)
 # pixels the percentile is taken over at most: larger images are read every s-th row and column (a DAVIS346 frame
 # every 3rd), a regular sample of the same distribution; the reader was trained on 96x128 frames, read whole
 MAX_PIXELS = 96 * 128
-# darkest grey level taken into the log latent (a black pixel has no log), as the ghost cue's
-_FLOOR = 1e-4
 
 
 def overshoot_stride(height: int, width: int) -> int:
@@ -77,9 +77,9 @@ def overshoot(grey: Tensor, inverse: Tensor, log_peak: Tensor) -> Tensor:
                          f"{sampled[1]}) (every {stride}th row and column), got {tuple(grey.shape)}, "
                          f"{tuple(inverse.shape)} and {tuple(log_peak.shape)}")
     grey, inverse = grey[..., ::stride, ::stride], inverse[..., ::stride, ::stride]
-    log_grey = torch.log(grey.to(inverse.dtype).clamp_min(_FLOOR))
-    top = torch.log(inverse).add_(log_grey).add_(log_peak).flatten(2)  # (K, F, n)
-    brightest = log_grey.flatten(2).amax(2)  # (1, F)
+    log_frame = log_grey(grey, inverse.dtype)  # as the ghost cue takes it
+    top = torch.log(inverse).add_(log_frame).add_(log_peak).flatten(2)  # (K, F, n)
+    brightest = log_frame.flatten(2).amax(2)  # (1, F)
     value = (_upper_quantile(top, QUANTILE) - brightest).double().clamp_(*OVERSHOOT_RANGE)
     return value[:, 0] if grey.shape[1] == 1 else value
 
