@@ -45,6 +45,7 @@ from evlatcorr.benchmark.accuracy import (  # noqa: E402
     run_suite,
     summarize,
     to_markdown,
+    warning_kinds,
     write_results,
 )
 from evlatcorr.config import SCORES  # noqa: E402
@@ -120,7 +121,7 @@ def main(argv: list[str] | None = None) -> None:
     ref = sum(r["reference_time_s"] for r in results if r["estimator"] == next(iter(estimators)))
     est = {name: sum(r["time_s"] for r in results if r["estimator"] == name) for name in estimators}
     warned = sum(bool(r["warnings"]) for r in results)
-    messages = sorted({w for r in results for w in r["warnings"]})
+    kinds = warning_kinds(results)
     before = f" and from {args.before_us:.0f} us before its start" if args.before_us else ""
     header = "\n".join([
         "# Latency estimator accuracy (simulated suite)", "",
@@ -131,7 +132,8 @@ def main(argv: list[str] | None = None) -> None:
         f"{'auto' if args.auto_threshold else 'the true one'}; search range: "
         f"{'default (0 to the exposure time)' if args.search_range is None else args.search_range} µs.",
         f"- {warned} of {len(results)} estimates raised warnings"
-        + (f" ({len(messages)} distinct), e.g. \"{messages[0][:300]}\"" if messages else "") + ".",
+        + (f", of {len(kinds)} kind{'s' * (len(kinds) > 1)}:" if kinds else "."),
+        *(f"  - {count} estimates: \"{example[:300]}\"" for count, example in kinds),
         f"- total {total:.0f} s on {platform.machine()} with {torch.get_num_threads()} torch threads: simulation "
         f"{sim:.0f} s, references (ideal / uncorrected EDI, best-shift scan) {ref:.0f} s, estimation "
         + ", ".join(f"{n} {t:.0f} s" for n, t in est.items()) + ".", "", ""])

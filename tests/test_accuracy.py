@@ -290,3 +290,21 @@ def test_load_estimator_from_a_file(tmp_path):
     fn = load_estimator(f"{path}:estimate")
     assert callable(fn) and fn.__name__ == "estimate"
     assert load_estimator("evlatcorr.benchmark.accuracy:make_cases") is make_cases
+
+
+def test_the_accuracy_script_writes_its_tables_and_groups_its_warnings(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    run = subprocess.run([sys.executable, str(root / "benchmarks" / "accuracy.py"), "--split", "dev", "--num", "2",
+                          "--size", "32", "40", "--mode", "constant", "--out", str(tmp_path)],
+                         capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert run.returncode == 0, run.stderr
+    table = (tmp_path / "results.md").read_text()
+    assert "## Summary" in table and (tmp_path / "results.csv").is_file()
+    # the warning every case raises by design (its stream stops 15 ms after the exposure) is one kind, not one a case
+    assert "- 2 of 2 estimates raised warnings, of " in table
+    kinds = [line for line in table.splitlines() if line.startswith('  - 2 estimates: "events of sample 0 end at')]
+    assert len(kinds) == 1

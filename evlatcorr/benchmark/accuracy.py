@@ -38,6 +38,7 @@ import importlib
 import importlib.util
 import json
 import math
+import re
 import statistics
 import time
 import warnings
@@ -71,6 +72,7 @@ __all__ = [
     "load_estimator",
     "run_suite",
     "summarize",
+    "warning_kinds",
     "to_markdown",
     "write_results",
 ]
@@ -674,6 +676,24 @@ def _group_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "worst_ideal_psnr_change_db": ideal_change[0] if ideal_change else math.nan,
         "ideal_losing_half_db": sum(v < -0.5 for v in ideal_change),
     }
+
+
+def warning_kinds(results: Sequence[Mapping[str, Any]]) -> list[tuple[int, str]]:
+    """The kinds of warning the estimates raised, most common first: ``(estimates that raised it, an example)``.
+
+    Messages that differ only in their numbers (a sample's times, a latency) are one kind, so the warning every case
+    raises by design (the suite's streams stop 15 ms after the exposure) is one line, not one per case.
+
+    Example:
+        >>> rows = [{"warnings": ["events end at 49967 us"]}, {"warnings": ["events end at 50012 us", "no minimum"]}]
+        >>> warning_kinds(rows)
+        [(2, 'events end at 49967 us'), (1, 'no minimum')]
+    """
+    kinds: dict[str, list[Any]] = {}
+    for row in results:
+        for kind, message in {re.sub(r"-?\d[\d.,e+-]*", "#", w): w for w in sorted(row["warnings"])}.items():
+            kinds.setdefault(kind, [0, message])[0] += 1
+    return sorted(((count, example) for count, example in kinds.values()), key=lambda item: (-item[0], item[1]))
 
 
 def summarize(results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
