@@ -38,14 +38,18 @@ from evlatcorr.search import candidate_curves
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _cached(cache: Path | None, before_us: float) -> dict | None:
-    """The curves saved at ``cache``, if any; refused if they were read with other candidates."""
-    if cache is None or not cache.exists():
-        return None
-    data = torch.load(cache)
-    if data.get("before_us", 0.0) != before_us:
-        raise SystemExit(f"{cache} holds curves read from {data.get('before_us', 0.0)} us before the exposure, not "
-                         f"{before_us}: pass another --cache")
+def _cached(cache: Path | None, before_us: float, read) -> dict:
+    """The curves saved at ``cache`` (refused if they were read with other candidates), else ``read()``'s, saved
+    there."""
+    if cache is not None and cache.exists():
+        data = torch.load(cache)
+        if data.get("before_us", 0.0) != before_us:
+            raise SystemExit(f"{cache} holds curves read from {data.get('before_us', 0.0)} us before the exposure, "
+                             f"not {before_us}: pass another --cache")
+        return data
+    data = read()
+    if cache is not None:
+        torch.save(data, cache)
     return data
 
 
@@ -73,28 +77,18 @@ def _read_curves(cases: list, which: str, before_us: float, target) -> dict:
 def extract(cache: Path | None, before_us: float = 0.0) -> dict:
     """Every training case's candidate curves and true latency (read from ``cache`` when it exists); with
     ``before_us``, the frames keep that long of events before the exposure and the candidates reach below 0."""
-    data = _cached(cache, before_us)
-    if data is None:
-        cases = [c for split in TRAIN_SPLITS for c in make_cases(split)]
-        data = _read_curves(cases, "delayed", before_us, training_target)
-        if cache is not None:
-            torch.save(data, cache)
-    return data
+    cases = [c for split in TRAIN_SPLITS for c in make_cases(split)]
+    return _cached(cache, before_us, lambda: _read_curves(cases, "delayed", before_us, training_target))
 
 
 def extract_ideal(num: int, cache: Path | None, before_us: float = 0.0) -> dict:
     """The candidate curves of the ideal events of ``num`` constant-latency training cases, evenly spread over
     them, with a target of 0 (read from ``cache`` when it exists)."""
-    data = _cached(cache, before_us)
-    if data is None:
-        constant = [c for split in TRAIN_SPLITS for c in make_cases(split) if c.latency_model == "constant"]
-        if not 0 < num <= len(constant):
-            raise SystemExit(f"--ideal-frames must be in 1..{len(constant)}, got {num}")
-        picked = [constant[k * len(constant) // num] for k in range(num)]
-        data = _read_curves(picked, "ideal", before_us, lambda case, frame: 0.0)
-        if cache is not None:
-            torch.save(data, cache)
-    return data
+    constant = [c for split in TRAIN_SPLITS for c in make_cases(split) if c.latency_model == "constant"]
+    if not 0 < num <= len(constant):
+        raise SystemExit(f"--ideal-frames must be in 1..{len(constant)}, got {num}")
+    picked = [constant[k * len(constant) // num] for k in range(num)]
+    return _cached(cache, before_us, lambda: _read_curves(picked, "ideal", before_us, lambda case, frame: 0.0))
 
 
 def main() -> None:

@@ -37,7 +37,17 @@ _FLOOR = 1e-4
 
 
 def log_grey(grey: Tensor, dtype: torch.dtype) -> Tensor:
-    """``log`` of the blurry frame in ``dtype``, its black pixels read as the darkest level the cues take (1e-4)."""
+    """``log`` of the blurry frame in ``dtype``, its black pixels read as the darkest level the cues take (1e-4).
+
+    Raises:
+        ValueError: when ``grey`` is not a tensor or ``dtype`` not a floating type.
+
+    Example:
+        >>> log_grey(torch.tensor([0.0, 1.0]), torch.float64)
+        tensor([-9.2103,  0.0000], dtype=torch.float64)
+    """
+    if not isinstance(grey, Tensor) or not dtype.is_floating_point:
+        raise ValueError(f"log_grey takes a tensor and a floating dtype, got {type(grey).__name__} and {dtype}")
     return torch.log(grey.to(dtype).clamp_min(_FLOOR))
 
 

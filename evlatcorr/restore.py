@@ -8,6 +8,7 @@ reads ``frames.corrected`` when a corrector filled it).
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Iterable, Iterator
 
 import numpy as np
@@ -131,7 +132,13 @@ def _longest_exposure_us(rec) -> float:
 def search_reach_us(rec, search_high_us: float | None = None) -> float:
     """How far past a frame's exposure end the latency search reads events: the longest exposure (the learned
     reader reads its candidates over 0 to the exposure time, whatever range bounds its answer), or the top of the
-    search range where it reaches further."""
+    search range where it reaches further.
+
+    Raises:
+        ValueError: when ``search_high_us`` is not a finite number (or None).
+    """
+    if search_high_us is not None and not math.isfinite(search_high_us):
+        raise ValueError(f"search_high_us must be a finite number of us or None, got {search_high_us}")
     longest = _longest_exposure_us(rec)
     return longest if search_high_us is None else max(search_high_us, longest)
 

@@ -391,13 +391,13 @@ def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float
         else:
             log_p, moment = _learned_log_p(reader, grey, coarse, coarse_scores)
         prior = None if prev is None else (to_us(coarse).cpu().double(), float(prev), config.sigma_us)
-        if span.answer is not None and not bool((torch.isfinite(coarse_scores[0]).cpu()
-                                                 & _answer_block(to_us(coarse).cpu().double(), *span.answer)).any()):
+        scored = torch.isfinite(coarse_scores[0])
+        allowed = None if span.answer is None else _answer_block(to_us(coarse).cpu().double(), *span.answer)
+        if allowed is not None and not bool((scored.cpu() & allowed).any()):
             # the events end before any window the user's range allows: nothing in it could be scored
             return result(fallback, to_us(coarse).cpu(), coarse_scores[0], to_us(coarse).cpu(), coarse_scores[0],
                           0.0, True, reader.final_ratio(fallback), "fallback")
-        pick, centre, spread, log_probability = _learned_pick(reader, coarse, log_p,
-                                                              torch.isfinite(coarse_scores[0]), prior, span.answer)
+        pick, centre, spread, log_probability = _learned_pick(reader, coarse, log_p, scored, prior, allowed)
         estimates = [_refine(coarse, coarse_scores[m], coarse, None, False) for m in range(len(members))]
     else:
         fines = [reader.fine_of(float(coarse[int(torch.argmin(coarse_scores[m]))])) for m in range(len(members))]

@@ -88,7 +88,7 @@ def _curve_reader_on(device: torch.device) -> torch.nn.Module:
 
 
 def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid: Tensor,
-                  prior: tuple[Tensor, float, float] | None = None, answer: tuple[float, float] | None = None
+                  prior: tuple[Tensor, float, float] | None = None, allowed: Tensor | None = None
                   ) -> tuple[float, float, float, Tensor]:
     """The coarse candidate :mod:`evlatcorr.curve_reader`'s shipped ensemble finds likeliest (its log-odds
     ``log_p`` :math:`(K,)` on the host, :func:`_learned_log_p`; ``valid``: the scored candidates) and the centre of
@@ -103,15 +103,15 @@ def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid
 
     ``prior``: ``(candidates in µs, previous latency, σ)``: the temporal prior of the sparsity scores,
     ``exp((l − l')² / 4σ²)`` on a score, enters as ``−(l − l')² / 4σ²`` on the reader's log-probability.
-    ``answer``: ``(low, high)`` µs, a range the estimate must lie in (the user's ``search_range``, narrower than
-    the candidates'): the probability is restricted to the candidates of :func:`_answer_block` (the caller
-    checks that one of them is valid), and so is the standard deviation.
+    ``allowed``: :math:`(K,)` bool on the host, the candidates that may answer for the user's ``search_range``
+    where it is narrower than the candidates' (:func:`_answer_block`; the caller checks that one of them is
+    valid): the probability, and its standard deviation, are restricted to them.
     """
     from evlatcorr.curve_reader import probability_centre
 
     valid = valid.cpu()
-    if answer is not None:
-        valid = valid & _answer_block(reader.to_us(coarse.cpu().double()), *answer)
+    if allowed is not None:
+        valid = valid & allowed
         log_p = log_p.masked_fill(~valid, -math.inf)
     # what the frame alone says, for fusing frames (evlatcorr.temporal): normalised over the scored candidates
     own = torch.full_like(log_p, -math.inf)
@@ -120,7 +120,7 @@ def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid
         latencies, previous, sigma = prior
         log_p = log_p - (latencies.double() - previous) ** 2 / (4 * sigma**2)
     candidates = coarse.cpu().double()
-    if answer is None:  # the valid candidates are the first ones
+    if allowed is None:  # the valid candidates are the first ones
         pick, centre = probability_centre(log_p, candidates, int(valid.sum()))
     else:  # a run of them
         first, last = (int(i) for i in torch.nonzero(valid).flatten()[[0, -1]])

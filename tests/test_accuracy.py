@@ -308,3 +308,13 @@ def test_the_accuracy_script_writes_its_tables_and_groups_its_warnings(tmp_path)
     assert "- 2 of 2 estimates raised warnings, of " in table
     kinds = [line for line in table.splitlines() if line.startswith('  - 2 estimates: "events of sample 0 end at')]
     assert len(kinds) == 1
+
+
+def test_warning_kinds_counts_the_estimates_raising_each_kind_and_refuses_rows_without_messages():
+    from evlatcorr.benchmark.accuracy import warning_kinds
+
+    rows = [{"warnings": ["latency 1200 us at the edge", "no minimum"]}, {"warnings": ["latency -30.5 us at the edge"]},
+            {"warnings": []}]
+    assert warning_kinds(rows) == [(2, "latency 1200 us at the edge"), (1, "no minimum")]
+    with pytest.raises(ValueError, match="row 1"):
+        warning_kinds([{"warnings": []}, {"error": ""}])

@@ -402,3 +402,5 @@ def test_the_search_reads_the_exposure_time_past_each_frame_even_with_a_narrower
     assert search_reach_us(rec) == search_reach_us(rec, 5000.0) == exposure
     assert search_reach_us(rec, 2 * exposure) == 2 * exposure
     assert pair_reach_us(rec, 5000.0) == pair_reach_us(rec)
+    with pytest.raises(ValueError, match="search_high_us"):
+        search_reach_us(rec, float("nan"))

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import math
+
 import kornia
 import pytest
 import torch
@@ -148,3 +150,15 @@ def test_stacked_moment_refuses_shapes_that_do_not_match():
         stacked_inverse_ratio_moment(torch.rand(2, 3, 4, 4), torch.rand(5, 3, 4, 4), torch.rand(5, 3, 4, 4))
     with pytest.raises(ValueError, match="inverse and log_change both"):
         stacked_inverse_ratio_moment(torch.rand(1, 3, 4, 4), torch.rand(5, 3, 4, 4), torch.rand(5, 2, 4, 4))
+
+
+def test_log_grey_floors_black_pixels_and_refuses_other_inputs():
+    from evlatcorr.ghost import log_grey
+
+    out = log_grey(torch.tensor([0.0, 0.5]), torch.float32)
+    assert out.dtype == torch.float32
+    torch.testing.assert_close(out, torch.tensor([math.log(1e-4), math.log(0.5)]))
+    with pytest.raises(ValueError, match="floating dtype"):
+        log_grey(torch.tensor([0.5]), torch.int32)
+    with pytest.raises(ValueError, match="tensor"):
+        log_grey([0.5], torch.float32)

@@ -688,12 +688,17 @@ def warning_kinds(results: Sequence[Mapping[str, Any]]) -> list[tuple[int, str]]
         >>> rows = [{"warnings": ["events end at 49967 us"]}, {"warnings": ["events end at 50012 us", "no minimum"]}]
         >>> warning_kinds(rows)
         [(2, 'events end at 49967 us'), (1, 'no minimum')]
+
+    Raises:
+        ValueError: when a row has no list of messages under ``"warnings"``.
     """
     kinds: dict[str, list[Any]] = {}
-    for row in results:
+    for k, row in enumerate(results):
+        if not isinstance(row.get("warnings"), (list, tuple)):
+            raise ValueError(f"row {k} has no list of messages under 'warnings'")
         for kind, message in {re.sub(r"-?\d[\d.,e+-]*", "#", w): w for w in sorted(row["warnings"])}.items():
             kinds.setdefault(kind, [0, message])[0] += 1
-    return sorted(((count, example) for count, example in kinds.values()), key=lambda item: (-item[0], item[1]))
+    return sorted(map(tuple, kinds.values()), key=lambda item: (-item[0], item[1]))
 
 
 def summarize(results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
