@@ -81,7 +81,7 @@ class ConstantSearchResult:
             than :data:`~evlatcorr.search_candidates.HOT_PIXEL_LOG_RANGE` of log intensity; continuous method only).
         latency_spread: :math:`(B,)` µs, ``score="learned"``: the standard deviation of the curve reader's
             probability over the candidates, how unsure it is (NaN for the other scores, or where nothing could be
-            scored). On the suite's tuning cases the estimate's error grows with it (see the README).
+            scored). On the suite's tuning cases the estimate's error grows with it (``docs/accuracy.md``).
         log_probability: :math:`(B, K)` float64, ``score="learned"``: the curve reader's log-probability of each
             coarse candidate (``candidates``) from the frame alone (no temporal prior), normalised over the candidates
             that could be scored (−inf elsewhere); NaN rows for samples where the reader did not run, None when no
