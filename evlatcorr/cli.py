@@ -16,7 +16,7 @@ import signal
 import sys
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -594,8 +594,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                "simulate": cmd_simulate, "info": cmd_info}
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if _main_thread() else None
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("default")
+        with warnings.catch_warnings():  # restores the filters and warnings.showwarning on the way out
+            warnings.simplefilter("always")  # every warning reaches the printer, which keeps each message once
+            warnings.showwarning = _warning_printer(args.command)
             return command[args.command](args)
     except (RecordingError, ValueError, OSError) as exc:  # bad input, or an OS error on the user's paths
         print(f"evlatcorr {args.command}: error: {exc}", file=sys.stderr)
@@ -608,6 +609,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _warning_printer(command: str) -> Callable[..., None]:
+    """A ``warnings.showwarning`` for the command line: each distinct message once, as one line ``evlatcorr COMMAND:
+    warning: MESSAGE`` on stderr, above the progress bar (a user needs what happened to their data, not the source
+    line of the library that noticed it, nor the same line again from another place that noticed it too)."""
+    from tqdm import tqdm
+
+    seen: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ARG001 (the hook's signature)
+        text = str(message)
+        if text not in seen:
+            seen.add(text)
+            tqdm.write(f"evlatcorr {command}: warning: {text}", file=sys.stderr if file is None else file)
+
+    return show
 
 
 def _main_thread() -> bool:

@@ -204,6 +204,10 @@ def test_correct_keeps_going_past_a_frame_without_events(first_frame_empty, tmp_
             cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert "frame 0: no events" in r.stderr
+    # warnings are one line each, once per message, without Python's file and source line
+    warned = [line for line in r.stderr.splitlines() if "warning" in line.lower()]
+    assert warned and all(line.startswith("evlatcorr correct: warning: ") for line in warned), r.stderr
+    assert len(warned) == len(set(warned)) and "UserWarning" not in r.stderr
     rows = list(csv.DictReader(open(out.with_suffix(".csv"))))
     assert [r["skipped"] for r in rows] == ["no events", "", ""]
     assert float(rows[0]["latency_us"]) == 0.0 and float(rows[1]["latency_us"]) > 0.0
@@ -404,3 +408,15 @@ def test_the_search_reads_the_exposure_time_past_each_frame_even_with_a_narrower
     assert pair_reach_us(rec, 5000.0) == pair_reach_us(rec)
     with pytest.raises(ValueError, match="search_high_us"):
         search_reach_us(rec, float("nan"))
+
+
+def test_command_line_warnings_print_each_message_once_as_one_line(capsys):
+    from evlatcorr import cli
+
+    show = cli._warning_printer("correct")
+    for _ in range(2):  # the same message noticed in two places
+        show(UserWarning("frame 3: no events"), UserWarning, "/somewhere/reader.py", 10)
+        show(UserWarning("frame 3: no events"), UserWarning, "/elsewhere/tqdm.py", 99)
+    show(UserWarning("frame 4: no events"), UserWarning, "/somewhere/reader.py", 10)
+    assert capsys.readouterr().err.splitlines() == ["evlatcorr correct: warning: frame 3: no events",
+                                                    "evlatcorr correct: warning: frame 4: no events"]

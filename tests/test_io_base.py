@@ -224,7 +224,7 @@ def test_warns_window_before_first_event_and_events_after_last_frame():
         batches = list(rec)
     msgs = [str(w.message) for w in caught]
     assert any("frame 0: its window starts at 50 us, 50 us before the first event (100 us)" in m for m in msgs)
-    assert any("mem.rec: 80 events after the window of the last frame (0) are not used" in m for m in msgs)
+    assert any("mem.rec: 80 events after the window of the last frame (0) lie in no frame's window" in m for m in msgs)
     assert len(batches[0].events) == 20
 
 

@@ -87,6 +87,7 @@ def warn_coverage(path: Path, info: FrameInfo, lo: float, hi: float, events: np.
 
 def warn_unused_events(path: Path, count: int, last_frame: int, segment_label: str, past_us: float,
                        stacklevel: int) -> None:
-    """Warn that ``count`` events after the last frame's window go unused (frames may be missing)."""
-    warnings.warn(f"{path}: {count} events after the window of the last frame ({last_frame}){segment_label} are not "
-                  f"used (they run {past_us:.0f} us past its window)", stacklevel=stacklevel)
+    """Warn that ``count`` events come after the last frame's window (frames may be missing): no frame reads them
+    (``evlatcorr correct`` still writes them, at the last frame's latency)."""
+    warnings.warn(f"{path}: {count} events after the window of the last frame ({last_frame}){segment_label} lie in "
+                  f"no frame's window (they run {past_us:.0f} us past its window)", stacklevel=stacklevel)
