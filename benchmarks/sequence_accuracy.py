@@ -4,7 +4,9 @@ The accuracy suite's cases (:mod:`evlatcorr.benchmark.accuracy`) simulated as ``
 one recording (:mod:`evlatcorr.benchmark.sequences`). Every frame is estimated with the default corrector, then
 :func:`evlatcorr.temporal.fuse_latencies` combines the learned reader's evidence of 2 frames either side
 (``fused ±2``, for a whole recording) or of the 2 frames before (a stream). Each frame is scored as the suite
-scores one: latency error (constant latency), EDI PSNR recovery.
+scores one: latency error (constant latency), EDI PSNR recovery. The same sequences' ideal events (no latency, as
+a recording in bright light gives) are estimated too (``--no-ideal`` skips them): how far from 0 each estimate lies
+and what correcting them by it does to their EDI PSNR.
 
     python benchmarks/sequence_accuracy.py --split tuning              # dev + dev_wide: 160 sequences
     python benchmarks/sequence_accuracy.py --split test --frames 6     # report only
@@ -31,7 +33,7 @@ from pathlib import Path  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from evlatcorr.benchmark.accuracy import make_cases  # noqa: E402
-from evlatcorr.benchmark.sequences import evaluate_sequence, summarize_sequences  # noqa: E402
+from evlatcorr.benchmark.sequences import IDEAL, LOSING_DB, evaluate_sequence, summarize_sequences  # noqa: E402
 
 MODELS = {"constant": "constant latency", "intensity": "photoreceptor low-pass", "intensity_delay": "per-pixel delay"}
 
@@ -40,8 +42,14 @@ def to_markdown(summary: dict, command: str, seconds: float) -> str:
     lines = [f"`{command}` ({seconds / 60:.1f} min)", "",
              "| estimate | latency model | frames (with a gap) | abs. error: median / p90 / worst | "
              "recovery: median / p10 / worst | frames recovering < 50 % |", "| --- | --- | --- | --- | --- | --- |"]
+    ideal = []
     for estimate, models in summary.items():
         for model, s in models.items():
+            if model == IDEAL:
+                ideal.append(f"| {estimate} | {s['frames']} | {s['median_abs_error_us']:.0f} µs; {s['within_150us']} | "
+                             f"{s['mean_psnr_change_db']:+.2f} / {s['worst_psnr_change_db']:+.2f} dB | "
+                             f"{s['losing_frames']} |")
+                continue
             error = (f"{s['median_abs_error_us']:.0f} / {s['p90_abs_error_us']:.0f} / {s['worst_abs_error_us']:.0f} µs"
                      if "median_abs_error_us" in s else "")
             gain = (f"{s['median_recovery']:.0%} / {s['p10_recovery']:.0%} / {s['worst_recovery']:.0%}"
@@ -49,6 +57,11 @@ def to_markdown(summary: dict, command: str, seconds: float) -> str:
             below = f"{s['below_half']} of {s['frames_with_gap']}" if "below_half" in s else ""
             lines.append(f"| {estimate} | {MODELS.get(model, model)} | {s['frames']} ({s['frames_with_gap']}) | "
                          f"{error} | {gain} | {below} |")
+    if ideal:
+        lines += ["", "The same sequences' ideal events (no latency, as in bright light), corrected by the estimate:",
+                  "",
+                  "| estimate | frames | median abs. estimate; within 150 µs | EDI PSNR change: mean / worst | "
+                  f"frames losing > {LOSING_DB} dB |", "| --- | --- | --- | --- | --- |", *ideal]
     return "\n".join(lines) + "\n"
 
 
@@ -58,6 +71,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--frames", type=int, default=6, help="frames per sequence (default: 6)")
     p.add_argument("--models", nargs="+", choices=tuple(MODELS), default=list(MODELS),
                    help="latency models to run (default: all)")
+    p.add_argument("--no-ideal", action="store_true",
+                   help="skip the sequences' ideal events (estimated by default: what bright light gives)")
     p.add_argument("--out", type=Path, default=Path("outputs/sequences"))
     args = p.parse_args(argv)
     if args.frames < 1:
@@ -67,7 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     rows = []
     for case in tqdm(cases, desc="sequences", unit="case"):
-        rows += evaluate_sequence(case, args.frames)
+        rows += evaluate_sequence(case, args.frames, ideal=not args.no_ideal)
     seconds = time.perf_counter() - t0
     if not rows:
         sys.exit("no frame had events: nothing to report")

@@ -3,14 +3,20 @@ import math
 import pytest
 
 from evlatcorr.benchmark.accuracy import make_cases
-from evlatcorr.benchmark.sequences import evaluate_sequence, summarize_sequences
+from evlatcorr.benchmark.sequences import IDEAL, LOSING_DB, evaluate_sequence, summarize_sequences
 
 
 @pytest.fixture(scope="module")
-def rows():
-    # the first constant-latency dev case at 48x64, as 3 back-to-back frames
+def all_rows():
+    # the first constant-latency dev case at 48x64, as 3 back-to-back frames, and its ideal events
     case = next(c for c in make_cases("dev", size=(48, 64)) if c.latency_model == "constant")
     return case, evaluate_sequence(case, num_frames=3, windows={"fused ±1": (1, 1)})
+
+
+@pytest.fixture(scope="module")
+def rows(all_rows):
+    case, rows = all_rows
+    return case, [r for r in rows if r["model"] != IDEAL]
 
 
 def test_every_frame_is_scored_with_its_own_and_the_fused_latency(rows):
@@ -38,6 +44,26 @@ def test_the_summary_counts_frames_per_estimate_and_model(rows):
         assert stats["median_abs_error_us"] == pytest.approx(errors[1]) and stats["worst_abs_error_us"] == errors[2]
 
 
+def test_the_ideal_events_are_estimated_too_and_scored_by_what_correcting_them_costs(all_rows):
+    case, rows = all_rows
+    ideal = [r for r in rows if r["model"] == IDEAL]
+    assert {r["estimate"] for r in ideal} == {"per frame", "fused ±1"} and len(ideal) == 6
+    for r in ideal:
+        assert r["true_latency_us"] == 0.0 and r["error_us"] == r["latency_us"]
+        assert r["psnr_uncorrected"] == r["psnr_ideal"] and math.isnan(r["recovery"])
+        assert r["latency_us"] > 0.0 or r["psnr_corrected"] == pytest.approx(r["psnr_ideal"])
+    stats = summarize_sequences(rows)["per frame"][IDEAL]
+    alone = [r for r in ideal if r["estimate"] == "per frame"]
+    changes = [r["psnr_corrected"] - r["psnr_ideal"] for r in alone]
+    assert stats["frames"] == 3 and stats["within_150us"] == sum(abs(r["latency_us"]) <= 150.0 for r in alone)
+    assert stats["mean_psnr_change_db"] == pytest.approx(sum(changes) / 3)
+    assert stats["worst_psnr_change_db"] == min(changes)
+    assert stats["losing_frames"] == sum(c < -LOSING_DB for c in changes)
+    without = evaluate_sequence(case, num_frames=3, windows={"fused ±1": (1, 1)}, ideal=False)
+    key = [(r["estimate"], r["frame"], r["latency_us"], r["psnr_corrected"]) for r in rows if r["model"] != IDEAL]
+    assert [(r["estimate"], r["frame"], r["latency_us"], r["psnr_corrected"]) for r in without] == key
+
+
 def test_a_sequence_needs_at_least_one_frame():
     with pytest.raises(ValueError, match="num_frames"):
         evaluate_sequence(make_cases("dev")[0], num_frames=0)
@@ -60,6 +86,7 @@ def test_the_script_writes_its_table(tmp_path):
     summary = json.loads((tmp_path / "results.json").read_text())["summary"]
     assert summary["per frame"]["constant"]["frames"] == 2  # the one constant case among the first six, 2 frames
     rows = (tmp_path / "results.csv").read_text().splitlines()
-    assert rows[0].startswith("case,model,frame,estimate") and len(rows) == 1 + 3 * 2
+    assert rows[0].startswith("case,model,frame,estimate") and len(rows) == 1 + 2 * 3 * 2  # and the ideal events'
+    assert "| fused ±2 | 2 |" in table  # the ideal events' table
     bad = subprocess.run([*script[:-2], "--frames", "0"], capture_output=True, text=True, cwd=root, timeout=300)
     assert bad.returncode == 2 and "--frames must be at least 1" in bad.stderr

@@ -3,7 +3,8 @@
 A recording's frames share their latency, and :func:`evlatcorr.temporal.fuse_latencies` combines neighbouring
 frames' evidence. :func:`evaluate_sequence` simulates a case as ``num_frames`` back-to-back frames, estimates each
 frame with the default corrector, fuses the estimates over windows of frames, and scores every frame as the
-suite scores one (latency error, EDI PSNR recovery); :func:`summarize_sequences` aggregates per latency model.
+suite scores one (latency error, EDI PSNR recovery), and the same for the sequence's ideal events (how far from 0,
+and what correcting by it costs); :func:`summarize_sequences` aggregates per latency model.
 
 Example:
     >>> from evlatcorr.benchmark.accuracy import make_cases
@@ -27,14 +28,18 @@ from evlatcorr.benchmark.accuracy import NO_GAP_DB, Case, simulate_case
 from evlatcorr.benchmark.compare import edi_psnr, recovery
 from evlatcorr.temporal import frame_evidence, fuse_latencies
 
-__all__ = ["evaluate_sequence", "summarize_sequences", "DEFAULT_WINDOWS"]
+__all__ = ["evaluate_sequence", "summarize_sequences", "DEFAULT_WINDOWS", "IDEAL"]
 
 # the fused estimates scored: (frames before, frames after)
 DEFAULT_WINDOWS = {"fused ±2": (2, 2), "fused, past 2 (stream)": (2, 0)}
+# the model of the rows of a sequence's ideal events (no latency)
+IDEAL = "ideal"
+# an ideal frame corrected by an estimate loses more than this much EDI PSNR: counted
+LOSING_DB = 0.5
 
 
-def evaluate_sequence(case: Case, num_frames: int = 6,
-                      windows: dict[str, tuple[int, int]] | None = None) -> list[dict[str, Any]]:
+def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple[int, int]] | None = None,
+                      ideal: bool = True) -> list[dict[str, Any]]:
     """Every frame of a case simulated as a sequence, scored with its own latency and with each fused one.
 
     Args:
@@ -42,19 +47,54 @@ def evaluate_sequence(case: Case, num_frames: int = 6,
         num_frames: frames in the sequence (at least 1).
         windows: name -> ``(before, after)`` frames for :func:`~evlatcorr.temporal.fuse_latencies`; default
             :data:`DEFAULT_WINDOWS`.
+        ideal: also estimate the same sequence's ideal events (no latency: what a recording in bright light gives),
+            as rows of model :data:`IDEAL`.
 
     Returns:
         one row per frame and estimate (``"per frame"`` and each window): ``case``, ``model``, ``frame``,
         ``estimate``, ``latency_us``, ``true_latency_us`` (mean of the map), ``error_us`` (estimate − mean truth),
         ``psnr_ideal``, ``psnr_uncorrected``, ``psnr_corrected`` and ``recovery`` (NaN without a gap). A frame
-        with no events gets no rows.
+        with no events gets no rows. The ideal events' rows have a true latency of 0, ``psnr_uncorrected`` equal to
+        ``psnr_ideal`` (their EDI PSNR as they are), ``psnr_corrected`` that of the events corrected by the
+        estimate, and no recovery (NaN).
     """
+    windows = DEFAULT_WINDOWS if windows is None else windows
+    delayed, ideal_events, _ = simulate_case(case, num_frames)
+    frames, ideal_frames = delayed.split(), ideal_events.split()
+    rows = []
+    kept, estimates = _estimates(frames, case.threshold, windows)
+    for n, i in enumerate(kept):
+        frame = frames[i]
+        true = float(frame.meta["true_latency"].mean())
+        psnr_ideal, psnr_uncorrected = edi_psnr(ideal_frames[i], case.threshold), edi_psnr(frame, case.threshold)
+        for name, values in estimates.items():
+            value = float(values[n])
+            psnr = edi_psnr(frame, case.threshold, latency=value)
+            rows.append(dict(case=case.name, model=case.latency_model, frame=i, estimate=name, latency_us=value,
+                             true_latency_us=true, error_us=value - true, psnr_ideal=psnr_ideal,
+                             psnr_uncorrected=psnr_uncorrected, psnr_corrected=psnr,
+                             recovery=recovery(psnr, psnr_uncorrected, psnr_ideal, NO_GAP_DB)))
+    if ideal:
+        kept, estimates = _estimates(ideal_frames, case.threshold, windows)
+        for n, i in enumerate(kept):
+            psnr_ideal = edi_psnr(ideal_frames[i], case.threshold)
+            for name, values in estimates.items():
+                value = float(values[n])
+                rows.append(dict(case=case.name, model=IDEAL, frame=i, estimate=name, latency_us=value,
+                                 true_latency_us=0.0, error_us=value, psnr_ideal=psnr_ideal,
+                                 psnr_uncorrected=psnr_ideal,
+                                 psnr_corrected=edi_psnr(ideal_frames[i], case.threshold, latency=value),
+                                 recovery=math.nan))
+    return rows
+
+
+def _estimates(frames: list, threshold: float, windows: dict[str, tuple[int, int]]
+               ) -> tuple[list[int], dict[str, torch.Tensor]]:
+    """The default corrector's latency of each frame with events (their indices), alone (``"per frame"``) and fused
+    over each window."""
     from evlatcorr.correction import EventLatencyCorrector
 
-    windows = DEFAULT_WINDOWS if windows is None else windows
-    delayed, ideal, _ = simulate_case(case, num_frames)
-    frames, ideal_frames = delayed.split(), ideal.split()
-    corrector = EventLatencyCorrector(threshold=case.threshold)
+    corrector = EventLatencyCorrector(threshold=threshold)
     own, candidates, log_p, kept = [], [], [], []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # fallbacks are counted in the figures, not printed per frame
@@ -67,30 +107,20 @@ def evaluate_sequence(case: Case, num_frames: int = 6,
             log_p.append(row)
             kept.append(i)
     if not kept:
-        return []
+        return [], {}
     latency = torch.tensor(own, dtype=torch.float64)
     estimates = {"per frame": latency}
     for name, (before, after) in windows.items():
         estimates[name] = fuse_latencies(latency, candidates, log_p, before, after)
-    rows = []
-    for n, i in enumerate(kept):
-        frame = frames[i]
-        true = float(frame.meta["true_latency"].mean())
-        psnr_ideal, psnr_uncorrected = edi_psnr(ideal_frames[i], case.threshold), edi_psnr(frame, case.threshold)
-        for name, values in estimates.items():
-            value = float(values[n])
-            psnr = edi_psnr(frame, case.threshold, latency=value)
-            rows.append(dict(case=case.name, model=case.latency_model, frame=i, estimate=name, latency_us=value,
-                             true_latency_us=true, error_us=value - true, psnr_ideal=psnr_ideal,
-                             psnr_uncorrected=psnr_uncorrected, psnr_corrected=psnr,
-                             recovery=recovery(psnr, psnr_uncorrected, psnr_ideal, NO_GAP_DB)))
-    return rows
+    return kept, estimates
 
 
 def summarize_sequences(rows: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, float]]]:
     """Per estimate and latency model: frames, the median / 90th percentile / worst absolute error (constant
     latency only, µs), the median / 10th percentile / worst recovery and how many frames recover less than half of
-    their gap (frames with a gap only)."""
+    their gap (frames with a gap only); for the ideal events (:data:`IDEAL`), the median absolute estimate, how many
+    are within 150 µs of 0, and the mean and worst change of EDI PSNR that correcting by them makes, and on how many
+    frames it loses more than :data:`LOSING_DB`."""
     out: dict[str, dict[str, dict[str, float]]] = {}
     for estimate in dict.fromkeys(r["estimate"] for r in rows):
         out[estimate] = {}
@@ -105,5 +135,11 @@ def summarize_sequences(rows: list[dict[str, Any]]) -> dict[str, dict[str, dict[
             if gains:
                 stats.update(median_recovery=statistics.median(gains), p10_recovery=float(np.percentile(gains, 10)),
                              worst_recovery=min(gains), below_half=sum(g < 0.5 for g in gains))
+            if model == IDEAL and sel:
+                changes = [r["psnr_corrected"] - r["psnr_uncorrected"] for r in sel]
+                stats.update(median_abs_error_us=statistics.median(errors),
+                             within_150us=sum(e <= 150.0 for e in errors),
+                             mean_psnr_change_db=statistics.fmean(changes), worst_psnr_change_db=min(changes),
+                             losing_frames=sum(c < -LOSING_DB for c in changes))
             out[estimate][model] = stats
     return out
