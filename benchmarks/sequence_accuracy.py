@@ -10,6 +10,7 @@ and what correcting them by it does to their EDI PSNR.
 
     python benchmarks/sequence_accuracy.py --split tuning              # dev + dev_wide: 160 sequences
     python benchmarks/sequence_accuracy.py --split test --frames 6     # report only
+    python benchmarks/sequence_accuracy.py --split tuning --no-latency-mass 0.1 0.2   # and 0 where p(0) > 0.1, 0.2
 
 Writes ``results.md``, ``results.csv`` and ``results.json`` under ``--out``.
 """
@@ -33,7 +34,13 @@ from pathlib import Path  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from evlatcorr.benchmark.accuracy import make_cases  # noqa: E402
-from evlatcorr.benchmark.sequences import IDEAL, LOSING_DB, evaluate_sequence, summarize_sequences  # noqa: E402
+from evlatcorr.benchmark.sequences import (  # noqa: E402
+    DEFAULT_WINDOWS,
+    IDEAL,
+    LOSING_DB,
+    evaluate_sequence,
+    summarize_sequences,
+)
 
 MODELS = {"constant": "constant latency", "intensity": "photoreceptor low-pass", "intensity_delay": "per-pixel delay"}
 
@@ -71,18 +78,25 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--frames", type=int, default=6, help="frames per sequence (default: 6)")
     p.add_argument("--models", nargs="+", choices=tuple(MODELS), default=list(MODELS),
                    help="latency models to run (default: all)")
+    p.add_argument("--no-latency-mass", type=float, nargs="+", default=[], metavar="SHARE",
+                   help="also score 'fused ±2' with fuse_latencies(no_latency_mass=SHARE): 0 where the fused "
+                        "probability keeps that share on no latency (measured, not a default)")
     p.add_argument("--no-ideal", action="store_true",
                    help="skip the sequences' ideal events (estimated by default: what bright light gives)")
     p.add_argument("--out", type=Path, default=Path("outputs/sequences"))
     args = p.parse_args(argv)
     if args.frames < 1:
         p.error(f"--frames must be at least 1, got {args.frames}")
+    if any(not 0 < share < 1 for share in args.no_latency_mass):
+        p.error(f"--no-latency-mass must be in (0, 1), got {args.no_latency_mass}")
+    windows = dict(DEFAULT_WINDOWS) | {f"fused ±2, 0 where p(0) > {share:g}": (2, 2, share)
+                                       for share in args.no_latency_mass}
     splits = {"tuning": ("dev", "dev_wide")}.get(args.split, (args.split,))
     cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size)) if c.latency_model in args.models]
     t0 = time.perf_counter()
     rows = []
     for case in tqdm(cases, desc="sequences", unit="case"):
-        rows += evaluate_sequence(case, args.frames, ideal=not args.no_ideal)
+        rows += evaluate_sequence(case, args.frames, windows, ideal=not args.no_ideal)
     seconds = time.perf_counter() - t0
     if not rows:
         sys.exit("no frame had events: nothing to report")

@@ -18,10 +18,11 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from evlatcorr.curve_reader import probability_centre
+from evlatcorr.curve_reader import CENTRE_HALF_WIDTH, probability_centre
 from evlatcorr.frames import EventFrames
 
-__all__ = ["fuse_latencies", "frame_evidence", "LatencyHistory", "StreamingLatencyCorrector", "DEFAULT_FUSED_FRAMES"]
+__all__ = ["fuse_latencies", "frame_evidence", "no_latency_share", "LatencyHistory", "StreamingLatencyCorrector",
+           "DEFAULT_FUSED_FRAMES"]
 
 # frames either side whose evidence a frame takes: on 6-frame sequences of the accuracy suite's tuning cases
 # (constant and photoreceptor latency), 2 either side lowered the constant-latency median error from 664 to 513 µs,
@@ -31,7 +32,8 @@ DEFAULT_FUSED_FRAMES = 2
 
 def fuse_latencies(latency: Tensor, candidates: Tensor | Sequence[Tensor],
                    log_probability: Tensor | Sequence[Tensor | None] | None,
-                   before: int = DEFAULT_FUSED_FRAMES, after: int = DEFAULT_FUSED_FRAMES) -> Tensor:
+                   before: int = DEFAULT_FUSED_FRAMES, after: int = DEFAULT_FUSED_FRAMES,
+                   no_latency_mass: float | None = None) -> Tensor:
     """Each frame's latency from its own and its neighbours' reader log-probabilities.
 
     Args:
@@ -46,12 +48,17 @@ def fuse_latencies(latency: Tensor, candidates: Tensor | Sequence[Tensor],
             NaN row or None for a frame with none. None: nothing to fuse, ``latency`` is returned.
         before: earlier frames that count (0 or more).
         after: later frames that count (0 for a stream, where the next frames are not there yet).
+        no_latency_mass: in (0, 1), or None (the default): a frame whose fused probability gives the candidates whose
+            centre reaches no latency (0 and the :data:`~evlatcorr.curve_reader.CENTRE_HALF_WIDTH` above it) more than
+            this share gets 0. Measured with ``python benchmarks/sequence_accuracy.py --no-latency-mass``, not a
+            default (``docs/estimator.md``).
 
     Returns:
         :math:`(N,)` float64 µs, on ``latency``'s device.
 
     Raises:
-        ValueError: for shapes that do not match, a negative window, or non-finite latencies.
+        ValueError: for shapes that do not match, a negative window, non-finite latencies or a ``no_latency_mass``
+            outside (0, 1).
 
     Example:
         >>> cand = torch.arange(0.0, 2000.0, 100.0)
@@ -67,6 +74,8 @@ def fuse_latencies(latency: Tensor, candidates: Tensor | Sequence[Tensor],
     if isinstance(before, bool) or isinstance(after, bool) or not (isinstance(before, int) and isinstance(after, int)
                                                                    and before >= 0 and after >= 0):
         raise ValueError(f"before and after must be whole numbers >= 0, got {before!r} and {after!r}")
+    if no_latency_mass is not None and not 0 < no_latency_mass < 1:
+        raise ValueError(f"no_latency_mass must be in (0, 1) or None, got {no_latency_mass!r}")
     out = latency.detach().to("cpu", torch.float64).clone()
     if log_probability is None:
         return out.to(latency.device)
@@ -92,6 +101,9 @@ def fuse_latencies(latency: Tensor, candidates: Tensor | Sequence[Tensor],
             total += _on_candidates(evidence[j], cand[j], cand[own])
         scored = torch.isfinite(log_p[own])
         total = torch.where(scored, total, -math.inf)
+        if no_latency_mass is not None and no_latency_share(total, cand[own]) > no_latency_mass:
+            out[k] = 0.0
+            continue
         out[k] = probability_centre(total, cand[own], int(scored.sum()))[1]
     return out.to(latency.device)
 
@@ -130,6 +142,29 @@ def _rows(values: Tensor | Sequence[Tensor | None], n: int, name: str) -> list[T
     if len(rows) != n:
         raise ValueError(f"{name} must have one row per frame ({n}), got {len(rows)}")
     return [None if r is None else r.detach().to("cpu", torch.float64) for r in rows]
+
+
+def no_latency_share(log_probability: Tensor, candidates: Tensor) -> float:
+    """The probability that a reader's log-odds :math:`(K,)` give the candidates :math:`(K,)` µs whose centre reaches
+    no latency: 0 and the :data:`~evlatcorr.curve_reader.CENTRE_HALF_WIDTH` candidates above it (0 where the
+    candidates do not start at 0). Candidates that could not be scored (−inf or NaN) get none.
+
+    Raises:
+        ValueError: when the two are not 1-D of one length, or no candidate could be scored.
+
+    Example:
+        >>> round(no_latency_share(torch.log(torch.tensor([0.2, 0.1, 0.1, 0.6])), torch.arange(4.0)), 6)
+        0.4
+    """
+    if log_probability.dim() != 1 or candidates.shape != log_probability.shape:
+        raise ValueError(f"log_probability and candidates must be 1-D of one length, got "
+                         f"{tuple(log_probability.shape)} and {tuple(candidates.shape)}")
+    log_probability = log_probability.double().nan_to_num(nan=-math.inf, posinf=math.inf, neginf=-math.inf)
+    if not bool(torch.isfinite(log_probability).any()):
+        raise ValueError("no candidate could be scored (every log-probability is -inf or NaN)")
+    if float(candidates[0]) != 0.0:
+        return 0.0
+    return float(torch.softmax(log_probability, 0)[:CENTRE_HALF_WIDTH + 1].sum())
 
 
 def _uninformative_filled(log_p: Tensor) -> Tensor:

@@ -178,19 +178,6 @@ def test_reader_estimate_from_curves_below_zero_is_never_negative():
 NO_LATENCY = "benchmarks/estimators/no_latency.py"
 
 
-def test_no_latency_mass_is_the_probability_of_the_candidates_whose_centre_reaches_zero():
-    no_latency_mass = load_estimator(f"{NO_LATENCY}:no_latency_mass")
-    log_p = torch.log(torch.tensor([0.2, 0.1, 0.1, 0.5, 0.1]))
-    assert no_latency_mass(log_p, torch.arange(5.0)) == pytest.approx(0.4)  # 0 and the two candidates above it
-    assert no_latency_mass(log_p, torch.arange(1.0, 6.0)) == 0.0  # candidates that do not start at no latency
-    unscored = torch.tensor([0.0, -torch.inf, -torch.inf, 0.0, 0.0])
-    assert no_latency_mass(unscored, torch.arange(5.0)) == pytest.approx(1 / 3)
-    with pytest.raises(ValueError, match="1-D of one length"):
-        no_latency_mass(log_p, torch.arange(4.0))
-    with pytest.raises(ValueError, match="no candidate could be scored"):
-        no_latency_mass(torch.full((5,), -torch.inf), torch.arange(5.0))
-
-
 def test_no_latency_estimator_answers_zero_above_its_threshold_and_the_corrector_below(monkeypatch):
     delayed = simulate_case(tiny_case())[0]
     delayed.meta["threshold"] = 0.2

@@ -77,16 +77,20 @@ def test_the_script_writes_its_table(tmp_path):
 
     root = Path(__file__).resolve().parents[1]
     script = [sys.executable, str(root / "benchmarks" / "sequence_accuracy.py"), "--split", "dev", "--num", "6",
-              "--size", "32", "40", "--frames", "2", "--models", "constant", "--out", str(tmp_path)]
+              "--size", "32", "40", "--frames", "2", "--models", "constant", "--no-latency-mass", "0.3",
+              "--out", str(tmp_path)]
     run = subprocess.run(script, capture_output=True, text=True, cwd=root, timeout=300)
     assert run.returncode == 0, run.stderr
     table = (tmp_path / "results.md").read_text()
-    for estimate in ("per frame", "fused ±2", "fused, past 2 (stream)"):
+    for estimate in ("per frame", "fused ±2", "fused, past 2 (stream)", "fused ±2, 0 where p(0) > 0.3"):
         assert f"| {estimate} | constant latency |" in table
     summary = json.loads((tmp_path / "results.json").read_text())["summary"]
     assert summary["per frame"]["constant"]["frames"] == 2  # the one constant case among the first six, 2 frames
     rows = (tmp_path / "results.csv").read_text().splitlines()
-    assert rows[0].startswith("case,model,frame,estimate") and len(rows) == 1 + 2 * 3 * 2  # and the ideal events'
+    assert rows[0].startswith("case,model,frame,estimate") and len(rows) == 1 + 2 * 4 * 2  # and the ideal events'
     assert "| fused ±2 | 2 |" in table  # the ideal events' table
     bad = subprocess.run([*script[:-2], "--frames", "0"], capture_output=True, text=True, cwd=root, timeout=300)
     assert bad.returncode == 2 and "--frames must be at least 1" in bad.stderr
+    bad = subprocess.run([*script[:-2], "--no-latency-mass", "1"], capture_output=True, text=True, cwd=root,
+                         timeout=300)
+    assert bad.returncode == 2 and "--no-latency-mass must be in (0, 1)" in bad.stderr

@@ -6,7 +6,7 @@ import torch
 from evlatcorr.curve_reader import probability_centre
 from evlatcorr.edi import edi_deblur
 from evlatcorr.search import search_constant_latency
-from evlatcorr.temporal import frame_evidence, fuse_latencies
+from evlatcorr.temporal import frame_evidence, fuse_latencies, no_latency_share
 from tests.conftest import random_events
 
 CANDIDATES = torch.arange(0.0, 2000.0, 100.0, dtype=torch.float64)
@@ -22,6 +22,37 @@ def test_no_window_gives_each_frames_own_centre():
     fused = fuse_latencies(torch.tensor([0.0, 0.0]), CANDIDATES, log_p, before=0, after=0)
     expected = [probability_centre(row, CANDIDATES, len(CANDIDATES))[1] for row in log_p]
     torch.testing.assert_close(fused, torch.tensor(expected, dtype=torch.float64), rtol=0, atol=1e-9)
+
+
+def test_no_latency_share_is_the_probability_of_the_candidates_whose_centre_reaches_zero():
+    log_p = torch.log(torch.tensor([0.2, 0.1, 0.1, 0.5, 0.1]))
+    assert no_latency_share(log_p, torch.arange(5.0)) == pytest.approx(0.4)  # 0 and the two candidates above it
+    assert no_latency_share(log_p, torch.arange(1.0, 6.0)) == 0.0  # candidates that do not start at no latency
+    unscored = torch.tensor([0.0, -math.inf, math.nan, 0.0, 0.0])
+    assert no_latency_share(unscored, torch.arange(5.0)) == pytest.approx(1 / 3)
+    with pytest.raises(ValueError, match="1-D of one length"):
+        no_latency_share(log_p, torch.arange(4.0))
+    with pytest.raises(ValueError, match="no candidate could be scored"):
+        no_latency_share(torch.full((5,), -math.inf), torch.arange(5.0))
+
+
+def test_fused_frames_that_keep_no_latency_likely_get_none_when_asked():
+    # three frames unsure between no latency and a little: their fused probability keeps a share near 0
+    log_p = torch.stack([belief(150.0, 300.0), belief(300.0, 400.0), belief(200.0, 300.0)])
+    own = torch.tensor([150.0, 300.0, 200.0])
+    share = no_latency_share(log_p.sum(0), CANDIDATES)
+    assert 0.2 < share < 0.99
+    plain = fuse_latencies(own, CANDIDATES, log_p, before=1, after=1)
+    assert bool((plain > 0).all())
+    torch.testing.assert_close(fuse_latencies(own, CANDIDATES, log_p, 1, 1, no_latency_mass=0.2),
+                               torch.zeros(3, dtype=torch.float64))
+    # frames sure of a latency well above 0 keep their fused centre
+    sure = torch.stack([belief(1200.0, 150.0)] * 3)
+    torch.testing.assert_close(fuse_latencies(own, CANDIDATES, sure, 1, 1, no_latency_mass=0.2),
+                               fuse_latencies(own, CANDIDATES, sure, 1, 1))
+    for bad in (0.0, 1.0, -0.1):
+        with pytest.raises(ValueError, match="no_latency_mass"):
+            fuse_latencies(own, CANDIDATES, log_p, 1, 1, no_latency_mass=bad)
 
 
 def test_an_unsure_frame_off_on_its_own_follows_its_confident_neighbours():

@@ -38,15 +38,15 @@ IDEAL = "ideal"
 LOSING_DB = 0.5
 
 
-def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple[int, int]] | None = None,
+def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple] | None = None,
                       ideal: bool = True) -> list[dict[str, Any]]:
     """Every frame of a case simulated as a sequence, scored with its own latency and with each fused one.
 
     Args:
         case: the suite's case (its scene, motion, latency and noise models).
         num_frames: frames in the sequence (at least 1).
-        windows: name -> ``(before, after)`` frames for :func:`~evlatcorr.temporal.fuse_latencies`; default
-            :data:`DEFAULT_WINDOWS`.
+        windows: name -> ``(before, after)`` frames for :func:`~evlatcorr.temporal.fuse_latencies`, or ``(before,
+            after, no_latency_mass)``; default :data:`DEFAULT_WINDOWS`.
         ideal: also estimate the same sequence's ideal events (no latency: what a recording in bright light gives),
             as rows of model :data:`IDEAL`.
 
@@ -88,8 +88,7 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple[
     return rows
 
 
-def _estimates(frames: list, threshold: float, windows: dict[str, tuple[int, int]]
-               ) -> tuple[list[int], dict[str, torch.Tensor]]:
+def _estimates(frames: list, threshold: float, windows: dict[str, tuple]) -> tuple[list[int], dict[str, torch.Tensor]]:
     """The default corrector's latency of each frame with events (their indices), alone (``"per frame"``) and fused
     over each window."""
     from evlatcorr.correction import EventLatencyCorrector
@@ -110,8 +109,8 @@ def _estimates(frames: list, threshold: float, windows: dict[str, tuple[int, int
         return [], {}
     latency = torch.tensor(own, dtype=torch.float64)
     estimates = {"per frame": latency}
-    for name, (before, after) in windows.items():
-        estimates[name] = fuse_latencies(latency, candidates, log_p, before, after)
+    for name, window in windows.items():
+        estimates[name] = fuse_latencies(latency, candidates, log_p, *window)
     return kept, estimates
 
 
