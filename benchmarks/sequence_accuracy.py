@@ -10,7 +10,7 @@ and what correcting them by it does to their EDI PSNR.
 
     python benchmarks/sequence_accuracy.py --split tuning              # dev + dev_wide: 160 sequences
     python benchmarks/sequence_accuracy.py --split test --frames 6     # report only
-    python benchmarks/sequence_accuracy.py --split tuning --no-latency-mass 0.1 0.2   # and 0 where p(0) > 0.1, 0.2
+    python benchmarks/sequence_accuracy.py --split tuning --no-latency-mass 0 0.1   # also without the rule, and at 0.1
 
 Writes ``results.md``, ``results.csv`` and ``results.json`` under ``--out``.
 """
@@ -41,6 +41,7 @@ from evlatcorr.benchmark.sequences import (  # noqa: E402
     evaluate_sequence,
     summarize_sequences,
 )
+from evlatcorr.temporal import DEFAULT_NO_LATENCY_MASS  # noqa: E402
 
 MODELS = {"constant": "constant latency", "intensity": "photoreceptor low-pass", "intensity_delay": "per-pixel delay"}
 
@@ -80,17 +81,19 @@ def main(argv: list[str] | None = None) -> None:
                    help="latency models to run (default: all)")
     p.add_argument("--no-latency-mass", type=float, nargs="+", default=[], metavar="SHARE",
                    help="also score 'fused ±2' with fuse_latencies(no_latency_mass=SHARE): 0 where the fused "
-                        "probability keeps that share on no latency (measured, not a default)")
+                        "probability keeps more than that share on no latency (0: without that rule; the default "
+                        f"windows use {DEFAULT_NO_LATENCY_MASS})")
     p.add_argument("--no-ideal", action="store_true",
                    help="skip the sequences' ideal events (estimated by default: what bright light gives)")
     p.add_argument("--out", type=Path, default=Path("outputs/sequences"))
     args = p.parse_args(argv)
     if args.frames < 1:
         p.error(f"--frames must be at least 1, got {args.frames}")
-    if any(not 0 < share < 1 for share in args.no_latency_mass):
-        p.error(f"--no-latency-mass must be in (0, 1), got {args.no_latency_mass}")
-    windows = dict(DEFAULT_WINDOWS) | {f"fused ±2, 0 where p(0) > {share:g}": (2, 2, share)
-                                       for share in args.no_latency_mass}
+    if any(not 0 <= share < 1 for share in args.no_latency_mass):
+        p.error(f"--no-latency-mass must be in [0, 1), got {args.no_latency_mass}")
+    windows = dict(DEFAULT_WINDOWS) | {
+        (f"fused ±2, 0 where p(0) > {share:g}" if share else "fused ±2, without the no-latency rule"):
+            (2, 2, share or None) for share in args.no_latency_mass}
     splits = {"tuning": ("dev", "dev_wide")}.get(args.split, (args.split,))
     cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size)) if c.latency_model in args.models]
     t0 = time.perf_counter()

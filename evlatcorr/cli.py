@@ -53,7 +53,8 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--fuse-frames", type=int, default=DEFAULT_FUSED_FRAMES, metavar="N",
                    help="constant mode: each frame's latency from the learned reader's evidence of N frames either "
                         f"side too (a recording's latency changes slowly; default {DEFAULT_FUSED_FRAMES}, 0: each "
-                        "frame alone); the report keeps each frame's own estimate as frame_latency_us")
+                        "frame alone), 0 where that evidence keeps no latency likely; the report keeps each frame's "
+                        "own estimate as frame_latency_us")
     _common(c)
 
     d = sub.add_parser("deblur", help="deblur every frame with EDI or a network; PNGs, a side-by-side GIF, a CSV",
@@ -104,7 +105,8 @@ def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> Non
     p.add_argument("--fuse-frames", type=int, default=DEFAULT_FUSED_FRAMES, metavar="N",
                    help="--correct constant: each frame's latency from the learned reader's evidence of the N frames "
                         f"before it too (frame by frame, as a stream; default {DEFAULT_FUSED_FRAMES}, 0: each frame "
-                        "alone); frames.csv keeps each frame's own estimate as frame_latency_us")
+                        "alone), 0 where that evidence keeps no latency likely; frames.csv keeps each frame's own "
+                        "estimate as frame_latency_us")
     _common(p)
 
 

@@ -22,18 +22,23 @@ from evlatcorr.curve_reader import CENTRE_HALF_WIDTH, probability_centre
 from evlatcorr.frames import EventFrames
 
 __all__ = ["fuse_latencies", "frame_evidence", "no_latency_share", "LatencyHistory", "StreamingLatencyCorrector",
-           "DEFAULT_FUSED_FRAMES"]
+           "DEFAULT_FUSED_FRAMES", "DEFAULT_NO_LATENCY_MASS"]
 
 # frames either side whose evidence a frame takes: on 6-frame sequences of the accuracy suite's tuning cases
 # (constant and photoreceptor latency), 2 either side lowered the constant-latency median error from 664 to 513 µs,
 # the 90th percentile from 4966 to 2942 µs, and raised the 10th percentile of the EDI recovery from 10 to 42 %
 DEFAULT_FUSED_FRAMES = 2
+# a frame whose fused reader probability keeps more than this share on the candidates whose centre reaches no latency
+# gets none (no_latency_share): on the tuning cases' 6-frame sequences (fused ±2) their ideal events within 150 µs of 0
+# went from 29 to 404 of 943 and their mean EDI PSNR loss from 0.32 to 0.22 dB, the delayed frames' mean PSNR moved by
+# 0.001 dB (docs/estimator.md); 0.1 cost the delayed frames more, 0.3 gained less
+DEFAULT_NO_LATENCY_MASS = 0.2
 
 
 def fuse_latencies(latency: Tensor, candidates: Tensor | Sequence[Tensor],
                    log_probability: Tensor | Sequence[Tensor | None] | None,
                    before: int = DEFAULT_FUSED_FRAMES, after: int = DEFAULT_FUSED_FRAMES,
-                   no_latency_mass: float | None = None) -> Tensor:
+                   no_latency_mass: float | None = DEFAULT_NO_LATENCY_MASS) -> Tensor:
     """Each frame's latency from its own and its neighbours' reader log-probabilities.
 
     Args:
@@ -48,10 +53,11 @@ def fuse_latencies(latency: Tensor, candidates: Tensor | Sequence[Tensor],
             NaN row or None for a frame with none. None: nothing to fuse, ``latency`` is returned.
         before: earlier frames that count (0 or more).
         after: later frames that count (0 for a stream, where the next frames are not there yet).
-        no_latency_mass: in (0, 1), or None (the default): a frame whose fused probability gives the candidates whose
-            centre reaches no latency (0 and the :data:`~evlatcorr.curve_reader.CENTRE_HALF_WIDTH` above it) more than
-            this share gets 0. Measured with ``python benchmarks/sequence_accuracy.py --no-latency-mass``, not a
-            default (``docs/estimator.md``).
+        no_latency_mass: in (0, 1), or None for no such rule: a frame whose fused probability gives the candidates
+            whose centre reaches no latency (0 and the :data:`~evlatcorr.curve_reader.CENTRE_HALF_WIDTH` above it,
+            :func:`no_latency_share`) more than this share gets 0, where at least two frames' evidence is fused. One
+            frame's curves barely tell no latency from a little; a few frames' together do better
+            (:data:`DEFAULT_NO_LATENCY_MASS`, ``docs/estimator.md``).
 
     Returns:
         :math:`(N,)` float64 µs, on ``latency``'s device.
@@ -101,7 +107,8 @@ def fuse_latencies(latency: Tensor, candidates: Tensor | Sequence[Tensor],
             total += _on_candidates(evidence[j], cand[j], cand[own])
         scored = torch.isfinite(log_p[own])
         total = torch.where(scored, total, -math.inf)
-        if no_latency_mass is not None and no_latency_share(total, cand[own]) > no_latency_mass:
+        # several frames' evidence only: one frame's curves barely tell no latency from a little
+        if no_latency_mass is not None and len(window) > 1 and no_latency_share(total, cand[own]) > no_latency_mass:
             out[k] = 0.0
             continue
         out[k] = probability_centre(total, cand[own], int(scored.sum()))[1]
@@ -228,10 +235,10 @@ class StreamingLatencyCorrector(nn.Module):
     """A constant-latency corrector for the frames of one recording, passed in order, call after call.
 
     Each frame's latency is fused with the evidence of the ``before`` frames before it (:func:`fuse_latencies`
-    with ``after=0``: a stream has no later frames), and its events are corrected and its latent image made with the
-    fused latency. The frames of a batch are taken as consecutive, in batch order, after those of the previous call.
-    :meth:`reset` starts a new recording. For frames that are not one recording's (a shuffled training batch) use
-    the :class:`~evlatcorr.correction.EventLatencyCorrector` itself.
+    with ``after=0``: a stream has no later frames; 0 where that evidence keeps no latency likely), and its events are
+    corrected and its latent image made with the fused latency. The frames of a batch are taken as consecutive, in
+    batch order, after those of the previous call. :meth:`reset` starts a new recording. For frames that are not one
+    recording's (a shuffled training batch) use the :class:`~evlatcorr.correction.EventLatencyCorrector` itself.
 
     Args:
         corrector: a constant-mode :class:`~evlatcorr.correction.EventLatencyCorrector` (default: one with its

@@ -93,4 +93,4 @@ def test_the_script_writes_its_table(tmp_path):
     assert bad.returncode == 2 and "--frames must be at least 1" in bad.stderr
     bad = subprocess.run([*script[:-2], "--no-latency-mass", "1"], capture_output=True, text=True, cwd=root,
                          timeout=300)
-    assert bad.returncode == 2 and "--no-latency-mass must be in (0, 1)" in bad.stderr
+    assert bad.returncode == 2 and "--no-latency-mass must be in [0, 1)" in bad.stderr

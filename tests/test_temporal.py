@@ -6,7 +6,7 @@ import torch
 from evlatcorr.curve_reader import probability_centre
 from evlatcorr.edi import edi_deblur
 from evlatcorr.search import search_constant_latency
-from evlatcorr.temporal import frame_evidence, fuse_latencies, no_latency_share
+from evlatcorr.temporal import DEFAULT_NO_LATENCY_MASS, frame_evidence, fuse_latencies, no_latency_share
 from tests.conftest import random_events
 
 CANDIDATES = torch.arange(0.0, 2000.0, 100.0, dtype=torch.float64)
@@ -36,20 +36,25 @@ def test_no_latency_share_is_the_probability_of_the_candidates_whose_centre_reac
         no_latency_share(torch.full((5,), -math.inf), torch.arange(5.0))
 
 
-def test_fused_frames_that_keep_no_latency_likely_get_none_when_asked():
+def test_fused_frames_that_keep_no_latency_likely_get_none():
     # three frames unsure between no latency and a little: their fused probability keeps a share near 0
     log_p = torch.stack([belief(150.0, 300.0), belief(300.0, 400.0), belief(200.0, 300.0)])
     own = torch.tensor([150.0, 300.0, 200.0])
     share = no_latency_share(log_p.sum(0), CANDIDATES)
-    assert 0.2 < share < 0.99
-    plain = fuse_latencies(own, CANDIDATES, log_p, before=1, after=1)
-    assert bool((plain > 0).all())
-    torch.testing.assert_close(fuse_latencies(own, CANDIDATES, log_p, 1, 1, no_latency_mass=0.2),
-                               torch.zeros(3, dtype=torch.float64))
+    assert DEFAULT_NO_LATENCY_MASS < share < 0.99
+    without = fuse_latencies(own, CANDIDATES, log_p, before=1, after=1, no_latency_mass=None)
+    assert bool((without > 0).all())
+    torch.testing.assert_close(fuse_latencies(own, CANDIDATES, log_p, 1, 1), torch.zeros(3, dtype=torch.float64))
+    assert bool((fuse_latencies(own, CANDIDATES, log_p, 1, 1, no_latency_mass=share + 0.01) > 0).all())
+    # one frame's evidence alone (no window, or a stream's first frame) never decides it
+    torch.testing.assert_close(fuse_latencies(own, CANDIDATES, log_p, 0, 0),
+                               fuse_latencies(own, CANDIDATES, log_p, 0, 0, no_latency_mass=None))
+    stream = fuse_latencies(own, CANDIDATES, log_p, 1, 0)
+    assert float(stream[0]) > 0.0 and float(stream[1]) == float(stream[2]) == 0.0
     # frames sure of a latency well above 0 keep their fused centre
     sure = torch.stack([belief(1200.0, 150.0)] * 3)
-    torch.testing.assert_close(fuse_latencies(own, CANDIDATES, sure, 1, 1, no_latency_mass=0.2),
-                               fuse_latencies(own, CANDIDATES, sure, 1, 1))
+    torch.testing.assert_close(fuse_latencies(own, CANDIDATES, sure, 1, 1),
+                               fuse_latencies(own, CANDIDATES, sure, 1, 1, no_latency_mass=None))
     for bad in (0.0, 1.0, -0.1):
         with pytest.raises(ValueError, match="no_latency_mass"):
             fuse_latencies(own, CANDIDATES, log_p, 1, 1, no_latency_mass=bad)
