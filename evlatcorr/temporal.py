@@ -157,7 +157,8 @@ def no_latency_share(log_probability: Tensor, candidates: Tensor) -> float:
     candidates do not start at 0). Candidates that could not be scored (−inf or NaN) get none.
 
     Raises:
-        ValueError: when the two are not 1-D of one length, or no candidate could be scored.
+        ValueError: when the two are not 1-D of one length, a log-probability is +inf, or no candidate could be
+            scored.
 
     Example:
         >>> round(no_latency_share(torch.log(torch.tensor([0.2, 0.1, 0.1, 0.6])), torch.arange(4.0)), 6)
@@ -167,8 +168,9 @@ def no_latency_share(log_probability: Tensor, candidates: Tensor) -> float:
         raise ValueError(f"log_probability and candidates must be 1-D of one length, got "
                          f"{tuple(log_probability.shape)} and {tuple(candidates.shape)}")
     log_probability = log_probability.double().nan_to_num(nan=-math.inf, posinf=math.inf, neginf=-math.inf)
-    if not bool(torch.isfinite(log_probability).any()):
-        raise ValueError("no candidate could be scored (every log-probability is -inf or NaN)")
+    if bool((log_probability == math.inf).any()) or not bool(torch.isfinite(log_probability).any()):
+        raise ValueError("no_latency_share needs finite log-probabilities, -inf or NaN where a candidate could not be "
+                         "scored, and at least one candidate scored")
     if float(candidates[0]) != 0.0:
         return 0.0
     return float(torch.softmax(log_probability, 0)[:CENTRE_HALF_WIDTH + 1].sum())

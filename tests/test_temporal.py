@@ -32,8 +32,9 @@ def test_no_latency_share_is_the_probability_of_the_candidates_whose_centre_reac
     assert no_latency_share(unscored, torch.arange(5.0)) == pytest.approx(1 / 3)
     with pytest.raises(ValueError, match="1-D of one length"):
         no_latency_share(log_p, torch.arange(4.0))
-    with pytest.raises(ValueError, match="no candidate could be scored"):
-        no_latency_share(torch.full((5,), -math.inf), torch.arange(5.0))
+    for bad in (torch.full((5,), -math.inf), torch.tensor([0.0, math.inf, 0.0, 0.0, 0.0])):
+        with pytest.raises(ValueError, match="needs finite log-probabilities"):
+            no_latency_share(bad, torch.arange(5.0))
 
 
 def test_fused_frames_that_keep_no_latency_likely_get_none():
