@@ -258,3 +258,32 @@ def test_the_streamed_latency_stays_inside_the_search_range():
         out = stream(frame)
         assert 1250.0 <= float(out.latency.mean()) <= 1350.0
         assert 1250.0 <= float(out.meta["frame_latency_us"][0]) <= 1350.0
+
+
+@pytest.fixture(scope="module")
+def astronaut_recordings():
+    """The fused latencies of 5 frames of the astronaut scene (48x64) with no latency and 3 ms late: each frame's own
+    estimates, fused ±2 and fused as a stream."""
+    from evlatcorr.correction import EventLatencyCorrector
+    from evlatcorr.simulate import simulate
+
+    out = {}
+    for latency in (0.0, 3000.0):
+        seq = simulate("astronaut", num_frames=5, height=48, width=64, latency="constant", latency_us=latency, seed=0)
+        evidence = frame_evidence(EventLatencyCorrector(threshold=float(seq.threshold))(seq.frames("delayed")))
+        own = torch.tensor([e[0] for e in evidence], dtype=torch.float64)
+        rows = ([e[1] for e in evidence], [e[2] for e in evidence])
+        out[latency] = own, fuse_latencies(own, *rows), fuse_latencies(own, *rows, before=2, after=0)
+    return out
+
+
+def test_a_recording_without_latency_gets_none_where_its_frames_together_keep_it_likely(astronaut_recordings):
+    own, fused, stream = astronaut_recordings[0.0]
+    assert float(own.abs().max()) > 150.0  # some frames alone find a few hundred µs (step EDI's lag)
+    assert float(fused.abs().max()) <= 150.0
+    assert float(stream[1:].abs().max()) <= 150.0  # a stream's first frame has only its own evidence
+
+
+def test_a_late_recording_keeps_its_fused_latency(astronaut_recordings):
+    _, fused, stream = astronaut_recordings[3000.0]
+    assert float((fused - 3000.0).abs().max()) < 600.0 and float(stream[1:].min()) > 2000.0
