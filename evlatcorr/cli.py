@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from evlatcorr.restore import INTERPOLATION_MODELS, MODELS, search_reach_us
+from evlatcorr.sample_warnings import SampleWarning
 from evlatcorr.temporal import DEFAULT_FUSED_FRAMES, frame_evidence
 
 __all__ = ["main"]
@@ -168,7 +169,10 @@ def _recording_threshold(args: argparse.Namespace, rec, device: torch.device) ->
     theta = _threshold(args.threshold)
     if theta != "auto":
         return theta
-    found = recording_threshold(rec, tuple(args.search_us) if args.search_us else None, device=device)
+    # what the search says of a frame here, the main pass says again of every frame, by its number
+    with _reworded(lambda message: None if isinstance(message, SampleWarning)
+                   else f"estimating the contrast threshold from the first frames: {message}"):
+        found = recording_threshold(rec, tuple(args.search_us) if args.search_us else None, device=device)
     if found is None:
         warnings.warn("no pair of consecutive frames with events: the contrast threshold is estimated per frame",
                       stacklevel=2)
@@ -202,6 +206,61 @@ def _progress(iterable, total: int | None, desc: str):
     from tqdm import tqdm
 
     return tqdm(iterable, total=total, desc=desc, unit="frame", file=sys.stderr, disable=not sys.stderr.isatty())
+
+
+@contextlib.contextmanager
+def _reworded(reword: Callable[[Warning], str | None]):
+    """The warnings raised inside, warned again as ``reword`` words them (each a :class:`Warning`; None: not
+    again)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    for w in caught:
+        text = reword(w.message)
+        if text is not None:
+            warnings.warn(text, UserWarning if issubclass(w.category, SampleWarning) else w.category, stacklevel=3)
+
+
+class _FrameWarnings:
+    """The library's warnings about samples of a call, said of the frames they are (``frame 12``, not ``sample 0``):
+    the first of each kind in full as it happens, and at the end one line for the other frames it happened to."""
+
+    def __init__(self) -> None:
+        self.later: dict[str, tuple[str, list[int]]] = {}
+
+    def naming(self, batches: list):
+        """A context in which the warnings of one call on ``batches`` (in the call's sample order) are reworded."""
+        numbers = [int(batch.meta["frame"]) for batch in batches]
+
+        def reword(message: Warning) -> str | None:
+            if not isinstance(message, SampleWarning):
+                return str(message)
+            if message.kind not in self.later:
+                self.later[message.kind] = (message.summary, [])
+                return message.naming([f"frame {n}" for n in numbers])
+            self.later[message.kind][1].extend(numbers[i] for i in message.samples)
+            return None
+
+        return _reworded(reword)
+
+    def summarise(self) -> None:
+        """One warning per kind for the frames after its first."""
+        for summary, numbers in self.later.values():
+            if numbers:
+                warnings.warn(f"{len(numbers)} more frame{'s' if len(numbers) > 1 else ''} "
+                              f"({_number_ranges(numbers)}): {summary}", stacklevel=2)
+        self.later.clear()
+
+
+def _number_ranges(numbers: list[int]) -> str:
+    """Sorted whole numbers as runs: ``[1, 2, 3, 7]`` -> ``"1-3, 7"``."""
+    runs: list[list[int]] = []
+    for n in sorted(set(numbers)):
+        if runs and n == runs[-1][1] + 1:
+            runs[-1][1] = n
+        else:
+            runs.append([n, n])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
 def _skip_warning(batch, why: str) -> None:
@@ -276,6 +335,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     theta = _recording_threshold(args, rec, device)
     corrector = _corrector(args, args.mode, args.curve, theta)
     rows, latencies, starts, ends, images = [], [], [], [], []
+    frame_warnings = _FrameWarnings()
     evidence: list[tuple[Any, Any]] = []  # per frame: its candidates and the reader's log-probability (or None)
     pending: list[Any] = []  # frames with events not yet corrected, searched in one call (_frames_per_call)
 
@@ -290,7 +350,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
     def correct_pending() -> None:
         if pending:
             t0 = time.perf_counter()
-            out = corrector(pending[0] if len(pending) == 1 else EventFrames.cat(pending))
+            with frame_warnings.naming(pending):
+                out = corrector(pending[0] if len(pending) == 1 else EventFrames.cat(pending))
             seconds = (time.perf_counter() - t0) / len(pending)  # each frame's share of the call
             for batch, part in zip(pending, out.split() if len(pending) > 1 else [out]):
                 record(batch, part, seconds)
@@ -312,6 +373,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
         record(batch, batch.replace(latency=torch.full((1, 1, h, w), previous, dtype=torch.float64, device=device)),
                0.0, skipped="no events")
     correct_pending()
+    frame_warnings.summarise()
     if not rows:
         raise ValueError(f"{args.input}: no frames")
     if args.mode == "constant" and args.fuse_frames > 0:
@@ -426,6 +488,7 @@ def _restore(args: argparse.Namespace, task: str) -> int:
     _threshold(args.threshold)  # a bad value fails before any reading
     run = _restoration(args, task, device)
     rows, gif, count = [], [], 0
+    frame_warnings = _FrameWarnings()
     with atomic_dir(args.outdir, overwrite=args.overwrite) as tmp:
         stream, limit = _restore_inputs(run.rec, args.max_frames, run.pairs)
         for batch, frames in _progress(stream, limit, task):
@@ -435,13 +498,15 @@ def _restore(args: argparse.Namespace, task: str) -> int:
                 rows.append(_latency_row(batch, None, run.theta, 0.0, skipped="no next frame"))
                 continue
             frames = _with_targets(frames.to(device), task, args.model, args.num if task == "interpolation" else 0)
-            plain, corrected, out, skipped = _restore_frames(run, frames, batch)
+            with frame_warnings.naming([batch]):
+                plain, corrected, out, skipped = _restore_frames(run, frames, batch)
             rows.append(_latency_row(batch, out, run.theta, time.perf_counter() - t0, skipped))
             if out is not None and "frame_latency_us" in out.meta:  # fused: the frame's own estimate too
                 rows[-1]["frame_latency_us"] = f"{float(out.meta['frame_latency_us'][0]):.1f}"
             _save_restored(tmp, task, args.model, batch.meta["frame"], frames.blurry[0], plain,
                            corrected if run.corrector is not None else None, gif)
             count += 1
+        frame_warnings.summarise()
         if not rows:
             raise ValueError(f"{args.input}: no frames")
         _write_csv(tmp / "frames.csv", rows)

@@ -13,7 +13,8 @@ from evlatcorr.config import DEFAULT_GHOST_CONFIDENCE, DEFAULT_SCORE, SearchConf
 from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
-from evlatcorr.search import _search_constant_latency
+from evlatcorr.sample_warnings import SampleWarning
+from evlatcorr.search import ConstantSearchResult, _search_constant_latency
 from evlatcorr.search_candidates import HOT_PIXEL_LOG_RANGE
 from evlatcorr.temporal import LatencyHistory
 
@@ -66,6 +67,9 @@ def correct_constant_latency(
         ``meta["latency_log_probability"]`` :math:`(B, K)` is the reader's log-probability of each candidate of
         ``meta["etf_curve"][0]`` from the frame alone (None for other scores): consecutive frames of a recording
         share their latency, and :func:`evlatcorr.temporal.fuse_latencies` combines their evidence.
+        ``meta["latency_outside_range_us"]`` :math:`(B,)`: with a ``search_range`` and the learned reader, where the
+        reader puts more than half its probability outside the range, its likeliest latency there (the estimate is
+        held at the range's edge; a warning names the frames), NaN elsewhere.
 
     Raises:
         ValueError: when a sample has no events in ``[exposure_start, exposure_end + exposure time)``
@@ -86,15 +90,7 @@ def correct_constant_latency(
         theta_vector = _threshold_vector(theta, b)
     result = _search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
                                       theta_vector, config, previous, history=history)
-    if result.fallback is not None and bool(result.fallback.any()):
-        which = torch.nonzero(result.fallback).flatten().tolist()
-        warnings.warn(f"samples {which}: the sharpness score has no clear minimum inside the latency range the "
-                      "events cover (too few events or no texture); their latency is the fallback "
-                      f"{[round(float(result.latency[i])) for i in which]} us", stacklevel=2)
-    if result.ignored_pixels and any(result.ignored_pixels):
-        warnings.warn(f"hot pixels (events spanning more than e^{HOT_PIXEL_LOG_RANGE:.0f} of intensity, which no "
-                      f"scene does) left out of the latency search, per sample: {result.ignored_pixels}; their "
-                      "events are corrected like the others", stacklevel=2)
+    _warn_about_samples(result, config)
     height, width = frames.sensor_size
     latency = result.latency.to(frames.device, torch.float32).view(-1, 1, 1, 1).expand(-1, 1, height, width)
     corrected = frames.events.shift(result.latency)
@@ -115,9 +111,41 @@ def correct_constant_latency(
     meta["hot_pixels"] = result.ignored_pixels
     meta["latency_spread_us"] = result.latency_spread
     meta["latency_log_probability"] = result.log_probability
+    meta["latency_outside_range_us"] = result.outside_range
     if result.own_latency is not None:
         meta["frame_latency_us"] = result.own_latency
     return frames.with_outputs(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
+
+
+def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> None:
+    """What the search did to some samples that their user must hear of: a fallback latency, hot pixels left out, an
+    estimate held at the edge of the user's range (:class:`~evlatcorr.sample_warnings.SampleWarning`: the command
+    line names the frames)."""
+    if result.fallback is not None and bool(result.fallback.any()):
+        which = torch.nonzero(result.fallback).flatten().tolist()
+        warnings.warn(SampleWarning(
+            "fallback", which, "{which}: the sharpness score has no clear minimum inside the latency range the events "
+            "cover (too few events or no texture); their latency is the fallback "
+            f"{[round(float(result.latency[i])) for i in which]} us",
+            "no clear sharpness minimum inside the latency range the events cover: the fallback latency"), stacklevel=3)
+    if result.ignored_pixels and any(result.ignored_pixels):
+        which = [i for i, n in enumerate(result.ignored_pixels) if n]
+        counts = [result.ignored_pixels[i] for i in which]
+        warnings.warn(SampleWarning(
+            "hot_pixels", which, f"{{which}}: hot pixels (events spanning more than e^{HOT_PIXEL_LOG_RANGE:.0f} of "
+            f"intensity, which no scene does) left out of the latency search: {counts}; "
+            "their events are corrected like the others", "hot pixels left out of the latency search"), stacklevel=3)
+    if result.outside_range is not None and bool(torch.isfinite(result.outside_range).any()):
+        which = torch.nonzero(torch.isfinite(result.outside_range)).flatten().tolist()
+        low, high = config.search_range
+        likeliest = [round(float(result.outside_range[i])) for i in which]
+        warnings.warn(SampleWarning(
+            "outside_range", which, f"{{which}}: the learned reader finds the latency likeliest at {likeliest} us, "
+            f"outside search_range {low:.0f}-{high:.0f} us "
+            f"(more than half its probability lies outside): the estimate is held at the range's edge "
+            f"({[round(float(result.latency[i])) for i in which]} us); widen the range if the latency may lie there",
+            f"the learned reader finds the latency likelier outside search_range {low:.0f}-{high:.0f} us: the "
+            "estimate is held at the range's edge"), stacklevel=3)
 
 
 def _auto_threshold(frames: EventFrames, config: SearchConfig, previous: Tensor | None) -> float | Tensor:
@@ -289,10 +317,13 @@ def _warn_if_short(frames: EventFrames, config: SearchConfig) -> None:
     short = last < need - (frames.exposure_time / 50)  # allow one coarse bin of slack
     if bool(short.any()):
         i = int(torch.nonzero(short)[0, 0])
-        warnings.warn(
-            f"events of sample {i} end at {float(last[i]):.0f} us but the latency search reads up to "
+        warnings.warn(SampleWarning(
+            "events_end", [i],
+            f"events of {{which}} end at {float(last[i]):.0f} us but the latency search reads up to "
             f"{float(need[i]):.0f} us (exposure_end + search range): latencies above "
             f"{max(0.0, float(last[i] - frames.exposure_end[i])):.0f} us are not searched (their window would run "
             "past the last event); pass events further past exposure_end to search them",
+            "events end before the latency search's reach: the latencies whose window runs past the last event are "
+            "not searched"),
             stacklevel=3,
         )

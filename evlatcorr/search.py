@@ -88,6 +88,9 @@ class ConstantSearchResult:
             sample has one. :func:`evlatcorr.temporal.fuse_latencies` combines consecutive frames' rows.
         own_latency: :math:`(B,)` µs, where a :class:`~evlatcorr.temporal.LatencyHistory` fused ``latency`` with
             earlier frames': each frame's own estimate (None otherwise).
+        outside_range: :math:`(B,)` µs, ``score="learned"`` with a ``search_range`` narrower than the candidates it
+            reads: where the reader puts more than half its probability outside that range, its likeliest latency
+            there (the estimate is held at the range's edge); NaN elsewhere.
         log_ratio: :math:`(B, 1, H, W)` float64 EDI ``log R`` at ``latency`` (latent image at mid-exposure
             ``blurry · exp(−log R)``), exact in continuous time (to float32 rounding when ``latency`` is a scored
             candidate: the ratio its score saw); None with ``method="binned"`` or when a sample had no window to
@@ -107,6 +110,7 @@ class ConstantSearchResult:
     latency_spread: Tensor | None = None
     log_probability: Tensor | None = None
     own_latency: Tensor | None = None
+    outside_range: Tensor | None = None
 
 
 def default_search_range(exposure_time: Tensor) -> tuple[Tensor, Tensor]:
@@ -286,6 +290,7 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
         log_probability=_stack_log_probability([r.log_probability for r in results], blurry.device),
         own_latency=(None if history is None else
                      torch.tensor([r.own_latency for r in results], dtype=torch.float64, device=blurry.device)),
+        outside_range=torch.tensor([r.outside_range_us for r in results], dtype=torch.float64, device=blurry.device),
     )
 
 
@@ -312,6 +317,7 @@ class _OneResult:
     spread_us: float = math.nan  # the learned reader's standard deviation, µs
     log_probability: Tensor | None = None  # (K,) the learned reader's, without the prior (−inf: not scored)
     own_latency: float | None = None  # the frame's own estimate, where a history fused ``latency`` with others'
+    outside_range_us: float = math.nan  # the reader's likeliest latency where it lies outside the user's range
     # the latent's read at a latency, where it was left until the latency is final (a history to fuse with)
     read_latent: Callable[[float], Tensor | None] | None = None
 
@@ -365,11 +371,12 @@ def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float
         read_latent, reader = reader.final_ratio, dataclasses.replace(reader, final_ratio=_read_later)
     coarse, to_us = reader.coarse, reader.to_us
 
-    spread, log_probability = math.nan, None
+    spread, log_probability, outside = math.nan, None, None
 
     def result(*args, **kwargs) -> _OneResult:
         return _OneResult(*args, **kwargs, ignored_pixels=reader.ignored_pixels, spread_us=spread,
-                          log_probability=log_probability, read_latent=read_latent)
+                          log_probability=log_probability, read_latent=read_latent,
+                          outside_range_us=math.nan if outside is None else outside)
 
     fallback = low if prev is None else min(max(float(prev), low), high)
     if reader.top < reader.floor:  # no candidate window holds events: nothing to score
@@ -397,7 +404,7 @@ def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float
             # the events end before any window the user's range allows: nothing in it could be scored
             return result(fallback, to_us(coarse).cpu(), coarse_scores[0], to_us(coarse).cpu(), coarse_scores[0],
                           0.0, True, reader.final_ratio(fallback), "fallback")
-        pick, centre, spread, log_probability = _learned_pick(reader, coarse, log_p, scored, prior, allowed)
+        pick, centre, spread, log_probability, outside = _learned_pick(reader, coarse, log_p, scored, prior, allowed)
         estimates = [_refine(coarse, coarse_scores[m], coarse, None, False) for m in range(len(members))]
     else:
         fines = [reader.fine_of(float(coarse[int(torch.argmin(coarse_scores[m]))])) for m in range(len(members))]

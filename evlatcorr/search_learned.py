@@ -89,12 +89,14 @@ def _curve_reader_on(device: torch.device) -> torch.nn.Module:
 
 def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid: Tensor,
                   prior: tuple[Tensor, float, float] | None = None, allowed: Tensor | None = None
-                  ) -> tuple[float, float, float, Tensor]:
+                  ) -> tuple[float, float, float, Tensor, float | None]:
     """The coarse candidate :mod:`evlatcorr.curve_reader`'s shipped ensemble finds likeliest (its log-odds
     ``log_p`` :math:`(K,)` on the host, :func:`_learned_log_p`; ``valid``: the scored candidates) and the centre of
     its probability over that candidate's neighbours (both in reader units), the standard deviation of its
     probability over all candidates (µs), and the reader's log-probability of each candidate without the prior
-    :math:`(K,)` (normalised over the scored candidates, −inf elsewhere).
+    :math:`(K,)` (normalised over the scored candidates, −inf elsewhere); and, where ``allowed`` keeps more than half
+    of that probability out, the likeliest candidate outside it in µs (the latency a user's range holds the estimate
+    away from), else None.
 
     The centre is the probability-weighted mean of the likeliest candidate and
     :data:`~evlatcorr.curve_reader.CENTRE_HALF_WIDTH` valid
@@ -110,7 +112,11 @@ def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid
     from evlatcorr.curve_reader import probability_centre
 
     valid = valid.cpu()
+    outside = None
     if allowed is not None:
+        unbounded = torch.softmax(log_p.masked_fill(~valid, -math.inf), 0)
+        if float(unbounded[~allowed].sum()) > 0.5:  # the frame's own evidence says the latency lies outside the range
+            outside = float(reader.to_us(coarse.cpu().double()[int(torch.argmax(unbounded * ~allowed))]))
         valid = valid & allowed
         log_p = log_p.masked_fill(~valid, -math.inf)
     # what the frame alone says, for fusing frames (evlatcorr.temporal): normalised over the scored candidates
@@ -128,7 +134,7 @@ def _learned_pick(reader: _CandidateReader, coarse: Tensor, log_p: Tensor, valid
     probability, latencies = torch.softmax(log_p, 0), reader.to_us(candidates).double()
     mean = (probability * latencies).sum()
     spread = float((probability * (latencies - mean) ** 2).sum().sqrt())
-    return pick, centre, spread, own
+    return pick, centre, spread, own, outside
 
 
 def _answer_block(latencies: Tensor, low: float, high: float) -> Tensor:

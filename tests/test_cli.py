@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import h5py
@@ -420,3 +421,39 @@ def test_command_line_warnings_print_each_message_once_as_one_line(capsys):
     show(UserWarning("frame 4: no events"), UserWarning, "/somewhere/reader.py", 10)
     assert capsys.readouterr().err.splitlines() == ["evlatcorr correct: warning: frame 3: no events",
                                                     "evlatcorr correct: warning: frame 4: no events"]
+
+
+def test_a_range_that_holds_the_estimate_at_its_edge_is_said_of_the_frames_once(simulated, tmp_path):
+    # 3 ms late, searched within 0-1000 us: the first frame's warning in full, by its number, and one line for the rest
+    r = run("correct", str(simulated), str(tmp_path / "out.h5"), "--search-us", "0", "1000", "--num-bins", "100",
+            "--threshold", "0.2", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    lines = r.stderr.splitlines()
+    assert any(line.startswith("evlatcorr correct: warning: frame 0: the learned reader finds the latency likeliest "
+                               "at [") and "outside search_range 0-1000 us" in line for line in lines), r.stderr
+    assert ("evlatcorr correct: warning: 1 more frame (1): the learned reader finds the latency likelier outside "
+            "search_range 0-1000 us: the estimate is held at the range's edge") in lines
+    assert "sample" not in r.stderr
+    assert [row["latency_us"] for row in csv.DictReader(open(tmp_path / "out.csv"))] == ["1000.0", "1000.0"]
+
+
+def test_sample_warnings_are_reworded_with_frame_numbers_and_summarised():
+    from evlatcorr import cli
+    from evlatcorr.sample_warnings import SampleWarning
+
+    class Batch:
+        def __init__(self, frame):
+            self.meta = {"frame": frame}
+
+    said = cli._FrameWarnings()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for first in (3, 5, 9):
+            with said.naming([Batch(first), Batch(first + 1)]):
+                warnings.warn(SampleWarning("fallback", [1], "{which}: fallback 0 us", "the fallback"), stacklevel=1)
+                warnings.warn("something else", stacklevel=1)
+        said.summarise()
+    assert [str(w.message) for w in caught] == ["frame 4: fallback 0 us", "something else", "something else",
+                                                "something else", "2 more frames (6, 10): the fallback"]
+    assert not any(isinstance(w.message, SampleWarning) for w in caught)  # a plain warning, for the printer
+    assert cli._number_ranges([7, 1, 2, 3, 9, 10]) == "1-3, 7, 9-10"

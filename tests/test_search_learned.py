@@ -6,8 +6,10 @@ import pytest
 import torch
 
 import evlatcorr.search_learned as search_learned
+from evlatcorr import EventFrames, EventLatencyCorrector, Events
 from evlatcorr.benchmark.accuracy import make_cases, simulate_case
 from evlatcorr.curve_reader import NUM_FEATURES
+from evlatcorr.sample_warnings import SampleWarning
 from evlatcorr.search import search_constant_latency
 from evlatcorr.search_learned import candidate_curves
 from tests.conftest import random_events
@@ -125,10 +127,34 @@ def test_learned_search_range_restricts_the_reader_to_it(monkeypatch):
     assert res.latency.item() == pytest.approx(float((p * torch.tensor([20.0, 30.0, 40.0])).sum()), abs=1e-9)
     own = res.log_probability[0]  # what the frame says for fusing: only the range's candidates
     assert bool(torch.isfinite(own[2:6]).all()) and not bool(torch.isfinite(own[[0, 1, 6, 7, 8]]).any())
+    # three quarters of the reader's probability lies outside the range: its likeliest latency there is reported
+    assert res.outside_range.tolist() == [80.0]
     # 0 to the exposure time is the default range itself
     default = _planted_search(monkeypatch, log_p, None)
     assert _planted_search(monkeypatch, log_p, (0.0, 100.0)).latency.item() == default.latency.item()
     assert default.latency.item() == pytest.approx(80.0, abs=1.0)
+    assert math.isnan(default.outside_range.item())
+    # a range that keeps more than half of it: nothing to report
+    assert math.isnan(_planted_search(monkeypatch, log_p, (20.0, 80.0)).outside_range.item())
+
+
+def test_an_estimate_held_at_the_range_edge_is_reported_not_silent(monkeypatch):
+    # the reader is sure of 80 us; told 20-50 us the corrector answers within the range and says why
+    log_p = torch.full((11,), -30.0)
+    log_p[8] = 0.0
+    ev = random_events(3000, (8, 9), (0.0, 200.0), seed=6)
+    frames = EventFrames(torch.rand(2, 1, 8, 9, generator=torch.Generator().manual_seed(6)) * 0.8 + 0.1,
+                         Events.cat([ev, ev]), torch.zeros(2), torch.full((2,), 100.0))
+    monkeypatch.setattr(search_learned, "_curve_reader_on", lambda device: _PlantedReader(log_p))
+    corrector = EventLatencyCorrector(threshold=0.2, num_bins=50, num_candidates=11, search_range=(20.0, 50.0))
+    with pytest.warns(SampleWarning, match=r"samples \[0, 1\]: the learned reader finds the latency likeliest at "
+                                           r"\[80, 80\] us, outside search_range 20-50 us") as caught:
+        out = corrector(frames)
+    assert all(20.0 <= v <= 50.0 for v in out.latency.flatten().tolist())
+    assert out.meta["latency_outside_range_us"].tolist() == [80.0, 80.0]
+    held = next(w.message for w in caught if isinstance(w.message, SampleWarning))
+    assert held.kind == "outside_range" and held.samples == (0, 1)
+    assert held.naming(["frame 7", "frame 8"]).startswith("frames 7, 8: the learned reader")
 
 
 def test_learned_search_range_narrower_than_the_candidates_spacing(monkeypatch):

@@ -1,0 +1,54 @@
+"""Warnings about some samples of a batch, which a caller can reword with its own names for them.
+
+A library call sees a batch and its sample indices; the command line sees a recording and its frame numbers.
+:class:`SampleWarning` keeps which samples a message is about apart from its wording, so
+``evlatcorr correct`` says "frame 12" where the search said "sample 0".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+__all__ = ["SampleWarning"]
+
+
+class SampleWarning(UserWarning):
+    """A warning about the samples ``samples`` of a batch.
+
+    Args:
+        kind: what happened, one short name per message template (a caller may group warnings by it).
+        samples: the batch indices the message is about.
+        text: the message, with ``{which}`` where the samples are named.
+        summary: what happened without any sample's figures, e.g. to say it of several frames at once.
+
+    ``str()`` names the samples by their indices; :meth:`naming` by names the caller gives.
+
+    Example:
+        >>> w = SampleWarning("fallback", [0, 2], "{which}: no clear minimum", "no clear minimum")
+        >>> str(w)
+        'samples [0, 2]: no clear minimum'
+        >>> w.naming(["frame 7", "frame 8", "frame 9"])
+        'frames 7, 9: no clear minimum'
+    """
+
+    def __init__(self, kind: str, samples: Sequence[int], text: str, summary: str) -> None:
+        # the arguments are the exception's args, so it pickles (e.g. across processes) as it was made
+        super().__init__(kind, tuple(int(i) for i in samples), text, summary)
+        self.kind, self.samples, self.text, self.summary = kind, tuple(int(i) for i in samples), text, summary
+
+    def __str__(self) -> str:
+        which = (f"sample {self.samples[0]}" if len(self.samples) == 1
+                 else f"samples {list(self.samples)}")
+        return self.text.format(which=which)
+
+    def naming(self, names: Sequence[str]) -> str:
+        """The message with sample ``i`` called ``names[i]`` (names such as ``"frame 12"``: several are joined as
+        ``"frames 12, 14"``)."""
+        chosen = [names[i] for i in self.samples]
+        nouns = {name.split(" ", 1)[0] for name in chosen}
+        if len(chosen) > 1 and len(nouns) == 1 and all(" " in name for name in chosen):
+            noun = nouns.pop()
+            which = f"{noun}s " + ", ".join(name.split(" ", 1)[1] for name in chosen)
+        else:
+            which = ", ".join(chosen)
+        return self.text.format(which=which)

@@ -1,0 +1,20 @@
+"""Warnings about samples of a batch (:mod:`evlatcorr.sample_warnings`)."""
+
+import pickle
+
+from evlatcorr.sample_warnings import SampleWarning
+
+
+def test_sample_warning_names_its_samples_by_index_or_by_the_callers_names():
+    one = SampleWarning("events_end", [2], "events of {which} end early", "events end early")
+    assert str(one) == "events of sample 2 end early"
+    assert one.naming(["frame 10", "frame 11", "frame 12"]) == "events of frame 12 end early"
+    several = SampleWarning("fallback", [0, 2], "{which}: fallback", "the fallback")
+    assert str(several) == "samples [0, 2]: fallback" and several.summary == "the fallback"
+    assert several.naming(["frame 3", "frame 4", "frame 5"]) == "frames 3, 5: fallback"
+    assert several.naming(["a.h5", "b.h5", "c.h5"]) == "a.h5, c.h5: fallback"  # names that are not "noun number"
+
+
+def test_sample_warning_pickles_as_it_was_made():
+    w = pickle.loads(pickle.dumps(SampleWarning("hot_pixels", [1], "{which}: 3 hot pixels", "hot pixels")))
+    assert (w.kind, w.samples, w.summary, str(w)) == ("hot_pixels", (1,), "hot pixels", "sample 1: 3 hot pixels")
