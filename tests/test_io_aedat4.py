@@ -120,12 +120,26 @@ def test_wrong_format(tmp_path):
 
 
 @needs_files
-def test_truncated_file(tmp_path):
+def test_a_truncated_file_keeps_what_it_holds_and_says_so(tmp_path):
+    # a recording cut off inside a packet (a crash, a full disk): the packets before it are read, with a warning
     truncated = tmp_path / "t.aedat4"
-    truncated.write_bytes(CRADLE.read_bytes()[:200_000])
-    rec = AedatRecording(truncated)
-    with pytest.raises(RecordingError, match="t.aedat4: corrupt or truncated file after packet"):
-        stream(rec)
+    truncated.write_bytes(CRADLE.read_bytes()[:2_000_000])
+    batches, messages = stream(AedatRecording(truncated))
+    assert any(m.startswith(f"{truncated}: the file ends inside the packet after packet ") for m in messages)
+    whole, _ = stream(AedatRecording(CRADLE))
+    assert 0 < len(batches) < len(whole)
+    for cut, full in zip(batches[:-1], whole):  # the frames before the cut are the whole file's
+        assert torch.equal(cut.blurry, full.blurry) and torch.equal(cut.events.t, full.events.t)
+
+
+@needs_files
+def test_a_corrupt_packet_is_refused(tmp_path):
+    data = bytearray(CRADLE.read_bytes())
+    data[300_000:300_064] = b"\xab" * 64  # inside a compressed packet
+    bad = tmp_path / "c.aedat4"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match="c.aedat4: corrupt file after packet"):
+        stream(AedatRecording(bad))
 
 
 @needs_files

@@ -23,6 +23,7 @@ reported with a clear error).
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,8 @@ from evlatcorr.io.records import FrameInfo, RecordingError, SegmentEnd
 __all__ = ["AedatRecording", "is_aedat4"]
 
 MAGIC = b"#!AER-DAT4.0"
+# what the aedat decoder says where the file ends inside a packet (Rust's unexpected end of file)
+_END_OF_FILE = "failed to fill whole buffer"
 
 
 def is_aedat4(path: str | Path) -> bool:
@@ -113,7 +116,13 @@ class AedatRecording(Recording):
             except StopIteration:
                 return
             except Exception as exc:
-                raise RecordingError(f"{self.path}: corrupt or truncated file after packet {index} ({exc})") from exc
+                if str(exc) == _END_OF_FILE:  # the file stops inside a packet: a recording cut off (a crash, a full
+                    # disk) keeps everything before it, which is read, and says so
+                    warnings.warn(f"{self.path}: the file ends inside the packet after packet {index} (truncated: a "
+                                  f"recording cut off, or a corrupt packet size); the {index} packets before it are "
+                                  "read", stacklevel=2)
+                    return
+                raise RecordingError(f"{self.path}: corrupt file after packet {index} ({exc})") from exc
             index += 1
             yield packet
 
