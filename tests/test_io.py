@@ -179,7 +179,7 @@ class TestAedat4:
             AedatRecording(bad)
         truncated = tmp_path / "t.aedat4"
         truncated.write_bytes((DAVIS / "street_static.aedat4").read_bytes()[:5000])
-        with pytest.raises(RecordingError):
+        with pytest.raises(RecordingError, match="t.aedat4: the file ends inside its first packet"):
             list(AedatRecording(truncated).iter_event_chunks())
 
 

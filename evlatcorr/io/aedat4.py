@@ -116,12 +116,15 @@ class AedatRecording(Recording):
             except StopIteration:
                 return
             except Exception as exc:
-                if str(exc) == _END_OF_FILE:  # the file stops inside a packet: a recording cut off (a crash, a full
-                    # disk) keeps everything before it, which is read, and says so
+                if str(exc) == _END_OF_FILE and index:  # the file stops inside a packet: a recording cut off (a
+                    # crash, a full disk) keeps everything before it, which is read, and says so
                     warnings.warn(f"{self.path}: the file ends inside the packet after packet {index} (truncated: a "
                                   f"recording cut off, or a corrupt packet size); the {index} packets before it are "
                                   "read", stacklevel=2)
                     return
+                if str(exc) == _END_OF_FILE:
+                    raise RecordingError(f"{self.path}: the file ends inside its first packet (truncated): nothing to "
+                                         "read") from exc
                 raise RecordingError(f"{self.path}: corrupt file after packet {index} ({exc})") from exc
             index += 1
             yield packet
