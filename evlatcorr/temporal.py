@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -243,14 +244,16 @@ class StreamingLatencyCorrector(nn.Module):
     recording's (a shuffled training batch) use the :class:`~evlatcorr.correction.EventLatencyCorrector` itself.
 
     Args:
-        corrector: a constant-mode :class:`~evlatcorr.correction.EventLatencyCorrector` (default: one with its
-            defaults, the learned reader); other scores have no evidence to fuse, and each frame keeps its own.
+        corrector: a constant-mode :class:`~evlatcorr.correction.EventLatencyCorrector` (default: one made with
+            ``settings``, the learned reader); other scores have no evidence to fuse, and each frame keeps its own.
         before: earlier frames whose evidence counts (default 2).
+        **settings: the arguments of the :class:`~evlatcorr.correction.EventLatencyCorrector` to make when no
+            ``corrector`` is given, e.g. ``threshold=0.5, search_range=(0.0, 5000.0)``.
 
     ``meta["frame_latency_us"]`` :math:`(B,)` holds each frame's own estimate.
 
     Raises:
-        ValueError: for a spatial corrector or a negative ``before``.
+        ValueError: for a spatial corrector, a negative ``before``, or both a ``corrector`` and ``settings``.
 
     Example:
         >>> from evlatcorr.simulate import simulate
@@ -261,11 +264,13 @@ class StreamingLatencyCorrector(nn.Module):
         True
     """
 
-    def __init__(self, corrector: nn.Module | None = None, before: int = DEFAULT_FUSED_FRAMES) -> None:
+    def __init__(self, corrector: nn.Module | None = None, before: int = DEFAULT_FUSED_FRAMES, **settings: Any) -> None:
         super().__init__()
         from evlatcorr.correction import EventLatencyCorrector
 
-        corrector = EventLatencyCorrector() if corrector is None else corrector
+        if corrector is not None and settings:
+            raise ValueError(f"give a corrector or its settings ({', '.join(settings)}), not both")
+        corrector = EventLatencyCorrector(**settings) if corrector is None else corrector
         if not isinstance(corrector, EventLatencyCorrector) or corrector.mode != "constant":
             raise ValueError("StreamingLatencyCorrector takes a constant-mode EventLatencyCorrector")
         self.corrector, self.history = corrector, LatencyHistory(before)

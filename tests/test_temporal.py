@@ -188,6 +188,17 @@ def test_the_streaming_corrector_refuses_a_spatial_corrector_or_a_negative_windo
         StreamingLatencyCorrector(EventLatencyCorrector(mode="spatial"))
     with pytest.raises(ValueError, match="whole number"):
         StreamingLatencyCorrector(before=-1)
+    with pytest.raises(ValueError, match=r"give a corrector or its settings \(threshold\), not both"):
+        StreamingLatencyCorrector(EventLatencyCorrector(), threshold=0.5)
+    with pytest.raises(ValueError, match="constant-mode"):
+        StreamingLatencyCorrector(mode="spatial")
+
+
+def test_the_streaming_corrector_makes_its_corrector_from_settings():
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    stream = StreamingLatencyCorrector(threshold=0.5, search_range=(0.0, 5000.0), before=1)
+    assert stream.corrector.threshold == 0.5 and stream.corrector.search_range == (0.0, 5000.0) and stream.before == 1
 
 
 def test_frame_evidence_reads_each_frame_of_a_constant_correction():
