@@ -17,6 +17,7 @@ one-pass search, frames per second.
     python benchmarks/speed.py --part against --against cfd57f4  # this checkout's default search against a revision's
     python benchmarks/speed.py --part stages                   # where the default search's time goes
     python benchmarks/speed.py --part stream                   # the streaming corrector against the corrector alone
+    python benchmarks/speed.py --part recording                # the corrector on a real recording's frames
 
 ``--part adapters`` times, at the benchmark's resolution (256x336, 20 ms exposure), the constant
 corrector (``EventLatencyCorrector()``: search, shift, EDI latent) against each adapter's forward pass
@@ -31,6 +32,12 @@ their ratio (``speed-up against REV: <x>``): the "old and new in one run" of a s
 checkout's memory settings (2 MB pages, freed memory kept; ``EVLATCORR_KEEP_FREED_MEMORY=0`` leaves glibc's
 default for both). With ``--score NAME`` both search with that score (e.g. ``consensus``, the default of ``cfd57f4``):
 the same work on both sides, where the defaults compare different amounts of it.
+
+``--part recording`` times the corrector (``EventLatencyCorrector``, the recording's θ given) on every frame of a
+recording (``--recording``, default the shared low-light DAVIS346 one), each after its untimed first call, as it reads
+the windows at the pixels with events alone (where at most half the pixels have any, as on a dim or still scene) and,
+in the same run, at every pixel (``continuous.SPARSE_SHARE = 0``), with the median over frames of each frame's median
+of ``--repeats`` calls, and checks that both give the same latencies.
 
 ``--part memory`` runs one constant correction (``EventLatencyCorrector()``, the defaults) on a
 DAVIS346 frame (260x346) with ``--events`` events spread over its exposure and search window, in a
@@ -53,6 +60,7 @@ import sys
 import tarfile
 import tempfile
 import time
+import warnings
 from pathlib import Path
 
 import torch  # noqa: E402
@@ -68,6 +76,10 @@ RATIO_SCORE = "sparsity"
 # (the corrector's first calls ran 1.5x slower here); a stream of frames runs in the steady state
 WARM_UP = 3
 from evlatcorr.simulate import simulate  # noqa: E402
+
+# the shared low-light DAVIS346 recording (a Newton's cradle, 20 ms exposures), where this checkout sits beside it
+RECORDING = next((p for p in (Path(__file__).resolve().parents[2] / "shared", Path("/work/shared"))
+                  if (p / "data").is_dir()), Path("../shared")) / "data" / "davis346" / "cradle_lowlight.aedat4"
 
 
 def make_frame(height: int, width: int, exposure_us: float, latency_us: float, device: torch.device, seed: int = 0):
@@ -109,8 +121,11 @@ def main() -> None:
     parser.add_argument("--naive-repeats", type=int, default=3, help="repeats of the naive loop")
     parser.add_argument("--device", action="append", help="cpu and/or cuda (default: cpu, and cuda if present)")
     parser.add_argument("--part", choices=("search", "batch", "spatial", "adapters", "memory", "against", "stages",
-                                           "stream", "all"),
-                        default="all", help="what to time; 'against' is not part of 'all' (it needs --against)")
+                                           "stream", "recording", "all"),
+                        default="all", help="what to time; 'against' and 'recording' are not part of 'all'")
+    parser.add_argument("--recording", type=Path, default=RECORDING, help="--part recording's recording")
+    parser.add_argument("--threshold", type=float, default=0.52,
+                        help="--part recording's contrast threshold (default: the shared recording's, 0.52)")
     parser.add_argument("--against", metavar="REV", help="git revision whose default search --part against times")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of --part against")
     parser.add_argument("--score", default="default", choices=("default", *SCORES),
@@ -134,6 +149,10 @@ def main() -> None:
         if not args.against:
             parser.error("--part against needs --against REV (a git revision of this repository)")
         bench_against(args)
+        return
+    if args.part == "recording":
+        for name in devices:
+            bench_recording(torch.device(name), args)
         return
 
     print(f"frame {args.width}x{args.height}, {args.bins} bins, exposure {args.exposure_us / 1000:.0f} ms, "
@@ -278,6 +297,44 @@ def bench_stages(device: torch.device, args: argparse.Namespace) -> None:
     print(f"[{device.type}] default search ({DEFAULT_SCORE}) by stage, {len(ev)} events, median of {args.repeats}:")
     for label, values in per_call.items():
         print(f"[{device.type}]   {label}: {statistics.median(values) * 1000:.1f} ms")
+
+
+def bench_recording(device: torch.device, args: argparse.Namespace) -> None:
+    """The corrector on every frame of a real recording: windows read at the pixels with events alone, and at every
+    pixel, in the same run (see the module's docstring)."""
+    import evlatcorr.continuous as continuous
+    from evlatcorr.io import open_recording
+
+    if not args.recording.is_file():
+        raise SystemExit(f"--recording {args.recording}: no such file")
+    sparse_share = continuous.SPARSE_SHARE
+    corrector = EventLatencyCorrector(threshold=args.threshold)
+    warnings.simplefilter("ignore")  # the recording's own warnings (its last frame's events end early), said elsewhere
+    frames = [frame.to(device) for frame in open_recording(args.recording) if len(frame.events)]
+
+    def per_frame(share: float) -> tuple[list[float], list[float]]:
+        continuous.SPARSE_SHARE = share
+        times, latencies = [], []
+        for frame in frames:
+            latencies.append(float(corrector(frame).latency.mean()))  # untimed: the first call of each frame
+            times.append(statistics.median(timed(lambda f=frame: corrector(f), device)[0]
+                                           for _ in range(args.repeats)))
+        return times, latencies
+
+    try:
+        active, active_latency = per_frame(sparse_share)
+        every, every_latency = per_frame(0.0)
+    finally:
+        continuous.SPARSE_SHARE = sparse_share
+    events = statistics.median(len(frame.events) for frame in frames)
+    print(f"[{device.type}] {args.recording.name}: {len(frames)} frames {frames[0].sensor_size[1]}x"
+          f"{frames[0].sensor_size[0]}, median {events:.0f} events per window, θ = {args.threshold}; median over "
+          f"frames of each frame's median of {args.repeats} calls")
+    print(f"[{device.type}] corrector, windows read at the pixels with events: {statistics.median(active) * 1000:.1f} "
+          f"ms per frame; at every pixel: {statistics.median(every) * 1000:.1f} ms; speed-up "
+          f"{statistics.median(every) / statistics.median(active):.2f}x")
+    gap = max(abs(a - b) for a, b in zip(active_latency, every_latency))
+    print(f"[{device.type}] largest latency difference between the two: {gap:.4f} us")
 
 
 def bench_batch(device: torch.device, args: argparse.Namespace) -> None:

@@ -18,6 +18,7 @@ time and pixel; the constant-latency search reads all its candidates' windows th
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -30,9 +31,9 @@ __all__ = ["ContinuousIntegral"]
 # Bytes per candidate latency and pixel that :meth:`ContinuousIntegral.inverse_ratio` returns (float32), plus the
 # float32 latent image its caller makes of it.
 BYTES_PER_CANDIDATE = 8
-# Bytes per event kept between calls (time, pixel, step, rise, the pixel-order permutation), and at the peak of a
-# call.
-BYTES_PER_EVENT_KEPT = 32
+# Bytes per event kept between calls (time, pixel, step, rise, the pixel-order permutation and, where few pixels have
+# events, its place among them), and at the peak of a call.
+BYTES_PER_EVENT_KEPT = 40
 BYTES_PER_EVENT = 112
 # The most the tables of one strip of rows may take (each pixel's event count, level and interval integrals at
 # every time, and the windows' sums read from them) on a CPU, where strips that fit its caches and reuse freed
@@ -40,6 +41,9 @@ BYTES_PER_EVENT = 112
 # 200 times take about 400 MB in one strip.
 STRIP_BYTES = 64 * 2**20
 DEVICE_STRIP_BYTES = 2**30
+# Where at most this share of the pixels has events (a dim or still scene: a DAVIS346 low-light frame has events at
+# 14 % of its pixels), a CPU reads the windows at those pixels alone: every other pixel's ratio is exactly 1.
+SPARSE_SHARE = 0.5
 # where in the window, besides its ends and reference, the peak log rise (``peak_out``) is read
 PEAK_FRACTIONS = (0.25, 0.75)
 # Window ends are rounded to 1/_LATTICE µs (exact in binary) so equal times computed two ways coincide.
@@ -117,6 +121,16 @@ class ContinuousIntegral:
         # first event of each row (and the end): strips of rows are contiguous
         row_starts = torch.arange(height + 1, device=self.device, dtype=self.pixel.dtype) * width
         self.row_bounds = torch.searchsorted(self.pixel, row_starts).tolist()
+        # the pixels with events, where few have any: each event's place among them, and the first event of each
+        # (on a CPU: on a GPU, whose search is bound by launches and waits more than arithmetic, it is unmeasured)
+        self.active = self.local = self.active_bounds = None
+        active = torch.nonzero(counts).flatten() if self.device.type == "cpu" else None
+        if active is not None and len(active) <= SPARSE_SHARE * self.num_pixels:
+            self.active = active
+            self.local = torch.repeat_interleave(torch.arange(len(active), device=self.device),
+                                                 counts.index_select(0, active), output_size=len(self.pixel))
+            self.active_bounds = torch.cat([self.run_start.index_select(0, active),
+                                            self.run_start.new_tensor([len(self.pixel)])]).cpu()
 
     def _levels(self, step: Tensor) -> Tensor:
         """Each event's step (±1, 0 for an ignored pixel's), each pixel's peak count and each event's rise of
@@ -158,7 +172,8 @@ class ContinuousIntegral:
         count = torch.empty((num + 1, p), dtype=torch.float32, device=self.device)
         level = torch.empty((num, p), dtype=torch.float64, device=self.device)
         interval = torch.empty((num + 1, p), dtype=torch.float64, device=self.device)
-        self._tables(times, 0, height, self._slots(times), count, level, interval)
+        self._tables(times, 0, len(self.pixel), self.pixel, 0, self.peak_count, self._slots(times), count, level,
+                     interval)
         s_total = torch.zeros_like(level)
         torch.cumsum(interval[1:num], 0, out=s_total[1:])
         return s_total.view(num, height, width), level.view(num, height, width)
@@ -174,9 +189,10 @@ class ContinuousIntegral:
             0, first, torch.ones_like(first, dtype=torch.int32))
         return torch.cumsum(marks[:n], 0, dtype=torch.int32).index_select(0, self.order)
 
-    def _tables(self, g: Tensor, r0: int, r1: int, slots: Tensor, count: Tensor, level: Tensor,
-                interval: Tensor) -> None:
-        """Fill the tables of the rows ``[r0, r1)`` at the sorted times ``g`` (:math:`G`), ``p`` pixels each.
+    def _tables(self, g: Tensor, lo: int, hi: int, pixels: Tensor, base: int, peak: Tensor, slots: Tensor,
+                count: Tensor, level: Tensor, interval: Tensor) -> None:
+        """Fill the tables of ``p`` pixels at the sorted times ``g`` (:math:`G`) from the events ``[lo, hi)`` (pixel
+        order), the ``p`` pixels that ``pixels[lo:hi] − base`` numbers 0 to ``p − 1`` (``peak``: their peak counts).
 
         Row ``j`` of ``count`` :math:`(G + 1, p)` float32 gets ``C(g_j) − peak / θ`` (a whole number), row ``j``
         of ``level`` :math:`(G, p)` ``exp(θC(g_j) − peak)``, and row ``j + 1`` of ``interval`` (at least
@@ -184,13 +200,11 @@ class ContinuousIntegral:
         ``slot`` of both (:meth:`_slots`): rows ``G`` (events after the last time) and ``interval``'s row 0
         (events before the first) take what no window reads, so no event is masked.
         """
-        width = self.sensor_size[1]
-        num, p = len(g), (r1 - r0) * width
-        lo, hi = self.row_bounds[r0], self.row_bounds[r1]
+        num, p = len(g), len(peak)
         slot = slots[lo:hi]
-        flat = torch.add(self.pixel[lo:hi], slot, alpha=p).sub_(r0 * width)  # int64: the pixels' type
+        flat = torch.add(pixels[lo:hi], slot, alpha=p).sub_(base)  # int64: the pixels' type
         # an event counts from the first time after it on; row 0 starts from minus the pixel's peak
-        count.zero_()[0].sub_(self.peak_count[r0 * width:r1 * width].to(count.dtype))
+        count.zero_()[0].sub_(peak.to(count.dtype))
         # scatter_add_ rather than index_add_: the same sums, a little faster on a CPU (`speed.py --part against
         # --against` the index_add_ revision: 181 against 183 ms per DAVIS346 default search)
         count.view(-1).scatter_add_(0, flat, self.step[lo:hi].to(count.dtype))
@@ -306,27 +320,42 @@ class ContinuousIntegral:
         windows = _Windows(a, b, len(times), self.device)
         num, padded, size = len(times), windows.rows, out.element_size()
         extended = 1 + max(padded, num)  # interval rows: before the first time, the blocks, after the last time
-        # a strip of rows at a time: its tables and the windows' sums stay within STRIP_BYTES (on a CPU)
-        row_bytes = width * ((num + 1) * 4 + num * size + (extended + padded) * size + 3 * len(lat) * size)
+        # a strip of rows (or of the pixels with events) at a time: its tables and the windows' sums stay within
+        # STRIP_BYTES (on a CPU)
+        pixel_bytes = (num + 1) * 4 + num * size + (extended + padded) * size + 3 * len(lat) * size
         strip_bytes = STRIP_BYTES if self.device.type == "cpu" else DEVICE_STRIP_BYTES
-        rows = max(1, min(height, strip_bytes // row_bytes))
+        rows = max(1, min(height, strip_bytes // (pixel_bytes * width)))
+        strip_pixels = rows * width if self.active is None else max(1, min(len(self.active),
+                                                                             strip_bytes // pixel_bytes))
         # one set of work buffers for every strip: fresh tables each strip would cost their page faults again
-        count = torch.empty((num + 1) * rows * width, dtype=torch.float32, device=self.device)
-        level = torch.empty(num * rows * width, dtype=dtype, device=self.device)
-        interval = torch.empty(extended * rows * width, dtype=dtype, device=self.device)
-        backward = torch.empty(padded * rows * width, dtype=dtype, device=self.device)
+        count = torch.empty((num + 1) * strip_pixels, dtype=torch.float32, device=self.device)
+        level = torch.empty(num * strip_pixels, dtype=dtype, device=self.device)
+        interval = torch.empty(extended * strip_pixels, dtype=dtype, device=self.device)
+        backward = torch.empty(padded * strip_pixels, dtype=dtype, device=self.device)
         times = times.to(self.device)
         slots = self._slots(times)
         # evenly spaced candidates read evenly spaced times: rows of the tables as views, not gathered copies
         a, b, r, *quarters = (_as_rows(index, self.device) for index in (a, b, r, *quarters))
+
+        def strip_sums(lo: int, hi: int, pixels: Tensor, base: int, peak: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+            """The tables of one strip's ``len(peak)`` pixels and each window's integral there."""
+            p = len(peak)
+            strip_count, strip_level = count[:(num + 1) * p].view(num + 1, p), level[:num * p].view(num, p)
+            strip_interval = interval[:extended * p].view(extended, p)
+            self._tables(times, lo, hi, pixels, base, peak, slots, strip_count, strip_level, strip_interval)
+            window = windows.sums(strip_interval[1:1 + padded], backward[:padded * p].view(padded, p))
+            return strip_count, strip_level, window.clamp_min_(torch.finfo(dtype).tiny)
+
+        if self.active is not None:
+            self._read_active(strip_pixels, strip_sums, (a, b, r, quarters), end - start, out, change_out, peak_out,
+                              peak_stride)
+            return out
         for r0 in range(0, height, rows):
             r1 = min(height, r0 + rows)
             p = (r1 - r0) * width
-            strip_count, strip_level = count[:(num + 1) * p].view(num + 1, p), level[:num * p].view(num, p)
-            strip_interval = interval[:extended * p].view(extended, p)
-            self._tables(times, r0, r1, slots, strip_count, strip_level, strip_interval)
-            window = windows.sums(strip_interval[1:1 + padded], backward[:padded * p].view(padded, p))
-            window = window.clamp_min_(torch.finfo(dtype).tiny).view(len(lat), r1 - r0, width)
+            strip_count, strip_level, window = strip_sums(self.row_bounds[r0], self.row_bounds[r1], self.pixel,
+                                                          r0 * width, self.peak_count[r0 * width:r1 * width])
+            window = window.view(len(lat), r1 - r0, width)
             if change_out is not None:  # θ (C(end) − C(start)): whole numbers of events
                 torch.sub(strip_count[b], strip_count[a], out=change_out[:, 0, r0:r1].view(len(lat), p))
                 change_out[:, 0, r0:r1].mul_(self.theta)
@@ -346,6 +375,43 @@ class ContinuousIntegral:
                 torch.div(strip_level[r].view(len(lat), r1 - r0, width), window, out=out[:, 0, r0:r1])
                 out[:, 0, r0:r1].mul_(end - start)
         return out
+
+    def _read_active(self, strip_pixels: int, strip_sums: Callable, rows_read: tuple, duration: float, out: Tensor,
+                     change_out: Tensor | None, peak_out: Tensor | None, peak_stride: int) -> None:
+        """:meth:`_read`'s strips over the pixels with events alone (:data:`SPARSE_SHARE`): every other pixel's
+        ratio is 1 (log ratio 0), its change and peak rise 0; each strip's results are scattered into place."""
+        a, b, r, quarters = rows_read
+        k, width = out.shape[0], self.sensor_size[1]
+        flat_out = out.view(k, -1).fill_(0.0 if out.dtype == torch.float64 else 1.0)
+        flat_change = None if change_out is None else change_out.view(k, -1).zero_()
+        sampled_place = None
+        if peak_out is not None:  # where each sampled pixel with events lies in peak_out (-1: not sampled)
+            peak_out.zero_()
+            y, x = self.active // width, self.active % width
+            sampled = (y % peak_stride == 0) & (x % peak_stride == 0)
+            sampled_place = torch.where(sampled, (y // peak_stride) * peak_out.shape[-1] + x // peak_stride, -1)
+        for c0 in range(0, len(self.active), strip_pixels):
+            c1 = min(len(self.active), c0 + strip_pixels)
+            pixels = self.active[c0:c1]
+            strip_count, strip_level, window = strip_sums(int(self.active_bounds[c0]), int(self.active_bounds[c1]),
+                                                          self.local, c0, self.peak_count.index_select(0, pixels))
+            if flat_change is not None:
+                flat_change.index_copy_(1, pixels, (strip_count[b] - strip_count[a]).mul_(self.theta))
+            if sampled_place is not None:
+                place = sampled_place[c0:c1]
+                keep = torch.nonzero(place >= 0).flatten()
+                if len(keep):
+                    reference = strip_count[r].index_select(1, keep)
+                    peak = torch.maximum(strip_count[a].index_select(1, keep), strip_count[b].index_select(1, keep))
+                    for rows in quarters:
+                        torch.maximum(peak, strip_count[rows].index_select(1, keep), out=peak)
+                    torch.maximum(peak, reference, out=peak).sub_(reference).mul_(self.theta)
+                    peak_out.view(k, -1).index_copy_(1, place.index_select(0, keep), peak)
+            if out.dtype == torch.float64:
+                ratio = window.div_(duration).log_().sub_(strip_count[r], alpha=self.theta)
+            else:
+                ratio = torch.div(strip_level[r], window).mul_(duration)
+            flat_out.index_copy_(1, pixels, ratio)
 
     def log_change(self, start: float, end: float, latencies: Tensor) -> Tensor:
         """``θ (C(end + l) − C(start + l))``: the log-intensity change the events of each window make.

@@ -283,3 +283,40 @@ def test_corrector_latent_is_the_continuous_edi_at_its_latency():
     expected = edi_deblur(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, 0.2, latency,
                           integral="continuous")
     torch.testing.assert_close(out.latent, expected, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("stride", [1, 3])
+def test_reading_the_pixels_with_events_alone_gives_what_every_pixel_gives(monkeypatch, stride):
+    # a small object moving over a still background: few pixels have events, and only theirs are read, in strips of
+    # a few pixels; every other pixel's ratio is 1, its change and peak rise 0
+    import evlatcorr.continuous
+
+    frames = simulate("camera", num_frames=1, latency="constant", latency_us=1000.0, seed=4, height=24, width=32,
+                      exposure_us=5000.0).frames("delayed")
+    ev = frames.events
+    corner = (ev.x < 12) & (ev.y < 10)
+    events = Events(ev.x[corner], ev.y[corner], ev.t[corner], ev.p[corner], sensor_size=(24, 32))
+    start, end = float(frames.exposure_start), float(frames.exposure_end)
+    latencies = torch.linspace(0.0, 3000.0, 7)
+
+    def read(ci):
+        ratio, change = torch.empty(7, 1, 24, 32), torch.empty(7, 1, 24, 32)
+        peak = torch.empty(7, 1, -(-24 // stride), -(-32 // stride))
+        ci.inverse_ratio(start, end, latencies, out=ratio, change_out=change, peak_out=peak, peak_stride=stride)
+        return ratio, change, peak, ci.log_ratio(start, end, latencies)
+
+    monkeypatch.setattr(evlatcorr.continuous, "SPARSE_SHARE", 0.0)  # every pixel read
+    every = ContinuousIntegral(events, 0.2)
+    assert every.active is None
+    monkeypatch.setattr(evlatcorr.continuous, "SPARSE_SHARE", 0.5)
+    monkeypatch.setattr(evlatcorr.continuous, "STRIP_BYTES", 20_000)  # a few pixels per strip
+    active = ContinuousIntegral(events, 0.2)
+    assert active.active is not None and len(active.active) <= 12 * 10
+    for got, want in zip(read(active), read(every)):
+        torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
+    outside = torch.ones(24, 32, dtype=torch.bool)
+    outside[:10, :12] = False
+    ratio, change, peak, log_ratio = read(active)
+    assert bool((ratio[:, 0][:, outside] == 1).all()) and bool((log_ratio[:, 0][:, outside] == 0).all())
+    assert bool((change[:, 0][:, outside] == 0).all())
+    assert bool((change != 0).any()) and bool((peak != 0).any())  # the corner's events are read

@@ -203,12 +203,12 @@ def test_table_over_the_budget_is_streamed_with_the_same_result(long_exposure, i
 
 
 def test_continuous_integral_reads_fewer_candidates_at_once_when_they_do_not_fit(long_exposure, monkeypatch):
-    # 4000 events keep 128 kB; a 131 456-byte cap per read leaves room for 3 candidates (72 px x 16 bytes each:
+    # 4000 events keep 160 kB; a 163 456-byte cap per read leaves room for 3 candidates (72 px x 16 bytes each:
     # the ratio, the latent and, for the default learned score, the event change and the peak rise)
     ev, blurry = long_exposure
     kw = dict(num_bins=50, search_range=(0.0, 20000.0), num_candidates=11)
     whole = search_constant_latency(blurry, ev, START, LONG_END, **kw)
-    monkeypatch.setattr(evlatcorr.search_candidates, "_CONTINUOUS_READ_BYTES", 131_456)
+    monkeypatch.setattr(evlatcorr.search_candidates, "_CONTINUOUS_READ_BYTES", 163_456)
     calls = []
     original = ContinuousIntegral.inverse_ratio
     monkeypatch.setattr(ContinuousIntegral, "inverse_ratio",

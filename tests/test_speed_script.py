@@ -90,3 +90,21 @@ def test_stream_part_times_the_streaming_corrector_against_the_corrector_alone()
     assert run.returncode == 0, run.stderr
     line = next(line for line in run.stdout.splitlines() if line.startswith("[cpu] stream of 8 frames at 32x24"))
     assert float(line.split("stream/alone: ")[1]) > 0
+
+
+def test_recording_times_the_corrector_reading_the_pixels_with_events_and_every_pixel(tmp_path):
+    from evlatcorr.io import write_sequence
+    from evlatcorr.simulate import simulate
+
+    recording = tmp_path / "rec.h5"
+    write_sequence(recording, simulate("camera", num_frames=2, height=24, width=32, latency_us=2000.0, seed=1))
+    args = [sys.executable, str(SCRIPT), "--part", "recording", "--recording"]
+    run = subprocess.run([*args, str(recording), "--threshold", "0.2", "--repeats", "1"], capture_output=True,
+                         text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    assert lines[0].startswith("[cpu] rec.h5: 2 frames 32x24")
+    assert "ms per frame; at every pixel: " in lines[1] and "speed-up" in lines[1]
+    assert float(lines[2].split(": ")[1].split(" us")[0]) < 1.0  # the same latencies either way
+    missing = subprocess.run([*args, str(tmp_path / "no.h5")], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert missing.returncode == 1 and "no such file" in missing.stderr
