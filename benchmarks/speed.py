@@ -37,7 +37,8 @@ the same work on both sides, where the defaults compare different amounts of it.
 recording (``--recording``, default the shared low-light DAVIS346 one), each after its untimed first call, as it reads
 the windows at the pixels with events alone (where at most half the pixels have any, as on a dim or still scene) and,
 in the same run, at every pixel (``continuous.SPARSE_SHARE = 0``), with the median over frames of each frame's median
-of ``--repeats`` calls, and checks that both give the same latencies.
+of ``--repeats`` calls, and checks that both give the same latencies; then the time to estimate the recording's θ
+(what ``threshold="auto"`` and the command line do once per recording), once.
 
 ``--part memory`` runs one constant correction (``EventLatencyCorrector()``, the defaults) on a
 DAVIS346 frame (260x346) with ``--events`` events spread over its exposure and search window, in a
@@ -335,6 +336,11 @@ def bench_recording(device: torch.device, args: argparse.Namespace) -> None:
           f"{statistics.median(every) / statistics.median(active):.2f}x")
     gap = max(abs(a - b) for a, b in zip(active_latency, every_latency))
     print(f"[{device.type}] largest latency difference between the two: {gap:.4f} us")
+    from evlatcorr.restore import recording_threshold
+
+    seconds, theta = timed(lambda: recording_threshold(open_recording(args.recording), device=device), device)
+    print(f"[{device.type}] the recording's θ (threshold='auto': two-frame consistency of its first frames): "
+          f"{theta if theta is None else round(theta, 3)}, found in {seconds:.1f} s (once)")
 
 
 def bench_batch(device: torch.device, args: argparse.Namespace) -> None:

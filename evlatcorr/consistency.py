@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from evlatcorr.checks import resolve_memory_budget
-from evlatcorr.edi import edi_deblur, event_grid
+from evlatcorr.edi import event_grid, grid_reads, latent_from_grid_reads
 from evlatcorr.frames import EventFrames
 from evlatcorr.integral import grid_bytes_per_point
 
@@ -53,20 +53,21 @@ def _gap_middle(pairs: EventFrames) -> Tensor:
     return (pairs.exposure_end + pairs.exposure_start_next) / 2
 
 
-def _grids(pairs: EventFrames, latency: Tensor, num_bins: int):
+def _gap_reads(pairs: EventFrames, latency: Tensor, num_bins: int) -> list[tuple[Tensor, list[Tensor]]]:
+    """Each frame of the pairs with what its EDI at the middle of the gap reads of its events, whatever θ
+    (:func:`~evlatcorr.edi.grid_reads`): a search over θ reads the events once."""
     t = _gap_middle(pairs)
-    first = event_grid(pairs.events, pairs.exposure_start, pairs.exposure_end, num_bins, (latency, latency), time=t)
-    second = event_grid(pairs.events, pairs.exposure_start_next, pairs.exposure_end_next, num_bins,
-                        (latency, latency), time=t)
-    return first, second
+    frames = ((pairs.blurry, pairs.exposure_start, pairs.exposure_end),
+              (pairs.blurry_next, pairs.exposure_start_next, pairs.exposure_end_next))
+    reads = []
+    for blurry, start, end in frames:
+        grid = event_grid(pairs.events, start, end, num_bins, (latency, latency), time=t)
+        reads.append((blurry, grid_reads(blurry, pairs.events, start, end, grid, latency, num_bins, t)))
+    return reads
 
 
-def _disagreement(pairs: EventFrames, theta: Tensor | float, latency: Tensor, num_bins: int, grids) -> Tensor:
-    t = _gap_middle(pairs)
-    i0 = edi_deblur(pairs.blurry, pairs.events, pairs.exposure_start, pairs.exposure_end, theta, latency, num_bins,
-                    t, grid=grids[0])
-    i1 = edi_deblur(pairs.blurry_next, pairs.events, pairs.exposure_start_next, pairs.exposure_end_next, theta,
-                    latency, num_bins, t, grid=grids[1])
+def _disagreement(reads: list[tuple[Tensor, list[Tensor]]], theta: Tensor | float, num_bins: int) -> Tensor:
+    i0, i1 = (latent_from_grid_reads(blurry, frame_reads, theta, num_bins) for blurry, frame_reads in reads)
     diff = torch.log(i0.clamp_min(0) + _FLOOR) - torch.log(i1.clamp_min(0) + _FLOOR)
     return diff.abs().mean(dim=(1, 2, 3))
 
@@ -110,7 +111,7 @@ def pair_disagreement(pairs: EventFrames, threshold: float | Tensor = 0.2, laten
     _check_pairs(pairs)
     latency = _latency_vector(latency, pairs)
     num_bins = _num_bins(pairs, latency, num_bins)
-    return _disagreement(pairs, threshold, latency, num_bins, _grids(pairs, latency, num_bins))
+    return _disagreement(_gap_reads(pairs, latency, num_bins), threshold, num_bins)
 
 
 def estimate_recording_threshold(pairs: EventFrames, latency: Tensor | float | None = None,
@@ -149,10 +150,10 @@ def estimate_recording_threshold(pairs: EventFrames, latency: Tensor | float | N
         raise ValueError(f"iterations must be >= 1, got {iterations}")
     latency = _latency_vector(latency, pairs)
     num_bins = _num_bins(pairs, latency, num_bins)
-    grids = _grids(pairs, latency, num_bins)
+    reads = _gap_reads(pairs, latency, num_bins)  # the events read once, for every θ tried
 
     def energy(log_theta: float) -> float:
-        return float(_disagreement(pairs, math.exp(log_theta), latency, num_bins, grids).mean())
+        return float(_disagreement(reads, math.exp(log_theta), num_bins).mean())
 
     lo, hi = math.log(bounds[0]), math.log(bounds[1])
     ratio = (math.sqrt(5) - 1) / 2

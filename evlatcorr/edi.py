@@ -18,6 +18,7 @@ reference ``time`` far from the exposure), it is refused with a message saying w
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import kornia
@@ -47,6 +48,8 @@ __all__ = [
     "edi_interpolate",
     "estimate_threshold",
     "trapezoid_log_weights",
+    "grid_reads",
+    "latent_from_grid_reads",
 ]
 
 # Bytes per exposure sample and pixel that reading the grid takes (positions, indices, the two
@@ -336,20 +339,64 @@ def _continuous_log_ratio(events: Events, start: Tensor, end: Tensor, ref: Tenso
 def _log_ratio_on_grid(cum: Tensor, g0: Tensor, width_us: Tensor, start: Tensor, ref: Tensor, lat: Tensor,
                        theta: Tensor, num_bins: int) -> Tensor:
     """log R :math:`(B, 1, h, W)` read from a cumulative grid :math:`(B, M + 1, h, W)` (any strip of rows)."""
+    return _log_ratio_of_differences(_grid_differences(cum, g0, width_us, start, ref, lat, num_bins), theta, num_bins)
+
+
+def _grid_differences(cum: Tensor, g0: Tensor, width_us: Tensor, start: Tensor, ref: Tensor, lat: Tensor,
+                      num_bins: int) -> Iterator[Tensor]:
+    """What log R reads of the grid, which θ does not change: the count at each of the exposure's ``num_bins + 1``
+    samples minus the count at the reference, :math:`(B, n, h, W)` chunks of at most ``_SAMPLE_CHUNK`` samples, made
+    as they are read (reading all n + 1 at once held several (B, n + 1, H, W) arrays, over a GB at DAVIS346 size)."""
     b, dtype, device = cum.shape[0], cum.dtype, cum.device
     # fractional grid positions: exposure samples (B, n+1, h, W) and the reference (B, 1, h, W)
     offset = ((start - g0) / width_us).to(dtype).view(b, 1, 1, 1) + lat / width_us.to(dtype).view(b, 1, 1, 1)
     ref_pos = offset + ((ref - start) / width_us).to(dtype).view(b, 1, 1, 1)
     c_ref = sample_grid(cum, ref_pos)
-    logw = trapezoid_log_weights(num_bins, device, dtype).view(1, -1, 1, 1)
-    # the exposure's samples a chunk at a time (a running log-sum-exp): reading all n + 1 at once
-    # held several (B, n + 1, H, W) arrays, over a GB at DAVIS346 size
-    parts = []
     for j0 in range(0, num_bins + 1, _SAMPLE_CHUNK):
         j = torch.arange(j0, min(j0 + _SAMPLE_CHUNK, num_bins + 1), device=device, dtype=dtype).view(1, -1, 1, 1)
-        x = theta * (sample_grid(cum, offset + j) - c_ref) + logw[:, j0:j0 + _SAMPLE_CHUNK]
-        parts.append(torch.logsumexp(x, dim=1, keepdim=True))
+        yield sample_grid(cum, offset + j) - c_ref
+
+
+def _log_ratio_of_differences(differences: Iterable[Tensor], theta: Tensor, num_bins: int) -> Tensor:
+    """log R from :func:`_grid_differences`' chunks (a running log-sum-exp over them); ``theta`` :math:`(B, 1, 1, 1)`
+    of their dtype."""
+    logw = trapezoid_log_weights(num_bins, theta.device, theta.dtype).view(1, -1, 1, 1)
+    parts = [torch.logsumexp(theta * chunk + logw[:, j0:j0 + chunk.shape[1]], dim=1, keepdim=True)
+             for j0, chunk in zip(range(0, num_bins + 1, _SAMPLE_CHUNK), differences)]
     return parts[0] if len(parts) == 1 else torch.logsumexp(torch.cat(parts, dim=1), dim=1, keepdim=True)
+
+
+def grid_reads(blurry: Tensor, events: Events, exposure_start: Tensor, exposure_end: Tensor, grid: EventGrid,
+               latency: Tensor | float | None = None, num_bins: int = 500, time: Tensor | None = None) -> list[Tensor]:
+    """The part of :func:`edi_deblur` from a prebuilt ``grid`` that the threshold does not change, for
+    :func:`latent_from_grid_reads` to finish at any number of thresholds (e.g. a search over θ) without reading the
+    grid again. Arguments as :func:`edi_deblur`'s; holds :math:`(B, n + 1, H, W)` values.
+
+    Example:
+        >>> ev = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([50.0]), torch.tensor([1]),
+        ...             sensor_size=(1, 1))
+        >>> blurry, start, end = torch.full((1, 1, 1, 1), 0.5), torch.tensor([0.0]), torch.tensor([100.0])
+        >>> grid = event_grid(ev, start, end, 100)
+        >>> reads = grid_reads(blurry, ev, start, end, grid, num_bins=100)
+        >>> torch.equal(latent_from_grid_reads(blurry, reads, 0.3, 100),
+        ...             edi_deblur(blurry, ev, start, end, 0.3, num_bins=100, grid=grid))
+        True
+    """
+    check_image(blurry, "blurry")
+    _check_events_match(blurry, events)
+    start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
+    _check_latency(latency, events, "step")
+    dtype = _edi_dtype(blurry)
+    _check_grid(grid, events, start, end, ref, latency, num_bins, dtype)
+    lat = _latency_map(latency, events.batch_size, events.sensor_size, events.device, dtype)
+    return list(_grid_differences(grid.cum.to(dtype), grid.start, grid.width_us, start, ref, lat, num_bins))
+
+
+def latent_from_grid_reads(blurry: Tensor, reads: list[Tensor], threshold: float | Tensor, num_bins: int) -> Tensor:
+    """:func:`edi_deblur`'s latent image from :func:`grid_reads` of the same frames at the threshold θ (a number or
+    :math:`(B,)`): the same values as :func:`edi_deblur` with that grid."""
+    theta = check_threshold(threshold, blurry.shape[0]).to(reads[0].device, reads[0].dtype).view(-1, 1, 1, 1)
+    return blurry * torch.exp(-_log_ratio_of_differences(reads, theta, num_bins)).to(blurry.dtype)
 
 
 def _exposure_times(events: Events, exposure_start: Tensor, exposure_end: Tensor, num_bins: int,

@@ -268,3 +268,24 @@ def test_estimate_threshold_bounds():
     assert theta.shape == (1,) and 0.02 <= float(theta) <= 1.0
     with pytest.raises(ValueError, match="bounds"):
         estimate_threshold(torch.rand(1, 1, 8, 8), ev, START, END, bounds=(1.0, 0.5))
+
+
+def test_grid_reads_finish_at_any_threshold_as_edi_deblur_does():
+    # what the EDI reads of a grid does not depend on θ: read once, finished at several θ, it gives edi_deblur's latent
+    # to the bit (at a reference outside the exposure, as the two-frame consistency reads it)
+    from evlatcorr.edi import event_grid, grid_reads, latent_from_grid_reads
+    from evlatcorr.simulate import simulate
+
+    frames = simulate("camera", num_frames=1, height=24, width=32, latency_us=2000.0, seed=3).frames("delayed")
+    start, end = frames.exposure_start, frames.exposure_end
+    time = end + 3000.0
+    grid = event_grid(frames.events, start, end, 150, (2000.0, 2000.0), time=time)
+    reads = grid_reads(frames.blurry, frames.events, start, end, grid, 2000.0, 150, time)
+    assert len(reads) == 3  # 151 samples in chunks of at most 64
+    for theta in (0.1, 0.2, torch.tensor([0.45])):
+        expected = edi_deblur(frames.blurry, frames.events, start, end, theta, 2000.0, 150, time, grid=grid)
+        assert torch.equal(latent_from_grid_reads(frames.blurry, reads, theta, 150), expected)
+    with pytest.raises(ValueError, match="grid was built for num_bins=150"):
+        grid_reads(frames.blurry, frames.events, start, end, grid, 2000.0, 100, time)
+    with pytest.raises(ValueError, match="threshold"):
+        latent_from_grid_reads(frames.blurry, reads, -0.2, 150)

@@ -106,5 +106,6 @@ def test_recording_times_the_corrector_reading_the_pixels_with_events_and_every_
     assert lines[0].startswith("[cpu] rec.h5: 2 frames 32x24")
     assert "ms per frame; at every pixel: " in lines[1] and "speed-up" in lines[1]
     assert float(lines[2].split(": ")[1].split(" us")[0]) < 1.0  # the same latencies either way
+    assert lines[3].startswith("[cpu] the recording's θ") and lines[3].endswith(" s (once)")
     missing = subprocess.run([*args, str(tmp_path / "no.h5")], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert missing.returncode == 1 and "no such file" in missing.stderr
