@@ -11,7 +11,8 @@ the events once (each event's level before and after it at its pixel), then eval
 any sorted set of times with one scatter of the events: an event in ``[g_{j−1}, g_j)`` that raises the level
 from ``e⁻`` to ``e⁺`` adds ``(e⁺ − e⁻)(g_j − t)`` to the integral over that interval, on top of the level at
 ``g_{j−1}`` held for the whole interval. The cost is one pass over the events plus a few operations per
-time and pixel; the constant-latency search reads all its candidates' windows this way
+time and pixel (on a CPU, per pixel with events where at most half have any: elsewhere the ratio is 1); the
+constant-latency search reads all its candidates' windows this way
 (:func:`evlatcorr.search.search_constant_latency`).
 """
 
