@@ -313,11 +313,9 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 def cmd_correct(args: argparse.Namespace) -> int:
     import h5py
 
-    from evlatcorr.frames import EventFrames
-    from evlatcorr.io import EventUtilsRecording, EventWriter, write_event_utils
+    from evlatcorr.io import EventUtilsRecording
     from evlatcorr.io.h5 import atomic_path, write_header
     from evlatcorr.io.outputs import check_outputs
-    from evlatcorr.restore import has_events
 
     report = args.report if args.report is not None else args.output.with_suffix(".csv")
     if report.resolve() == args.output.resolve():
@@ -334,18 +332,59 @@ def cmd_correct(args: argparse.Namespace) -> int:
         rec.after_us = search_reach_us(rec, high)
     theta = _recording_threshold(args, rec, device)
     corrector = _corrector(args, args.mode, args.curve, theta)
-    rows, latencies, starts, ends, images = [], [], [], [], []
+    with contextlib.ExitStack() as stack:  # both files appear only when both are complete
+        report_tmp = stack.enter_context(atomic_path(report))
+        h5 = None
+        if not isinstance(rec, EventUtilsRecording):  # our HDF5: the frames are written as they are corrected
+            h5 = stack.enter_context(h5py.File(stack.enter_context(atomic_path(args.output)), "w"))
+            write_header(h5, rec.sensor_size, source=str(args.input), corrected_mode=args.mode)
+        frames = _correct_frames(args, rec, corrector, theta, device, h5)
+        if not frames.rows:
+            raise ValueError(f"{args.input}: no frames")
+        latencies = frames.latencies
+        if args.mode == "constant" and args.fuse_frames > 0:
+            latencies = _fused(frames.rows, latencies, frames.evidence, args.fuse_frames, args.search_us)
+        _write_corrected(args, rec, h5, frames.starts, frames.ends, latencies)
+        _write_csv(report_tmp, frames.rows)
+    rows = frames.rows
+    skipped = sum(bool(r["skipped"]) for r in rows)
+    print(f"wrote {args.output} and {report} ({len(rows)} frames, median latency "
+          f"{np.median([float(r['latency_us']) for r in rows]):.0f} us"
+          + (f", {skipped} without events kept the previous latency" if skipped else "") + ")")
+    return EXIT_OK
+
+
+class _CorrectedFrames(NamedTuple):
+    """What ``evlatcorr correct`` keeps of every frame until the events are written: its CSV row, its latency (a
+    number in constant mode, a map in spatial mode: a recording of thousands of frames keeps thousands of numbers),
+    its exposure and the reader's evidence for fusing."""
+
+    rows: list[dict]
+    latencies: list[torch.Tensor]
+    starts: list[float]
+    ends: list[float]
+    evidence: list[tuple[Any, Any]]
+
+
+def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: torch.device, h5) -> _CorrectedFrames:
+    """Every frame's latency (``corrector``; a frame without events keeps the previous one), its blurry image appended
+    to ``h5``'s ``frames/blurry`` as it comes (when ``h5`` is an open file)."""
+    from evlatcorr.frames import EventFrames
+    from evlatcorr.restore import has_events
+
+    kept = _CorrectedFrames([], [], [], [], [])
     frame_warnings = _FrameWarnings()
-    evidence: list[tuple[Any, Any]] = []  # per frame: its candidates and the reader's log-probability (or None)
     pending: list[Any] = []  # frames with events not yet corrected, searched in one call (_frames_per_call)
 
     def record(batch, out, seconds: float, skipped: str = "") -> None:
-        rows.append(_latency_row(batch, out, theta, seconds, skipped=skipped))
-        evidence.append(frame_evidence(out)[0][1:] if args.mode == "constant" and not skipped else (None, None))
-        latencies.append(out.latency[0, 0].cpu())
-        starts.append(float(batch.exposure_start))
-        ends.append(float(batch.exposure_end))
-        images.append(batch.blurry[0].cpu().numpy())
+        kept.rows.append(_latency_row(batch, out, theta, seconds, skipped=skipped))
+        kept.evidence.append(frame_evidence(out)[0][1:] if args.mode == "constant" and not skipped else (None, None))
+        latency = out.latency[0, 0].cpu()
+        kept.latencies.append(latency.reshape(-1)[0].double() if args.mode == "constant" else latency)
+        kept.starts.append(float(batch.exposure_start))
+        kept.ends.append(float(batch.exposure_end))
+        if h5 is not None:
+            _append_image(h5, batch.blurry[0].cpu().numpy())
 
     def correct_pending() -> None:
         if pending:
@@ -366,7 +405,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
                 correct_pending()
             continue
         correct_pending()  # the frames before it first: it takes the latency of the last of them
-        previous = float(latencies[-1].mean()) if latencies else 0.0
+        previous = float(kept.latencies[-1].mean()) if kept.latencies else 0.0
         _skip_warning(batch, f"no events in its exposure and search window; its events keep the previous "
                              f"frame's latency ({previous:.0f} us)")
         h, w = batch.sensor_size
@@ -374,39 +413,41 @@ def cmd_correct(args: argparse.Namespace) -> int:
                0.0, skipped="no events")
     correct_pending()
     frame_warnings.summarise()
-    if not rows:
-        raise ValueError(f"{args.input}: no frames")
-    if args.mode == "constant" and args.fuse_frames > 0:
-        latencies = _fused(rows, latencies, evidence, args.fuse_frames, args.search_us)
-    corrected = _corrected_stream(rec, np.array(starts), latencies)
-    with contextlib.ExitStack() as stack:  # both files appear only when both are complete
-        report_tmp = stack.enter_context(atomic_path(report))
-        if isinstance(rec, EventUtilsRecording):
-            from evlatcorr.events import Events
+    return kept
 
-            chunks = list(corrected)
-            cat = np.concatenate(chunks) if chunks else np.zeros(0)
-            if not len(cat):
-                raise ValueError(f"{args.input}: no events")
-            write_event_utils(args.output, Events.from_numpy(cat, sensor_size=rec.sensor_size), like=rec)
-        else:
-            tmp = stack.enter_context(atomic_path(args.output))
-            with h5py.File(tmp, "w") as f:
-                write_header(f, rec.sensor_size, source=str(args.input), corrected_mode=args.mode)
-                writer = EventWriter(f, "events")
-                for chunk in corrected:
-                    writer.append(chunk["x"], chunk["y"], chunk["t"], chunk["p"])
-                f.create_dataset("frames/blurry", data=np.stack(images), compression="lzf",
-                                 chunks=(1, *images[0].shape))
-                f["frames/exposure_start"] = np.array(starts)
-                f["frames/exposure_end"] = np.array(ends)
-                f["frames/estimated_latency"] = np.array([float(m.mean()) for m in latencies], dtype=np.float32)
-        _write_csv(report_tmp, rows)
-    skipped = sum(bool(r["skipped"]) for r in rows)
-    print(f"wrote {args.output} and {report} ({len(rows)} frames, median latency "
-          f"{np.median([float(r['latency_us']) for r in rows]):.0f} us"
-          + (f", {skipped} without events kept the previous latency" if skipped else "") + ")")
-    return EXIT_OK
+
+def _append_image(h5, image: np.ndarray) -> None:
+    """One more frame on ``frames/blurry`` :math:`(N, C, H, W)` of an open file (made at the first)."""
+    if "frames/blurry" not in h5:
+        h5.create_dataset("frames/blurry", shape=(0, *image.shape), maxshape=(None, *image.shape), dtype=image.dtype,
+                          compression="lzf", chunks=(1, *image.shape))
+    images = h5["frames/blurry"]
+    images.resize(len(images) + 1, axis=0)
+    images[-1] = image
+
+
+def _write_corrected(args: argparse.Namespace, rec, h5, starts: list[float], ends: list[float],
+                     latencies: list[torch.Tensor]) -> None:
+    """The corrected events: into ``h5`` (our format, with the frames' exposures and latencies), or an event_utils
+    file like the input."""
+    from evlatcorr.io import EventWriter, write_event_utils
+
+    corrected = _corrected_stream(rec, np.array(starts), latencies)
+    if h5 is None:
+        from evlatcorr.events import Events
+
+        chunks = list(corrected)
+        cat = np.concatenate(chunks) if chunks else np.zeros(0)
+        if not len(cat):
+            raise ValueError(f"{args.input}: no events")
+        write_event_utils(args.output, Events.from_numpy(cat, sensor_size=rec.sensor_size), like=rec)
+        return
+    writer = EventWriter(h5, "events")
+    for chunk in corrected:
+        writer.append(chunk["x"], chunk["y"], chunk["t"], chunk["p"])
+    h5["frames/exposure_start"] = np.array(starts)
+    h5["frames/exposure_end"] = np.array(ends)
+    h5["frames/estimated_latency"] = np.array([float(m.mean()) for m in latencies], dtype=np.float32)
 
 
 def _frames_per_call(device: torch.device, mode: str) -> int:
@@ -442,7 +483,7 @@ def _corrected_stream(rec, starts: np.ndarray, latencies: list[torch.Tensor]):
     Each event takes the latency of the frame whose interval ``[start_i, start_{i+1})`` holds its
     stamp (at its pixel). Shifted events are held back until no later chunk can precede them.
     """
-    maps = torch.stack(latencies).numpy()  # (F, H, W)
+    maps = torch.stack(latencies).numpy()  # (F,): one latency per frame, or (F, H, W) maps
     hold_back = float(maps.max()) - float(min(0.0, maps.min())) + 1.0
     width = rec.sensor_size[1]
     pending: list[np.ndarray] = []
@@ -451,8 +492,11 @@ def _corrected_stream(rec, starts: np.ndarray, latencies: list[torch.Tensor]):
             continue
         frame = np.clip(np.searchsorted(starts, chunk["t"], side="right") - 1, 0, len(starts) - 1)
         shifted = chunk.copy()
-        shifted["t"] = chunk["t"] - maps.reshape(len(starts), -1)[frame, chunk["y"].astype(np.int64) * width
-                                                                  + chunk["x"].astype(np.int64)]
+        if maps.ndim == 1:
+            shifted["t"] = chunk["t"] - maps[frame]
+        else:
+            shifted["t"] = chunk["t"] - maps.reshape(len(starts), -1)[frame, chunk["y"].astype(np.int64) * width
+                                                                      + chunk["x"].astype(np.int64)]
         pending.append(shifted)
         merged = np.concatenate(pending)
         merged = merged[np.argsort(merged["t"], kind="stable")]

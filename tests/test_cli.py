@@ -457,3 +457,20 @@ def test_sample_warnings_are_reworded_with_frame_numbers_and_summarised():
                                                 "something else", "2 more frames (6, 10): the fallback"]
     assert not any(isinstance(w.message, SampleWarning) for w in caught)  # a plain warning, for the printer
     assert cli._number_ranges([7, 1, 2, 3, 9, 10]) == "1-3, 7, 9-10"
+
+
+def test_correct_keeps_a_number_per_frame_and_writes_the_frames_as_they_come(simulated, tmp_path, monkeypatch):
+    # a recording of thousands of frames must not keep thousands of images and latency maps until the end
+    from evlatcorr import cli
+
+    kept, appended = [], []
+    write, append = cli._write_corrected, cli._append_image
+    monkeypatch.setattr(cli, "_write_corrected", lambda *a: kept.extend(a[-1]) or write(*a))
+    monkeypatch.setattr(cli, "_append_image", lambda h5, image: appended.append(len(kept)) or append(h5, image))
+    out = tmp_path / "out.h5"
+    assert cli.main(["correct", str(simulated), str(out), "--num-bins", "100", "--threshold", "0.2"]) == 0
+    assert len(kept) == 2 and all(latency.dim() == 0 for latency in kept)
+    assert appended == [0, 0]  # each frame's image written before the events
+    with h5py.File(out) as f, h5py.File(simulated) as src:
+        np.testing.assert_array_equal(f["frames/blurry"][:], src["frames/blurry"][:])
+        np.testing.assert_allclose(f["frames/estimated_latency"][:], [float(v) for v in kept], rtol=1e-6)
