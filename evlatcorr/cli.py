@@ -344,7 +344,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
         latencies = frames.latencies
         if args.mode == "constant" and args.fuse_frames > 0:
             latencies = _fused(frames.rows, latencies, frames.evidence, args.fuse_frames, args.search_us)
-        _write_corrected(args, rec, h5, frames.starts, frames.ends, latencies)
+        _write_corrected(args, rec, h5, frames, latencies)
         _write_csv(report_tmp, frames.rows)
     rows = frames.rows
     skipped = sum(bool(r["skipped"]) for r in rows)
@@ -356,23 +356,26 @@ def cmd_correct(args: argparse.Namespace) -> int:
 
 class _CorrectedFrames(NamedTuple):
     """What ``evlatcorr correct`` keeps of every frame until the events are written: its CSV row, its latency (a
-    number in constant mode, a map in spatial mode: a recording of thousands of frames keeps thousands of numbers),
-    its exposure and the reader's evidence for fusing."""
+    number: its map, in spatial mode, is written to the output's ``frames/estimated_latency_map`` as it comes, or
+    kept where the output is not our HDF5), its exposure and the reader's evidence for fusing. A recording of
+    thousands of frames keeps thousands of numbers, not images."""
 
     rows: list[dict]
     latencies: list[torch.Tensor]
     starts: list[float]
     ends: list[float]
     evidence: list[tuple[Any, Any]]
+    extremes: list[float]  # the lowest and highest latency of any frame's map, µs
 
 
 def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: torch.device, h5) -> _CorrectedFrames:
-    """Every frame's latency (``corrector``; a frame without events keeps the previous one), its blurry image appended
-    to ``h5``'s ``frames/blurry`` as it comes (when ``h5`` is an open file)."""
+    """Every frame's latency (``corrector``; a frame without events keeps the previous one), its blurry image (and in
+    spatial mode its latency map) appended to ``h5``'s ``frames/blurry`` (``frames/estimated_latency_map``) as it
+    comes, when ``h5`` is an open file."""
     from evlatcorr.frames import EventFrames
     from evlatcorr.restore import has_events
 
-    kept = _CorrectedFrames([], [], [], [], [])
+    kept = _CorrectedFrames([], [], [], [], [], [math.inf, -math.inf])
     frame_warnings = _FrameWarnings()
     pending: list[Any] = []  # frames with events not yet corrected, searched in one call (_frames_per_call)
 
@@ -380,11 +383,18 @@ def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: tor
         kept.rows.append(_latency_row(batch, out, theta, seconds, skipped=skipped))
         kept.evidence.append(frame_evidence(out)[0][1:] if args.mode == "constant" and not skipped else (None, None))
         latency = out.latency[0, 0].cpu()
-        kept.latencies.append(latency.reshape(-1)[0].double() if args.mode == "constant" else latency)
+        kept.extremes[:] = [min(kept.extremes[0], float(latency.min())), max(kept.extremes[1], float(latency.max()))]
+        if args.mode == "constant":  # one latency for the whole frame
+            kept.latencies.append(latency.reshape(-1)[0].double())
+        elif h5 is not None:
+            _append_frame(h5, "frames/estimated_latency_map", latency[None].float().numpy())
+            kept.latencies.append(latency.double().mean())
+        else:
+            kept.latencies.append(latency)
         kept.starts.append(float(batch.exposure_start))
         kept.ends.append(float(batch.exposure_end))
         if h5 is not None:
-            _append_image(h5, batch.blurry[0].cpu().numpy())
+            _append_frame(h5, "frames/blurry", batch.blurry[0].cpu().numpy())
 
     def correct_pending() -> None:
         if pending:
@@ -416,23 +426,26 @@ def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: tor
     return kept
 
 
-def _append_image(h5, image: np.ndarray) -> None:
-    """One more frame on ``frames/blurry`` :math:`(N, C, H, W)` of an open file (made at the first)."""
-    if "frames/blurry" not in h5:
-        h5.create_dataset("frames/blurry", shape=(0, *image.shape), maxshape=(None, *image.shape), dtype=image.dtype,
+def _append_frame(h5, name: str, image: np.ndarray) -> None:
+    """One more frame's ``image`` :math:`(C, H, W)` on the dataset ``name`` :math:`(N, C, H, W)` of an open file (made
+    at the first)."""
+    if name not in h5:
+        h5.create_dataset(name, shape=(0, *image.shape), maxshape=(None, *image.shape), dtype=image.dtype,
                           compression="lzf", chunks=(1, *image.shape))
-    images = h5["frames/blurry"]
+    images = h5[name]
     images.resize(len(images) + 1, axis=0)
     images[-1] = image
 
 
-def _write_corrected(args: argparse.Namespace, rec, h5, starts: list[float], ends: list[float],
+def _write_corrected(args: argparse.Namespace, rec, h5, frames: _CorrectedFrames,
                      latencies: list[torch.Tensor]) -> None:
-    """The corrected events: into ``h5`` (our format, with the frames' exposures and latencies), or an event_utils
-    file like the input."""
+    """The corrected events (each frame's events by ``latencies``, or by its map on ``h5`` in spatial mode): into
+    ``h5`` (our format, with the frames' exposures and latencies), or an event_utils file like the input."""
     from evlatcorr.io import EventWriter, write_event_utils
 
-    corrected = _corrected_stream(rec, np.array(starts), latencies)
+    on_disk = None if h5 is None else h5.get("frames/estimated_latency_map")
+    starts, ends = frames.starts, frames.ends
+    corrected = _corrected_stream(rec, np.array(starts), latencies, on_disk, frames.extremes)
     if h5 is None:
         from evlatcorr.events import Events
 
@@ -477,14 +490,18 @@ def _fused(rows: list[dict], latencies: list[torch.Tensor], evidence: list[tuple
     return [torch.full_like(m, float(v)) for m, v in zip(latencies, fused)]
 
 
-def _corrected_stream(rec, starts: np.ndarray, latencies: list[torch.Tensor]):
+def _corrected_stream(rec, starts: np.ndarray, latencies: list[torch.Tensor], on_disk=None,
+                      extremes: list[float] | None = None):
     """Corrected events in time order, chunk by chunk.
 
     Each event takes the latency of the frame whose interval ``[start_i, start_{i+1})`` holds its
-    stamp (at its pixel). Shifted events are held back until no later chunk can precede them.
+    stamp (at its pixel): ``latencies`` (one per frame, or maps), or the maps :math:`(F, 1, H, W)` of the dataset
+    ``on_disk``, read a chunk's frames at a time (``extremes``: their lowest and highest latency). Shifted events are
+    held back until no later chunk can precede them.
     """
     maps = torch.stack(latencies).numpy()  # (F,): one latency per frame, or (F, H, W) maps
-    hold_back = float(maps.max()) - float(min(0.0, maps.min())) + 1.0
+    low, high = (float(maps.min()), float(maps.max())) if on_disk is None else extremes
+    hold_back = high - min(0.0, low) + 1.0
     width = rec.sensor_size[1]
     pending: list[np.ndarray] = []
     for chunk in rec.iter_event_chunks():
@@ -492,7 +509,11 @@ def _corrected_stream(rec, starts: np.ndarray, latencies: list[torch.Tensor]):
             continue
         frame = np.clip(np.searchsorted(starts, chunk["t"], side="right") - 1, 0, len(starts) - 1)
         shifted = chunk.copy()
-        if maps.ndim == 1:
+        if on_disk is not None:  # the maps of the frames this chunk spans
+            needed, frame = np.unique(frame, return_inverse=True)
+            block = on_disk[needed.tolist()].reshape(len(needed), -1)
+            shifted["t"] = chunk["t"] - block[frame, chunk["y"].astype(np.int64) * width + chunk["x"].astype(np.int64)]
+        elif maps.ndim == 1:
             shifted["t"] = chunk["t"] - maps[frame]
         else:
             shifted["t"] = chunk["t"] - maps.reshape(len(starts), -1)[frame, chunk["y"].astype(np.int64) * width

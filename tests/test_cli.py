@@ -464,9 +464,10 @@ def test_correct_keeps_a_number_per_frame_and_writes_the_frames_as_they_come(sim
     from evlatcorr import cli
 
     kept, appended = [], []
-    write, append = cli._write_corrected, cli._append_image
+    write, append = cli._write_corrected, cli._append_frame
     monkeypatch.setattr(cli, "_write_corrected", lambda *a: kept.extend(a[-1]) or write(*a))
-    monkeypatch.setattr(cli, "_append_image", lambda h5, image: appended.append(len(kept)) or append(h5, image))
+    monkeypatch.setattr(cli, "_append_frame", lambda h5, name, image: appended.append(len(kept)) or append(h5, name,
+                                                                                                          image))
     out = tmp_path / "out.h5"
     assert cli.main(["correct", str(simulated), str(out), "--num-bins", "100", "--threshold", "0.2"]) == 0
     assert len(kept) == 2 and all(latency.dim() == 0 for latency in kept)
@@ -474,3 +475,19 @@ def test_correct_keeps_a_number_per_frame_and_writes_the_frames_as_they_come(sim
     with h5py.File(out) as f, h5py.File(simulated) as src:
         np.testing.assert_array_equal(f["frames/blurry"][:], src["frames/blurry"][:])
         np.testing.assert_allclose(f["frames/estimated_latency"][:], [float(v) for v in kept], rtol=1e-6)
+
+
+def test_spatial_correct_writes_each_frames_map_and_shifts_the_events_by_it(simulated, tmp_path):
+    from evlatcorr import cli
+
+    out = tmp_path / "spatial.h5"
+    assert cli.main(["correct", str(simulated), str(out), "--mode", "spatial", "--num-bins", "100",
+                     "--threshold", "0.2"]) == 0
+    with h5py.File(out) as f, h5py.File(simulated) as src:
+        maps = f["frames/estimated_latency_map"][:]
+        assert maps.shape == (2, 1, 48, 64) and maps.dtype == np.float32
+        np.testing.assert_allclose(maps.mean(axis=(1, 2, 3)), f["frames/estimated_latency"][:], rtol=1e-5)
+        starts = f["frames/exposure_start"][:]
+        x, y, t = src["events/x"][:].astype(np.int64), src["events/y"][:].astype(np.int64), src["events/t"][:]
+        frame = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(starts) - 1)
+        np.testing.assert_allclose(f["events/t"][:], np.sort(t - maps[frame, 0, y, x]), rtol=0, atol=1e-6)

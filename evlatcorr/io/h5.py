@@ -17,7 +17,7 @@ A *sequence group* holds one continuous recording:
 <group>/frames/sharp       (F, C, H, W)          optional ground truth at mid-exposure
 <group>/frames/latency     float32 (F, 1, H, W)  optional true latency map (µs)
 <group>/frames/estimated_latency       float32 (F,)          optional, written by `evlatcorr correct`
-<group>/frames/estimated_latency_map   float32 (F, 1, H, W)  optional estimated latency maps (µs)
+<group>/frames/estimated_latency_map   float32 (F, 1, H, W)  optional latency maps (µs; `correct --mode spatial`)
 <group>/ideal_events/x, y, t, p                  optional events without latency (same layout)
 <group>/targets/times      float64 (T,)          optional times of ground-truth frames (µs)
 <group>/targets/frames     (T, C, H, W)          optional ground-truth frames at those times
