@@ -12,6 +12,7 @@ import contextlib
 import csv
 import itertools
 import math
+import re
 import signal
 import sys
 import time
@@ -169,9 +170,11 @@ def _recording_threshold(args: argparse.Namespace, rec, device: torch.device) ->
     theta = _threshold(args.threshold)
     if theta != "auto":
         return theta
-    # what the search says of a frame here, the main pass says again of every frame, by its number
+    # what the search says of a frame here, the main pass says again of every frame, by its number; what the reader
+    # says of a frame read here (with the wider window of a pair) is said to come from here; of the file, as it is
     with _reworded(lambda message: None if isinstance(message, SampleWarning)
-                   else f"estimating the contrast threshold from the first frames: {message}"):
+                   else f"estimating the contrast threshold from the first frames: {message}"
+                   if re.search(r"\bframe \d+:", str(message)) else str(message)):
         found = recording_threshold(rec, tuple(args.search_us) if args.search_us else None, device=device)
     if found is None:
         warnings.warn("no pair of consecutive frames with events: the contrast threshold is estimated per frame",

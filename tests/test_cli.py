@@ -491,3 +491,22 @@ def test_spatial_correct_writes_each_frames_map_and_shifts_the_events_by_it(simu
         x, y, t = src["events/x"][:].astype(np.int64), src["events/y"][:].astype(np.int64), src["events/t"][:]
         frame = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(starts) - 1)
         np.testing.assert_allclose(f["events/t"][:], np.sort(t - maps[frame, 0, y, x]), rtol=0, atol=1e-6)
+
+
+def test_a_cut_off_recording_is_corrected_and_its_warnings_said_once(tmp_path):
+    # the cradle recording cut inside a packet: read up to it; the file's warning is said once, and those the contrast
+    # threshold's estimate raises about its frames say they come from it
+    from tests.conftest import shared_data_dir
+
+    cradle = shared_data_dir() / "davis346" / "cradle_lowlight.aedat4"
+    if not cradle.is_file():
+        pytest.skip("shared DAVIS recordings absent")
+    cut = tmp_path / "cut.aedat4"
+    cut.write_bytes(cradle.read_bytes()[:2_000_000])
+    r = run("correct", str(cut), str(tmp_path / "out.h5"), "--num-bins", "100", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    lines = r.stderr.splitlines()
+    assert sum("the file ends inside the packet after packet" in line for line in lines) == 1, r.stderr
+    assert any(line.startswith("evlatcorr correct: warning: estimating the contrast threshold from the first frames: "
+                               f"{cut}: frame ") for line in lines), r.stderr
+    assert len(list(csv.DictReader(open(tmp_path / "out.csv")))) == 7
