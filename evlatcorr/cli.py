@@ -240,7 +240,7 @@ class _FrameWarnings:
                 return str(message)
             if message.kind not in self.later:
                 self.later[message.kind] = (message.summary, [])
-                return message.naming([f"frame {n}" for n in numbers])
+                return _option_names(message.naming([f"frame {n}" for n in numbers]))
             self.later[message.kind][1].extend(numbers[i] for i in message.samples)
             return None
 
@@ -251,8 +251,13 @@ class _FrameWarnings:
         for summary, numbers in self.later.values():
             if numbers:
                 warnings.warn(f"{len(numbers)} more frame{'s' if len(numbers) > 1 else ''} "
-                              f"({_number_ranges(numbers)}): {summary}", stacklevel=2)
+                              f"({_number_ranges(numbers)}): {_option_names(summary)}", stacklevel=2)
         self.later.clear()
+
+
+def _option_names(text: str) -> str:
+    """The library's words for a setting in the command line's: ``search_range`` is ``--search-us`` here."""
+    return text.replace("search_range ", "--search-us ")
 
 
 def _number_ranges(numbers: list[int]) -> str:

@@ -430,9 +430,9 @@ def test_a_range_that_holds_the_estimate_at_its_edge_is_said_of_the_frames_once(
     assert r.returncode == 0, r.stderr
     lines = r.stderr.splitlines()
     assert any(line.startswith("evlatcorr correct: warning: frame 0: the learned reader finds the latency likeliest "
-                               "at [") and "outside search_range 0-1000 us" in line for line in lines), r.stderr
+                               "at [") and "outside --search-us 0-1000 us" in line for line in lines), r.stderr
     assert ("evlatcorr correct: warning: 1 more frame (1): the learned reader finds the latency likelier outside "
-            "search_range 0-1000 us: the estimate is held at the range's edge") in lines
+            "--search-us 0-1000 us: the estimate is held at the range's edge") in lines
     assert "sample" not in r.stderr
     assert [row["latency_us"] for row in csv.DictReader(open(tmp_path / "out.csv"))] == ["1000.0", "1000.0"]
 
