@@ -394,8 +394,19 @@ def grid_reads(blurry: Tensor, events: Events, exposure_start: Tensor, exposure_
 
 def latent_from_grid_reads(blurry: Tensor, reads: list[Tensor], threshold: float | Tensor, num_bins: int) -> Tensor:
     """:func:`edi_deblur`'s latent image from :func:`grid_reads` of the same frames at the threshold θ (a number or
-    :math:`(B,)`): the same values as :func:`edi_deblur` with that grid."""
-    theta = check_threshold(threshold, blurry.shape[0]).to(reads[0].device, reads[0].dtype).view(-1, 1, 1, 1)
+    :math:`(B,)`): the same values as :func:`edi_deblur` with that grid.
+
+    Raises:
+        ValueError: for a bad threshold, or ``reads`` not made by :func:`grid_reads` for ``blurry`` with
+            ``num_bins`` (chunks of its batch and size holding ``num_bins + 1`` samples in all).
+    """
+    check_image(blurry, "blurry")
+    b, _, height, width = blurry.shape
+    if (not reads or any(r.dim() != 4 or (r.shape[0], *r.shape[2:]) != (b, height, width) for r in reads)
+            or sum(r.shape[1] for r in reads) != num_bins + 1):
+        raise ValueError(f"reads must be grid_reads of {b} frame(s) of {height}x{width} with num_bins={num_bins} "
+                         f"({num_bins + 1} samples in all), got {[tuple(r.shape) for r in reads]}")
+    theta = check_threshold(threshold, b).to(reads[0].device, reads[0].dtype).view(-1, 1, 1, 1)
     return blurry * torch.exp(-_log_ratio_of_differences(reads, theta, num_bins)).to(blurry.dtype)
 
 

@@ -23,6 +23,9 @@ class SampleWarning(UserWarning):
 
     ``str()`` names the samples by their indices; :meth:`naming` by names the caller gives.
 
+    Raises:
+        ValueError: without samples, or a text without ``{which}``.
+
     Example:
         >>> w = SampleWarning("fallback", [0, 2], "{which}: no clear minimum", "no clear minimum")
         >>> str(w)
@@ -32,6 +35,9 @@ class SampleWarning(UserWarning):
     """
 
     def __init__(self, kind: str, samples: Sequence[int], text: str, summary: str) -> None:
+        if not samples or "{which}" not in text:
+            raise ValueError(f"a SampleWarning names one sample or more, in its text's {{which}}; got samples "
+                             f"{list(samples)} and text {text!r}")
         # the arguments are the exception's args, so it pickles (e.g. across processes) as it was made
         super().__init__(kind, tuple(int(i) for i in samples), text, summary)
         self.kind, self.samples, self.text, self.summary = kind, tuple(int(i) for i in samples), text, summary
@@ -44,6 +50,8 @@ class SampleWarning(UserWarning):
     def naming(self, names: Sequence[str]) -> str:
         """The message with sample ``i`` called ``names[i]`` (names such as ``"frame 12"``: several are joined as
         ``"frames 12, 14"``)."""
+        if max(self.samples) >= len(names):
+            raise ValueError(f"naming needs a name for each of samples {list(self.samples)}, got {len(names)}")
         chosen = [names[i] for i in self.samples]
         nouns = {name.split(" ", 1)[0] for name in chosen}
         if len(chosen) > 1 and len(nouns) == 1 and all(" " in name for name in chosen):

@@ -289,3 +289,9 @@ def test_grid_reads_finish_at_any_threshold_as_edi_deblur_does():
         grid_reads(frames.blurry, frames.events, start, end, grid, 2000.0, 100, time)
     with pytest.raises(ValueError, match="threshold"):
         latent_from_grid_reads(frames.blurry, reads, -0.2, 150)
+    with pytest.raises(ValueError, match=r"grid_reads of 1 frame\(s\) of 24x32 with num_bins=100 \(101 samples"):
+        latent_from_grid_reads(frames.blurry, reads, 0.2, 100)  # made for 150 bins
+    with pytest.raises(ValueError, match="grid_reads of 1 frame"):
+        latent_from_grid_reads(frames.blurry[:, :, :12], reads, 0.2, 150)  # another size
+    with pytest.raises(ValueError, match="grid_reads of 1 frame"):
+        latent_from_grid_reads(frames.blurry, [], 0.2, 150)

@@ -2,6 +2,8 @@
 
 import pickle
 
+import pytest
+
 from evlatcorr.sample_warnings import SampleWarning
 
 
@@ -18,3 +20,12 @@ def test_sample_warning_names_its_samples_by_index_or_by_the_callers_names():
 def test_sample_warning_pickles_as_it_was_made():
     w = pickle.loads(pickle.dumps(SampleWarning("hot_pixels", [1], "{which}: 3 hot pixels", "hot pixels")))
     assert (w.kind, w.samples, w.summary, str(w)) == ("hot_pixels", (1,), "hot pixels", "sample 1: 3 hot pixels")
+
+
+def test_sample_warning_refuses_no_samples_a_text_without_them_and_too_few_names():
+    with pytest.raises(ValueError, match="one sample or more"):
+        SampleWarning("fallback", [], "{which}: fallback", "the fallback")
+    with pytest.raises(ValueError, match="one sample or more"):
+        SampleWarning("fallback", [0], "fallback", "the fallback")
+    with pytest.raises(ValueError, match=r"a name for each of samples \[0, 3\], got 2"):
+        SampleWarning("fallback", [0, 3], "{which}: fallback", "the fallback").naming(["frame 1", "frame 2"])
