@@ -34,11 +34,15 @@ default for both). With ``--score NAME`` both search with that score (e.g. ``con
 the same work on both sides, where the defaults compare different amounts of it.
 
 ``--part recording`` times the corrector (``EventLatencyCorrector``, the recording's θ given) on every frame of a
-recording (``--recording``, default the shared low-light DAVIS346 one), each after its untimed first call, as it reads
-the windows at the pixels with events alone (where at most half the pixels have any, as on a dim or still scene) and,
-in the same run, at every pixel (``continuous.SPARSE_SHARE = 0``), with the median over frames of each frame's median
-of ``--repeats`` calls, and checks that both give the same latencies; then the time to estimate the recording's θ
-(what ``threshold="auto"`` and the command line do once per recording), once.
+recording (``--recording``, default the shared low-light DAVIS346 one), each after its untimed first call, as a CPU
+reads the windows by default (one compiled pass over each pixel's events, ``evlatcorr.window_reads``) and, in the same
+run, from tables (``continuous.COMPILED_READS = False``: at the pixels with events alone where at most half the pixels
+have any, as on a dim or still scene), with the median over frames of each frame's median of ``--repeats`` calls, and
+checks that both give the same latencies; then the time to estimate the recording's θ (what ``threshold="auto"`` and
+the command line do once per recording), once.
+
+``--part stages`` says where the default search's time goes; on a CPU it does so twice in one run, with the compiled
+reads (the default) and with the tables they replaced (``tables/compiled reads: <x>``).
 
 ``--part memory`` runs one constant correction (``EventLatencyCorrector()``, the defaults) on a
 DAVIS346 frame (260x346) with ``--events`` events spread over its exposure and search window, in a
@@ -279,25 +283,36 @@ def bench_stages(device: torch.device, args: argparse.Namespace) -> None:
         return run
 
     originals = {label: getattr(owner, name) for label, (owner, name) in stages.items()}
-    per_call: dict[str, list[float]] = {label: [] for label in [*stages, "other", "total"]}
+    compiled_reads = continuous.COMPILED_READS
+    # on a CPU the compiled reads (the default) and the tables they replaced, in the same run
+    ways = {"compiled reads": True, "tables": False} if device.type == "cpu" else {"": compiled_reads}
+    totals = {}
     try:
         for label, (owner, name) in stages.items():
             setattr(owner, name, wrapped(label, originals[label]))
-        for k in range(WARM_UP + args.repeats):
-            spent.clear()
-            total, _ = timed(lambda: search_constant_latency(blurry, ev, start, end, num_bins=args.bins,
-                                                             num_candidates=args.candidates), device)
-            if k >= WARM_UP:
-                for label in stages:
-                    per_call[label].append(spent.get(label, 0.0))
-                per_call["other"].append(total - sum(spent.values()))
-                per_call["total"].append(total)
+        for way, compiled in ways.items():
+            continuous.COMPILED_READS = compiled
+            per_call: dict[str, list[float]] = {label: [] for label in [*stages, "other", "total"]}
+            for k in range(WARM_UP + args.repeats):
+                spent.clear()
+                total, _ = timed(lambda: search_constant_latency(blurry, ev, start, end, num_bins=args.bins,
+                                                                 num_candidates=args.candidates), device)
+                if k >= WARM_UP:
+                    for label in stages:
+                        per_call[label].append(spent.get(label, 0.0))
+                    per_call["other"].append(total - sum(spent.values()))
+                    per_call["total"].append(total)
+            print(f"[{device.type}] default search ({DEFAULT_SCORE}) by stage{', ' + way if way else ''}, {len(ev)} "
+                  f"events, median of {args.repeats}:")
+            for label, values in per_call.items():
+                print(f"[{device.type}]   {label}: {statistics.median(values) * 1000:.1f} ms")
+            totals[way] = statistics.median(per_call["total"])
     finally:
+        continuous.COMPILED_READS = compiled_reads
         for label, (owner, name) in stages.items():
             setattr(owner, name, originals[label])
-    print(f"[{device.type}] default search ({DEFAULT_SCORE}) by stage, {len(ev)} events, median of {args.repeats}:")
-    for label, values in per_call.items():
-        print(f"[{device.type}]   {label}: {statistics.median(values) * 1000:.1f} ms")
+    if len(totals) == 2:
+        print(f"[{device.type}] tables/compiled reads: {totals['tables'] / totals['compiled reads']:.2f}x")
 
 
 def bench_recording(device: torch.device, args: argparse.Namespace) -> None:
@@ -308,13 +323,13 @@ def bench_recording(device: torch.device, args: argparse.Namespace) -> None:
 
     if not args.recording.is_file():
         raise SystemExit(f"--recording {args.recording}: no such file")
-    sparse_share = continuous.SPARSE_SHARE
+    compiled_reads = continuous.COMPILED_READS
     corrector = EventLatencyCorrector(threshold=args.threshold)
     warnings.simplefilter("ignore")  # the recording's own warnings (its last frame's events end early), said elsewhere
     frames = [frame.to(device) for frame in open_recording(args.recording) if len(frame.events)]
 
-    def per_frame(share: float) -> tuple[list[float], list[float]]:
-        continuous.SPARSE_SHARE = share
+    def per_frame(compiled: bool) -> tuple[list[float], list[float]]:
+        continuous.COMPILED_READS = compiled
         times, latencies = [], []
         for frame in frames:
             latencies.append(float(corrector(frame).latency.mean()))  # untimed: the first call of each frame
@@ -323,18 +338,18 @@ def bench_recording(device: torch.device, args: argparse.Namespace) -> None:
         return times, latencies
 
     try:
-        active, active_latency = per_frame(sparse_share)
-        every, every_latency = per_frame(0.0)
+        compiled, compiled_latency = per_frame(True)
+        tables, tables_latency = per_frame(False)
     finally:
-        continuous.SPARSE_SHARE = sparse_share
+        continuous.COMPILED_READS = compiled_reads
     events = statistics.median(len(frame.events) for frame in frames)
     print(f"[{device.type}] {args.recording.name}: {len(frames)} frames {frames[0].sensor_size[1]}x"
           f"{frames[0].sensor_size[0]}, median {events:.0f} events per window, θ = {args.threshold}; median over "
           f"frames of each frame's median of {args.repeats} calls")
-    print(f"[{device.type}] corrector, windows read at the pixels with events: {statistics.median(active) * 1000:.1f} "
-          f"ms per frame; at every pixel: {statistics.median(every) * 1000:.1f} ms; speed-up "
-          f"{statistics.median(every) / statistics.median(active):.2f}x")
-    gap = max(abs(a - b) for a, b in zip(active_latency, every_latency))
+    print(f"[{device.type}] corrector, compiled reads: {statistics.median(compiled) * 1000:.1f} ms per frame; "
+          f"tables (at the pixels with events, where at most half have any): {statistics.median(tables) * 1000:.1f} "
+          f"ms; speed-up {statistics.median(tables) / statistics.median(compiled):.2f}x")
+    gap = max(abs(a - b) for a, b in zip(compiled_latency, tables_latency))
     print(f"[{device.type}] largest latency difference between the two: {gap:.4f} us")
     from evlatcorr.restore import recording_threshold
 

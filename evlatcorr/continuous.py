@@ -11,21 +11,29 @@ the events once (each event's level before and after it at its pixel), then eval
 any sorted set of times with one scatter of the events: an event in ``[g_{j−1}, g_j)`` that raises the level
 from ``e⁻`` to ``e⁺`` adds ``(e⁺ − e⁻)(g_j − t)`` to the integral over that interval, on top of the level at
 ``g_{j−1}`` held for the whole interval. The cost is one pass over the events plus a few operations per
-time and pixel (on a CPU, per pixel with events where at most half have any: elsewhere the ratio is 1); the
-constant-latency search reads all its candidates' windows this way
+time and pixel; the constant-latency search reads all its candidates' windows this way
 (:func:`evlatcorr.search.search_constant_latency`).
+
+That is how a GPU reads them (tables of every pixel at every time, in eager PyTorch). A CPU, where those tables'
+memory traffic bounds the search, prepares the events with a compiled counting sort (:mod:`evlatcorr.event_runs`)
+and reads the windows by a compiled walk over each pixel's events (:mod:`evlatcorr.window_reads`), with the same
+results to float32 rounding; ``EVLATCORR_COMPILED_READS=0`` (or :data:`COMPILED_READS` False) takes the tables there
+too.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
+from evlatcorr.event_runs import sort_into_runs
 from evlatcorr.events import Events
 from evlatcorr.integral import cumsum_
+from evlatcorr.window_reads import read_windows
 
 __all__ = ["ContinuousIntegral"]
 
@@ -45,6 +53,10 @@ DEVICE_STRIP_BYTES = 2**30
 # Where at most this share of the pixels has events (a dim or still scene: a DAVIS346 low-light frame has events at
 # 14 % of its pixels), a CPU reads the windows at those pixels alone: every other pixel's ratio is exactly 1.
 SPARSE_SHARE = 0.5
+# On a CPU, the events are prepared and the windows read by compiled passes over each pixel's events
+# (:mod:`evlatcorr.event_runs`, :mod:`evlatcorr.window_reads`) instead of eager PyTorch's sort and tables;
+# ``EVLATCORR_COMPILED_READS=0`` (or False here) takes the eager way, e.g. to compare the two.
+COMPILED_READS = os.environ.get("EVLATCORR_COMPILED_READS", "1") != "0"
 # where in the window, besides its ends and reference, the peak log rise (``peak_out``) is read
 PEAK_FRACTIONS = (0.25, 0.75)
 # Window ends are rounded to 1/_LATTICE µs (exact in binary) so equal times computed two ways coincide.
@@ -95,30 +107,20 @@ class ContinuousIntegral:
         self.theta = float(threshold)
         self.device = events.device
         # events in pixel order (each pixel's in time order: a stable sort), so a strip of rows is a slice
-        # int32 keys sort twice as fast as int64 (the same stable order); the sort returns the sorted keys, and
-        # index_select gathers about twice as fast as advanced indexing on a CPU (one sample: the pixel is y·W + x).
-        # The sorted pixels are kept as int64: the tables' flat indices are computed from them
         small = self.num_pixels < 2**31 and len(events) < 2**31
-        pixel = torch.empty(len(events), dtype=torch.int32 if small else torch.int64, device=self.device)
-        keys, order = torch.sort(torch.add(events.x, events.y, alpha=width, out=pixel), stable=True)
         # the events in time order (the input's own times, no copy) and where each pixel-order event came from: an
         # event's slot among sorted times is then a count over the time-ordered stream, not a binary search each
         self.time_ordered = events.t if time_sorted else None
-        self.order = (order.to(torch.int32) if small else order) if time_sorted else None
-        self.pixel, self.t = keys.to(torch.int64), events.t.to(torch.float64).index_select(0, order)
-        step = events.p.index_select(0, order)
-        counts = torch.bincount(self.pixel, minlength=self.num_pixels)
-        self.run_start = torch.cumsum(counts, 0) - counts
-        count_after = self._levels(step)
-        # pixels whose events span more log intensity than any scene can (hot pixels firing one polarity) would
-        # dominate every latent image: they are read as if they had no events
-        self.ignored = torch.zeros(self.num_pixels, dtype=torch.bool, device=self.device)
-        if max_log_range is not None and len(step):
-            low = torch.zeros_like(self.peak_count).scatter_reduce(0, self.pixel, count_after, reduce="amin")
-            hot = self.theta * (self.peak_count - low) > max_log_range
-            if bool(hot.any()):
-                self.ignored = hot
-                self._levels(step * (~hot).index_select(0, self.pixel))
+        if self._compiled and len(events):  # a counting sort and one pass over each pixel's run, compiled
+            runs = sort_into_runs(events.x, events.y, events.t.to(torch.float64), events.p, events.sensor_size,
+                                  self.theta, max_log_range)
+            self.pixel, self.t, self.step, self.run_start = runs.pixel, runs.t, runs.step, runs.run_start
+            self.peak_count, self.ignored, self._bounds = runs.peak_count, runs.ignored, runs.bounds
+            self._after, self._rise = runs.after, None
+            self.order = runs.order if time_sorted else None
+            counts = runs.bounds.diff()
+        else:
+            counts = self._eager_runs(events, width, small, time_sorted, max_log_range)
         # first event of each row (and the end): strips of rows are contiguous
         row_starts = torch.arange(height + 1, device=self.device, dtype=self.pixel.dtype) * width
         self.row_bounds = torch.searchsorted(self.pixel, row_starts).tolist()
@@ -133,9 +135,36 @@ class ContinuousIntegral:
             self.active_bounds = torch.cat([self.run_start.index_select(0, active),
                                             self.run_start.new_tensor([len(self.pixel)])]).cpu()
 
+    def _eager_runs(self, events: Events, width: int, small: bool, time_sorted: bool,
+                    max_log_range: float | None) -> Tensor:
+        """:func:`evlatcorr.event_runs.sort_into_runs` in eager PyTorch (a GPU's way); returns each pixel's count of
+        events."""
+        # int32 keys sort twice as fast as int64 (the same stable order); the sort returns the sorted keys, and
+        # index_select gathers about twice as fast as advanced indexing on a CPU (one sample: the pixel is y·W + x).
+        # The sorted pixels are kept as int64: the tables' flat indices are computed from them
+        pixel = torch.empty(len(events), dtype=torch.int32 if small else torch.int64, device=self.device)
+        keys, order = torch.sort(torch.add(events.x, events.y, alpha=width, out=pixel), stable=True)
+        self.order = (order.to(torch.int32) if small else order) if time_sorted else None
+        self.pixel, self.t = keys.to(torch.int64), events.t.to(torch.float64).index_select(0, order)
+        step = events.p.index_select(0, order)
+        counts = torch.bincount(self.pixel, minlength=self.num_pixels)
+        self.run_start = torch.cumsum(counts, 0) - counts
+        self._bounds = None
+        count_after = self._levels(step)
+        # pixels whose events span more log intensity than any scene can (hot pixels firing one polarity) would
+        # dominate every latent image: they are read as if they had no events
+        self.ignored = torch.zeros(self.num_pixels, dtype=torch.bool, device=self.device)
+        if max_log_range is not None and len(step):
+            low = torch.zeros_like(self.peak_count).scatter_reduce(0, self.pixel, count_after, reduce="amin")
+            hot = self.theta * (self.peak_count - low) > max_log_range
+            if bool(hot.any()):
+                self.ignored = hot
+                self._levels(step * (~hot).index_select(0, self.pixel))
+        return counts
+
     def _levels(self, step: Tensor) -> Tensor:
-        """Each event's step (±1, 0 for an ignored pixel's), each pixel's peak count and each event's rise of
-        ``exp(θC − peak)``; returns each event's count after it at its pixel.
+        """Each event's step (±1, 0 for an ignored pixel's) and each pixel's peak count; returns each event's count
+        after it at its pixel (kept for :attr:`rise`).
 
         Few event-sized tensors are made (each fresh one costs its page faults) and counts are int32.
         """
@@ -149,12 +178,21 @@ class ContinuousIntegral:
         # levels are read relative to each pixel's highest level over the whole stream (0 before its first event)
         self.peak_count = torch.zeros(self.num_pixels, dtype=after.dtype, device=self.device).scatter_reduce(
             0, self.pixel, after, reduce="amax", include_self=True)
-        # exp(θ·after − peak) − exp(θ·before − peak) = step·(1 − e^−θ)·exp(θ·max(before, after) − peak): one
-        # exponential per event, of the higher of its two levels (after, or after + 1 for a −1 step)
-        higher = self.peak_count.index_select(0, self.pixel)
-        torch.sub(after, higher, out=higher).add_(self.step < 0)
-        self.rise = higher.to(torch.float64).mul_(self.theta).exp_().mul_(self.step).mul_(1.0 - math.exp(-self.theta))
+        self._after, self._rise = after, None
         return after
+
+    @property
+    def rise(self) -> Tensor:
+        """Each event's rise of ``exp(θC − peak)`` at its pixel :math:`(N,)` float64, pixel order: made on first use
+        (a CPU's compiled reads never need it)."""
+        if self._rise is None:
+            # exp(θ·after − peak) − exp(θ·before − peak) = step·(1 − e^−θ)·exp(θ·max(before, after) − peak): one
+            # exponential per event, of the higher of its two levels (after, or after + 1 for a −1 step)
+            higher = self.peak_count.index_select(0, self.pixel)
+            torch.sub(self._after, higher, out=higher).add_(self.step < 0)
+            self._rise = higher.to(torch.float64).mul_(self.theta).exp_().mul_(self.step).mul_(
+                1.0 - math.exp(-self.theta))
+        return self._rise
 
     def at(self, times: Tensor) -> tuple[Tensor, Tensor]:
         """``S`` and ``exp(θC − peak)`` of every pixel at sorted times.
@@ -237,7 +275,8 @@ class ContinuousIntegral:
         Returns:
             :math:`(K, 1, H, W)` float64; the latent image is ``blurry · exp(−log R)``.
         """
-        if latencies.numel() == 1 and self.time_ordered is not None and out is None:
+        if (latencies.numel() == 1 and self.time_ordered is not None and out is None
+                and not (self._compiled and self.active is None)):
             return self._one_window(start, end, float(latencies.reshape(-1)[0]), reference)
         return self._read(start, end, latencies, reference, out, torch.float64)
 
@@ -318,6 +357,12 @@ class ContinuousIntegral:
         peak_shape = (len(lat), 1, -(-height // peak_stride), -(-width // peak_stride))
         if peak_out is not None and (peak_out.shape != peak_shape or peak_out.dtype != torch.float32):
             raise ValueError(f"peak_out must be float32 {peak_shape}, got {peak_out.dtype} {tuple(peak_out.shape)}")
+        if self._compiled and self.active is None:  # one compiled pass per pixel, no tables
+            k = len(lat)
+            read_windows(self.t, self.step, self._run_bounds(), self.peak_count, self.theta, times, a, b, r, quarters,
+                         end - start, width, out.view(k, -1), None if change_out is None else change_out.view(k, -1),
+                         None if peak_out is None else peak_out.view(k, -1), peak_stride)
+            return out
         windows = _Windows(a, b, len(times), self.device)
         num, padded, size = len(times), windows.rows, out.element_size()
         extended = 1 + max(padded, num)  # interval rows: before the first time, the blocks, after the last time
@@ -376,6 +421,19 @@ class ContinuousIntegral:
                 torch.div(strip_level[r].view(len(lat), r1 - r0, width), window, out=out[:, 0, r0:r1])
                 out[:, 0, r0:r1].mul_(end - start)
         return out
+
+    @property
+    def _compiled(self) -> bool:
+        """Whether the events are prepared by compiled passes (:mod:`evlatcorr.event_runs`) and, where more than
+        :data:`SPARSE_SHARE` of the pixels have events, read by one (:mod:`evlatcorr.window_reads`): on a CPU, unless
+        :data:`COMPILED_READS` is off. Where fewer have events the tables at those pixels alone are the faster."""
+        return self.device.type == "cpu" and COMPILED_READS
+
+    def _run_bounds(self) -> Tensor:
+        """Where each pixel's events start, and the end of the last :math:`(H·W + 1,)`."""
+        if self._bounds is None:
+            self._bounds = torch.cat([self.run_start, self.run_start.new_tensor([len(self.pixel)])])
+        return self._bounds
 
     def _read_active(self, strip_pixels: int, strip_sums: Callable, rows_read: tuple, duration: float, out: Tensor,
                      change_out: Tensor | None, peak_out: Tensor | None, peak_stride: int) -> None:

@@ -11,6 +11,22 @@ from evlatcorr.events import Events
 from evlatcorr.simulate import simulate
 
 
+@pytest.fixture(params=["compiled", "tables"])
+def reads(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Both ways a CPU reads windows: the compiled pass over each pixel's events (at every pixel: where few have events
+    the tables are the faster), and the tables (a GPU's way)."""
+    monkeypatch.setattr("evlatcorr.continuous.COMPILED_READS", request.param == "compiled")
+    if request.param == "compiled":
+        monkeypatch.setattr("evlatcorr.continuous.SPARSE_SHARE", 0.0)
+    return request.param
+
+
+@pytest.fixture
+def tables(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The tables on a CPU too: what the tests of the tables' own machinery (strips, blocks, slots) read."""
+    monkeypatch.setattr("evlatcorr.continuous.COMPILED_READS", False)
+
+
 def one_pixel_events(times: list[float] | torch.Tensor, polarity: list[int] | torch.Tensor, sensor=(1, 2)) -> Events:
     """Events at pixel (0, 0) of a sensor whose other pixels have none."""
     t = torch.as_tensor(times, dtype=torch.float64)
@@ -18,7 +34,7 @@ def one_pixel_events(times: list[float] | torch.Tensor, polarity: list[int] | to
                   torch.as_tensor(polarity), sensor_size=sensor)
 
 
-def test_single_event_known_answer():
+def test_single_event_known_answer(reads):
     # window [0, 10] us read at 5 us; one +1 event at 2.5 us: level 1 over 7.5 us, 0 over 2.5 us, 1 at the reference
     theta = 0.3
     ci = ContinuousIntegral(one_pixel_events([2.5], [1]), theta)
@@ -29,7 +45,7 @@ def test_single_event_known_answer():
     assert log_r[0, 0, 0, 1].item() == 0.0  # a pixel with no events: R = 1
 
 
-def test_latency_reads_the_window_later():
+def test_latency_reads_the_window_later(reads):
     # the same event seen with a latency of 4 us: window [4, 14] read at 9: level 0 over [4, 6.5), 1 over the rest
     ci = ContinuousIntegral(one_pixel_events([6.5], [1]), 0.3)
     log_r = ci.log_ratio(0.0, 10.0, torch.tensor([4.0, 20.0]))
@@ -37,7 +53,7 @@ def test_latency_reads_the_window_later():
     assert log_r[1, 0, 0, 0].item() == pytest.approx(0.0, abs=1e-15)  # [20, 30]: after the event, level constant
 
 
-def test_inverse_ratio_is_exp_of_minus_log_ratio():
+def test_inverse_ratio_is_exp_of_minus_log_ratio(reads):
     g = torch.Generator().manual_seed(2)
     n, (h, w) = 3000, (4, 6)
     t, _ = torch.sort(torch.rand(n, generator=g, dtype=torch.float64) * 1000.0)
@@ -49,7 +65,7 @@ def test_inverse_ratio_is_exp_of_minus_log_ratio():
     torch.testing.assert_close(inverse, torch.exp(-ci.log_ratio(100.0, 500.0, lat)).float(), rtol=1e-6, atol=0)
 
 
-def test_float32_ratio_keeps_its_precision_below_a_much_brighter_past():
+def test_float32_ratio_keeps_its_precision_below_a_much_brighter_past(reads):
     # level 1 over [0, 100), then 60 OFF events (θ = 0.2: e^-12) and flat: a window after them has R = 1 exactly.
     # Read with an earlier window, a running sum from the first time would hold ~90 (us at level 1) before the
     # window's ~0.0006 and lose it in float32; the blocks of interval integrals keep float32's relative precision
@@ -104,7 +120,7 @@ def test_log_change_equals_a_count_of_random_events():
         torch.testing.assert_close(change[k, 0], 0.2 * count)
 
 
-def test_inverse_ratio_reads_the_event_change_from_its_own_tables(monkeypatch):
+def test_inverse_ratio_reads_the_event_change_from_its_own_tables(monkeypatch, tables):
     # the same windows' change as log_change, strip by strip (two rows a strip), with a pixel of no events
     g = torch.Generator().manual_seed(5)
     n, (h, w) = 3000, (5, 7)
@@ -136,7 +152,7 @@ def test_event_slots_equal_a_binary_search_of_each_event():
 
 @pytest.mark.parametrize("reference", [0.0, 0.3, 0.5, 1.0])
 @pytest.mark.parametrize("latency", [-20.0, 0.0, 37.3, 150.0, 400.0])
-def test_one_window_from_per_pixel_sums_equals_the_tables(reference, latency, device):
+def test_one_window_from_per_pixel_sums_equals_the_tables(reference, latency, device, tables):
     # one latency is read from per-pixel sums, several from tables: the same log R, a hot pixel, events on window
     # ends and windows past the last event included
     t = torch.cat([torch.rand(3000, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 300.0,
@@ -153,7 +169,7 @@ def test_one_window_from_per_pixel_sums_equals_the_tables(reference, latency, de
     torch.testing.assert_close(ci.log_ratio(10.0, 110.0, lat[:1], reference), tables, rtol=0, atol=1e-12)
 
 
-def test_a_sample_with_no_events_reads_r_equal_to_one():
+def test_a_sample_with_no_events_reads_r_equal_to_one(reads):
     empty = torch.zeros(0, dtype=torch.long)
     ci = ContinuousIntegral(Events(empty, empty, torch.zeros(0, dtype=torch.float64), empty, sensor_size=(2, 3)), 0.2,
                             max_log_range=15.0)
@@ -164,7 +180,7 @@ def test_a_sample_with_no_events_reads_r_equal_to_one():
     assert not bool(change.any()) and not bool(ci.log_change(0.0, 10.0, lat).any())
 
 
-def test_hot_pixel_is_read_as_having_no_events():
+def test_hot_pixel_is_read_as_having_no_events(reads):
     # pixel (0, 0): 100 ON events (θC spans 20 > 15: a hot pixel); pixel (0, 1): an ordinary +1, -1
     hot_t = torch.linspace(1.0, 99.0, 100, dtype=torch.float64)
     t = torch.cat([hot_t, torch.tensor([30.0, 60.0], dtype=torch.float64)])
@@ -184,7 +200,7 @@ def test_hot_pixel_is_read_as_having_no_events():
     torch.testing.assert_close(change[..., 1], plain.log_change(0.0, 80.0, lat)[..., 1], atol=1e-6, rtol=0)
 
 
-def test_thousands_of_events_geometric_series():
+def test_thousands_of_events_geometric_series(reads):
     # 3000 +1 events every 2 us from t = 1 us: over [0, 6000] the level is k·θ on [2k - 1, 2k + 1) (k >= 1) and 0 on
     # [0, 1); read at the end (6000 us, after all 3000 events): R = Σ_k exp(θ(C_k − 3000)) dt_k / 6000
     n, theta = 3000, 0.01
@@ -197,7 +213,7 @@ def test_thousands_of_events_geometric_series():
     assert log_r == pytest.approx(math.log(total / 6000.0) - n * theta, rel=1e-10)
 
 
-def test_equals_binned_edi_in_the_limit_of_many_bins():
+def test_equals_binned_edi_in_the_limit_of_many_bins(reads):
     frames = simulate("camera", num_frames=1, latency="constant", latency_us=2000.0, seed=0, height=24, width=32,
                       exposure_us=10_000.0).frames("delayed")
     start, end = float(frames.exposure_start), float(frames.exposure_end)
@@ -220,7 +236,7 @@ def test_equals_binned_edi_in_the_limit_of_many_bins():
         assert errors[2] < 2e-5
 
 
-def test_times_evaluated_together_or_apart_agree():
+def test_times_evaluated_together_or_apart_agree(reads):
     frames = simulate("camera", num_frames=1, latency="constant", latency_us=1000.0, seed=1, height=12, width=16,
                       exposure_us=5000.0).frames("delayed")
     ci = ContinuousIntegral(frames.events, 0.2)
@@ -259,7 +275,7 @@ def test_edi_deblur_continuous_integral_matches_many_bins_and_takes_one_latency_
                    torch.zeros(2, 1, 12, 16), integral="continuous")
 
 
-def test_strips_of_rows_give_the_same_ratios(monkeypatch):
+def test_strips_of_rows_give_the_same_ratios(monkeypatch, tables):
     import evlatcorr.continuous
 
     frames = simulate("camera", num_frames=1, latency="constant", latency_us=1000.0, seed=4, height=12, width=16,
@@ -286,7 +302,7 @@ def test_corrector_latent_is_the_continuous_edi_at_its_latency():
 
 
 @pytest.mark.parametrize("stride", [1, 3])
-def test_reading_the_pixels_with_events_alone_gives_what_every_pixel_gives(monkeypatch, stride):
+def test_reading_the_pixels_with_events_alone_gives_what_every_pixel_gives(monkeypatch, stride, tables):
     # a small object moving over a still background: few pixels have events, and only theirs are read, in strips of
     # a few pixels; every other pixel's ratio is 1, its change and peak rise 0
     import evlatcorr.continuous

@@ -1,0 +1,42 @@
+"""What the compiled CPU passes share: numba, imported and compiled on first use, and threads that split the work.
+
+The passes (:mod:`evlatcorr.event_runs`, :mod:`evlatcorr.window_reads`) walk each pixel's events in a loop, which eager
+PyTorch can only do as a dozen passes over event- or table-sized tensors. They are compiled with numba on first use
+(a few seconds, then loaded from numba's cache beside this package) and run in ``torch.get_num_threads()`` Python
+threads: the compiled code releases the GIL, and plain threads need no OpenMP runtime beside PyTorch's (numba's own
+parallel loops take one, which a process that forks afterwards, as a DataLoader does, cannot use safely).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+import torch
+
+__all__ = ["in_threads", "jit", "workers_for"]
+
+
+def jit(function: Callable) -> Callable:
+    """``function`` compiled by numba (no GIL held, cached on disk, numpy's division semantics)."""
+    import numba
+
+    return numba.njit(nogil=True, cache=True, error_model="numpy")(function)
+
+
+def in_threads(kernel: Callable, workers: int, *args) -> None:
+    """Run ``kernel(i, workers, *args)`` for ``i`` in ``range(workers)``, each in its own thread (the first in this
+    one); each call must write its own part of the outputs."""
+    threads = [threading.Thread(target=kernel, args=(i, workers, *args)) for i in range(1, workers)]
+    for thread in threads:
+        thread.start()
+    try:
+        kernel(0, workers, *args)
+    finally:
+        for thread in threads:
+            thread.join()
+
+
+def workers_for(items: int, per_worker: int = 1) -> int:
+    """How many threads share ``items`` (at least ``per_worker`` each): at most ``torch.get_num_threads()``."""
+    return max(1, min(torch.get_num_threads(), items // max(1, per_worker)))
