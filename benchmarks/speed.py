@@ -34,15 +34,14 @@ default for both). With ``--score NAME`` both search with that score (e.g. ``con
 the same work on both sides, where the defaults compare different amounts of it.
 
 ``--part recording`` times the corrector (``EventLatencyCorrector``, the recording's θ given) on every frame of a
-recording (``--recording``, default the shared low-light DAVIS346 one), each after its untimed first call, as a CPU
-reads the windows by default (one compiled pass over each pixel's events, ``evlatcorr.window_reads``) and, in the same
-run, from tables (``continuous.COMPILED_READS = False``: at the pixels with events alone where at most half the pixels
-have any, as on a dim or still scene), with the median over frames of each frame's median of ``--repeats`` calls, and
-checks that both give the same latencies; then the time to estimate the recording's θ (what ``threshold="auto"`` and
-the command line do once per recording), once.
+recording (``--recording``, default the shared low-light DAVIS346 one), each after its untimed first call, with a
+CPU's compiled passes (the default, ``evlatcorr.compiled``) and, in the same run, in eager PyTorch
+(``evlatcorr.compiled.ENABLED = False``), with the median over frames of each frame's median of ``--repeats`` calls,
+and checks that both give the same latencies; then the time to estimate the recording's θ (what ``threshold="auto"``
+and the command line do once per recording), once.
 
 ``--part stages`` says where the default search's time goes; on a CPU it does so twice in one run, with the compiled
-reads (the default) and with the tables they replaced (``tables/compiled reads: <x>``).
+passes (the default) and in eager PyTorch (``eager/compiled: <x>``).
 
 ``--part memory`` runs one constant correction (``EventLatencyCorrector()``, the defaults) on a
 DAVIS346 frame (260x346) with ``--events`` events spread over its exposure and search window, in a
@@ -262,6 +261,7 @@ def bench_against(args: argparse.Namespace) -> None:
 def bench_stages(device: torch.device, args: argparse.Namespace) -> None:
     """Where the default search's time goes on the speed frame: each stage's share of every call, medians over
     ``--repeats`` calls (after three untimed), the stages timed by wrapping the functions that do them."""
+    import evlatcorr.compiled as compiled_passes
     import evlatcorr.continuous as continuous
     import evlatcorr.search_candidates as search_candidates
     import evlatcorr.search_learned as search_learned
@@ -283,15 +283,15 @@ def bench_stages(device: torch.device, args: argparse.Namespace) -> None:
         return run
 
     originals = {label: getattr(owner, name) for label, (owner, name) in stages.items()}
-    compiled_reads = continuous.COMPILED_READS
-    # on a CPU the compiled reads (the default) and the tables they replaced, in the same run
-    ways = {"compiled reads": True, "tables": False} if device.type == "cpu" else {"": compiled_reads}
+    enabled = compiled_passes.ENABLED
+    # on a CPU the compiled passes (the default) and eager PyTorch's way they replaced, in the same run
+    ways = {"compiled": True, "eager": False} if device.type == "cpu" else {"": enabled}
     totals = {}
     try:
         for label, (owner, name) in stages.items():
             setattr(owner, name, wrapped(label, originals[label]))
-        for way, compiled in ways.items():
-            continuous.COMPILED_READS = compiled
+        for way, on in ways.items():
+            compiled_passes.ENABLED = on
             per_call: dict[str, list[float]] = {label: [] for label in [*stages, "other", "total"]}
             for k in range(WARM_UP + args.repeats):
                 spent.clear()
@@ -308,28 +308,28 @@ def bench_stages(device: torch.device, args: argparse.Namespace) -> None:
                 print(f"[{device.type}]   {label}: {statistics.median(values) * 1000:.1f} ms")
             totals[way] = statistics.median(per_call["total"])
     finally:
-        continuous.COMPILED_READS = compiled_reads
+        compiled_passes.ENABLED = enabled
         for label, (owner, name) in stages.items():
             setattr(owner, name, originals[label])
     if len(totals) == 2:
-        print(f"[{device.type}] tables/compiled reads: {totals['tables'] / totals['compiled reads']:.2f}x")
+        print(f"[{device.type}] eager/compiled: {totals['eager'] / totals['compiled']:.2f}x")
 
 
 def bench_recording(device: torch.device, args: argparse.Namespace) -> None:
-    """The corrector on every frame of a real recording: windows read at the pixels with events alone, and at every
-    pixel, in the same run (see the module's docstring)."""
-    import evlatcorr.continuous as continuous
+    """The corrector on every frame of a real recording, with the compiled passes and in eager PyTorch, in the same
+    run (see the module's docstring)."""
+    import evlatcorr.compiled as compiled_passes
     from evlatcorr.io import open_recording
 
     if not args.recording.is_file():
         raise SystemExit(f"--recording {args.recording}: no such file")
-    compiled_reads = continuous.COMPILED_READS
+    enabled = compiled_passes.ENABLED
     corrector = EventLatencyCorrector(threshold=args.threshold)
     warnings.simplefilter("ignore")  # the recording's own warnings (its last frame's events end early), said elsewhere
     frames = [frame.to(device) for frame in open_recording(args.recording) if len(frame.events)]
 
-    def per_frame(compiled: bool) -> tuple[list[float], list[float]]:
-        continuous.COMPILED_READS = compiled
+    def per_frame(on: bool) -> tuple[list[float], list[float]]:
+        compiled_passes.ENABLED = on
         times, latencies = [], []
         for frame in frames:
             latencies.append(float(corrector(frame).latency.mean()))  # untimed: the first call of each frame
@@ -339,17 +339,17 @@ def bench_recording(device: torch.device, args: argparse.Namespace) -> None:
 
     try:
         compiled, compiled_latency = per_frame(True)
-        tables, tables_latency = per_frame(False)
+        eager, eager_latency = per_frame(False)
     finally:
-        continuous.COMPILED_READS = compiled_reads
+        compiled_passes.ENABLED = enabled
     events = statistics.median(len(frame.events) for frame in frames)
     print(f"[{device.type}] {args.recording.name}: {len(frames)} frames {frames[0].sensor_size[1]}x"
           f"{frames[0].sensor_size[0]}, median {events:.0f} events per window, θ = {args.threshold}; median over "
           f"frames of each frame's median of {args.repeats} calls")
-    print(f"[{device.type}] corrector, compiled reads: {statistics.median(compiled) * 1000:.1f} ms per frame; "
-          f"tables (at the pixels with events, where at most half have any): {statistics.median(tables) * 1000:.1f} "
-          f"ms; speed-up {statistics.median(tables) / statistics.median(compiled):.2f}x")
-    gap = max(abs(a - b) for a, b in zip(compiled_latency, tables_latency))
+    print(f"[{device.type}] corrector, compiled passes: {statistics.median(compiled) * 1000:.1f} ms per frame; "
+          f"eager: {statistics.median(eager) * 1000:.1f} ms; speed-up "
+          f"{statistics.median(eager) / statistics.median(compiled):.2f}x")
+    gap = max(abs(a - b) for a, b in zip(compiled_latency, eager_latency))
     print(f"[{device.type}] largest latency difference between the two: {gap:.4f} us")
     from evlatcorr.restore import recording_threshold
 

@@ -38,6 +38,7 @@ _ORIGINS = {
     "polarity_to_signed": "evlatcorr.events",
     "prefer_fast_memory": "evlatcorr.pages",
     "prefer_large_pages": "evlatcorr.pages",
+    "prefer_short_spin": "evlatcorr.pages",
     "search_constant_latency": "evlatcorr.search",
     "temporal_consistency": "evlatcorr.etf",
 }
@@ -67,5 +68,6 @@ if TYPE_CHECKING:  # what type checkers and IDEs see (`X as X`: re-exported)
     from evlatcorr.pages import keep_freed_memory as keep_freed_memory
     from evlatcorr.pages import prefer_fast_memory as prefer_fast_memory
     from evlatcorr.pages import prefer_large_pages as prefer_large_pages
+    from evlatcorr.pages import prefer_short_spin as prefer_short_spin
     from evlatcorr.search import ConstantSearchResult as ConstantSearchResult
     from evlatcorr.search import search_constant_latency as search_constant_latency

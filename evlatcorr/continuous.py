@@ -15,25 +15,25 @@ time and pixel; the constant-latency search reads all its candidates' windows th
 (:func:`evlatcorr.search.search_constant_latency`).
 
 That is how a GPU reads them (tables of every pixel at every time, in eager PyTorch). A CPU, where those tables'
-memory traffic bounds the search, prepares the events with a compiled counting sort (:mod:`evlatcorr.event_runs`)
-and reads the windows by a compiled walk over each pixel's events (:mod:`evlatcorr.window_reads`), with the same
-results to float32 rounding; ``EVLATCORR_COMPILED_READS=0`` (or :data:`COMPILED_READS` False) takes the tables there
-too.
+memory traffic bounds the search, prepares the events with a compiled counting sort
+(:mod:`~evlatcorr.compiled.event_runs`) and reads the windows by a compiled walk over each pixel's events
+(:mod:`~evlatcorr.compiled.window_reads`), with the same results to float32 rounding; ``EVLATCORR_COMPILED=0`` (or
+``evlatcorr.compiled.ENABLED`` False) takes the tables there too.
 """
 
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
-from evlatcorr.event_runs import sort_into_runs
+from evlatcorr import compiled
+from evlatcorr.compiled.event_runs import sort_into_runs
+from evlatcorr.compiled.window_reads import read_windows
 from evlatcorr.events import Events
 from evlatcorr.integral import cumsum_
-from evlatcorr.window_reads import read_windows
 
 __all__ = ["ContinuousIntegral"]
 
@@ -53,10 +53,6 @@ DEVICE_STRIP_BYTES = 2**30
 # Where at most this share of the pixels has events (a dim or still scene: a DAVIS346 low-light frame has events at
 # 14 % of its pixels), a CPU reads the windows at those pixels alone: every other pixel's ratio is exactly 1.
 SPARSE_SHARE = 0.5
-# On a CPU, the events are prepared and the windows read by compiled passes over each pixel's events
-# (:mod:`evlatcorr.event_runs`, :mod:`evlatcorr.window_reads`) instead of eager PyTorch's sort and tables;
-# ``EVLATCORR_COMPILED_READS=0`` (or False here) takes the eager way, e.g. to compare the two.
-COMPILED_READS = os.environ.get("EVLATCORR_COMPILED_READS", "1") != "0"
 # where in the window, besides its ends and reference, the peak log rise (``peak_out``) is read
 PEAK_FRACTIONS = (0.25, 0.75)
 # Window ends are rounded to 1/_LATTICE µs (exact in binary) so equal times computed two ways coincide.
@@ -137,8 +133,8 @@ class ContinuousIntegral:
 
     def _eager_runs(self, events: Events, width: int, small: bool, time_sorted: bool,
                     max_log_range: float | None) -> Tensor:
-        """:func:`evlatcorr.event_runs.sort_into_runs` in eager PyTorch (a GPU's way); returns each pixel's count of
-        events."""
+        """:func:`~evlatcorr.compiled.event_runs.sort_into_runs` in eager PyTorch (a GPU's way); returns each pixel's
+        count of events."""
         # int32 keys sort twice as fast as int64 (the same stable order); the sort returns the sorted keys, and
         # index_select gathers about twice as fast as advanced indexing on a CPU (one sample: the pixel is y·W + x).
         # The sorted pixels are kept as int64: the tables' flat indices are computed from them
@@ -424,10 +420,11 @@ class ContinuousIntegral:
 
     @property
     def _compiled(self) -> bool:
-        """Whether the events are prepared by compiled passes (:mod:`evlatcorr.event_runs`) and, where more than
-        :data:`SPARSE_SHARE` of the pixels have events, read by one (:mod:`evlatcorr.window_reads`): on a CPU, unless
-        :data:`COMPILED_READS` is off. Where fewer have events the tables at those pixels alone are the faster."""
-        return self.device.type == "cpu" and COMPILED_READS
+        """Whether the events are prepared by compiled passes (:mod:`~evlatcorr.compiled.event_runs`) and, where more
+        than :data:`SPARSE_SHARE` of the pixels have events, read by one (:mod:`~evlatcorr.compiled.window_reads`): on
+        a CPU, unless ``evlatcorr.compiled.ENABLED`` is off. Where fewer have events the tables at those pixels alone
+        are faster."""
+        return self.device.type == "cpu" and compiled.ENABLED
 
     def _run_bounds(self) -> Tensor:
         """Where each pixel's events start, and the end of the last :math:`(H·W + 1,)`."""

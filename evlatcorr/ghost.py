@@ -28,6 +28,9 @@ import kornia
 import torch
 from torch import Tensor
 
+from evlatcorr import compiled
+from evlatcorr.compiled.high_pass import TAPS, high_pass_correlation
+
 __all__ = ["ghost_moment", "ghost_root", "inverse_ratio_moment", "log_grey", "stacked_inverse_ratio_moment"]
 
 # σ of the high-pass, px: 1 removed the shading offset on most dev scenes; 0 (none) and 2 were worse
@@ -124,7 +127,14 @@ def _check_moment_inputs(grey: Tensor, ratio: Tensor, log_change: Tensor, name: 
 
 def _high_pass_correlation(a: Tensor, b: Tensor, sigma: float) -> Tensor:
     """Correlation of each image of ``a`` with its image of ``b`` :math:`(K, 1, H, W)` after a Gaussian of ``sigma``
-    is removed from both (``a`` is overwritten), from sums: no centred copies."""
+    is removed from both (``a`` may be overwritten), from sums: no centred copies. On a CPU, for the cue's σ, one
+    compiled pass (:mod:`evlatcorr.compiled.high_pass`)."""
+    size = 2 * int(3 * sigma + 0.5) + 1
+    if (a.device.type == "cpu" and compiled.ENABLED and size == TAPS and min(a.shape[-2:]) > TAPS // 2
+            and a.dtype == b.dtype and a.shape[1] == 1):
+        taps = kornia.filters.get_gaussian_kernel1d(size, sigma, dtype=torch.float64)[0].numpy()
+        out = high_pass_correlation(a.flatten(0, 1).contiguous(), b.flatten(0, 1).contiguous(), taps)
+        return torch.from_numpy(out).to(a.dtype)
     a = a.sub_(_gaussian_blur(a, sigma)).flatten(1)
     b = (b - _gaussian_blur(b, sigma)).flatten(1)
     n = a.shape[1]

@@ -1,4 +1,4 @@
-"""CPU memory settings asked for by our entry points (importing the package sets nothing).
+"""CPU memory and thread settings asked for by our entry points (importing the package sets nothing).
 
 EDI and the latency search stream through tensors of tens to hundreds of MB, and on a CPU the page faults of
 touching fresh memory can cost more than the arithmetic:
@@ -10,7 +10,11 @@ touching fresh memory can cost more than the arithmetic:
   is freed, so every new tensor of that size pays its page faults again; it is asked to keep freed memory for
   the next tensor instead.
 
-:func:`prefer_fast_memory` asks for both.
+- :func:`prefer_short_spin`: after each parallel operation PyTorch's OpenMP threads spin for a while before they
+  sleep, and on a CPU with few cores they then share those cores with the compiled passes' threads
+  (:mod:`evlatcorr.compiled`) that run next: a short spin (``GOMP_SPINCOUNT``) keeps the cores for them.
+
+:func:`prefer_fast_memory` asks for all three.
 """
 
 from __future__ import annotations
@@ -18,9 +22,14 @@ from __future__ import annotations
 import ctypes
 import os
 
-__all__ = ["prefer_large_pages", "keep_freed_memory", "prefer_fast_memory"]
+__all__ = ["prefer_large_pages", "keep_freed_memory", "prefer_short_spin", "prefer_fast_memory"]
 
 VARIABLE = "THP_MEM_ALLOC_ENABLE"
+SPIN_VARIABLE = "GOMP_SPINCOUNT"
+# GNU OpenMP's spins before an idle thread sleeps (its default: 300000): on this project's 2-core CPU the default
+# search took 110 ms with 3000 against 154 ms with the default (`python benchmarks/speed.py --part stages`), and EFNet's
+# forward pass the same 1.04 s either way (`--part adapters`)
+SHORT_SPIN = "3000"
 KEEP_VARIABLE = "EVLATCORR_KEEP_FREED_MEMORY"
 # glibc's mallopt parameters, and the threshold both are set to (the largest C int: 2 GiB)
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
@@ -71,10 +80,29 @@ def keep_freed_memory() -> bool:
     return bool(mallopt(_M_MMAP_THRESHOLD, _THRESHOLD_BYTES)) and bool(mallopt(_M_TRIM_THRESHOLD, _THRESHOLD_BYTES))
 
 
-def prefer_fast_memory() -> tuple[bool, bool]:
-    """:func:`prefer_large_pages` and :func:`keep_freed_memory`: what our command lines and scripts ask for first.
+def prefer_short_spin() -> bool:
+    """Set ``GOMP_SPINCOUNT=3000`` unless the environment already says: PyTorch's idle OpenMP threads then sleep after
+    a few microseconds rather than spin for about a millisecond, and leave the cores to the compiled passes.
+
+    Only takes effect when called before torch is imported (GNU OpenMP reads it as it loads); ``import evlatcorr``
+    itself imports no torch. Set ``GOMP_SPINCOUNT`` yourself to keep another value.
 
     Returns:
-        whether each was asked for.
+        whether the short spin is what the environment now says.
+
+    Example:
+        >>> prefer_short_spin() == (os.environ["GOMP_SPINCOUNT"] == "3000")
+        True
     """
+    return os.environ.setdefault(SPIN_VARIABLE, SHORT_SPIN) == SHORT_SPIN
+
+
+def prefer_fast_memory() -> tuple[bool, bool]:
+    """:func:`prefer_large_pages`, :func:`keep_freed_memory` and :func:`prefer_short_spin`: what our command lines and
+    scripts ask for first, before torch is imported.
+
+    Returns:
+        whether large pages and kept memory were asked for.
+    """
+    prefer_short_spin()
     return prefer_large_pages(), keep_freed_memory()

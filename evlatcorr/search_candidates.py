@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from evlatcorr import continuous
+from evlatcorr import compiled, continuous
 from evlatcorr.checks import check_memory, resolve_memory_budget
 from evlatcorr.config import SearchConfig
 from evlatcorr.continuous import ContinuousIntegral
@@ -36,6 +36,10 @@ _CONTINUOUS_READ_BYTES = 256 * 2**20
 HOT_PIXEL_LOG_RANGE = 15.0
 # Candidates scored at once on a CPU (their latent images and score work arrays stay in cache).
 _SCORE_CHUNK = 16
+# With the compiled passes (evlatcorr.compiled), as many as take this many bytes of one float32 image each (all 101
+# at DAVIS346 size): each pass starts threads that share the cores with PyTorch's still spinning ones, so the fewer
+# passes the better, and a log image of all of them is what the compiled scores and moments read
+_COMPILED_SCORE_BYTES = 64 * 2**20
 # Elsewhere (a GPU), as many as fit in this many bytes of score work arrays (about 8 float32 images each): there
 # each kernel launch costs more than the memory, and 101 candidates at DAVIS346 size take about 290 MB
 _DEVICE_SCORE_BYTES = 2**30
@@ -215,7 +219,7 @@ def _score_candidates(reader: _CandidateReader, grey: Tensor, members: tuple[str
 def _score_chunk(image: Tensor) -> int:
     """Candidates of the image ``image`` :math:`(1, 1, H, W)` to score at once on its device."""
     if image.device.type == "cpu":
-        return _SCORE_CHUNK
+        return max(_SCORE_CHUNK, _COMPILED_SCORE_BYTES // (4 * image.numel())) if compiled.ENABLED else _SCORE_CHUNK
     return max(1, _DEVICE_SCORE_BYTES // (8 * 4 * image.numel()))
 
 

@@ -13,6 +13,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from evlatcorr import compiled
+from evlatcorr.compiled.gradients import gradient_sparsity
 from evlatcorr.config import SCORES, SPARSITY_SCORES
 from evlatcorr.etf import etf_loss
 
@@ -82,17 +84,21 @@ def _scores_of(log_image: Callable[[float], Tensor], latent: Callable[[], Tensor
     """:func:`sharpness_scores` from ``log_image(c)`` (the log of the latent plus ``c`` times its mean, up to a
     constant per image) and ``latent()`` (for the ETF only): each log image and gradient term made once."""
     terms: dict[tuple[float, int], Tensor] = {}
-    logs: dict[float, Tensor] = {}
+    # each floor's log image, made once, and the scales it is scored at
+    scales: dict[float, set[int]] = {}
     for score in scores:
-        if score == "etf":
-            continue
-        floor, factors = _SPARSITY[score]
-        for factor in factors:
-            if (floor, factor) not in terms:
-                if floor not in logs:
-                    logs[floor] = log_image(floor)
-                image = logs[floor] if factor == 1 else _mean_pool(logs[floor], factor)
-                terms[floor, factor] = _gradient_sparsity(image)
+        if score != "etf":
+            floor, factors = _SPARSITY[score]
+            scales.setdefault(floor, set()).update(factors)
+    for floor, factors in scales.items():
+        log = log_image(floor)
+        if _compiled_scales(log, factors):  # a CPU: both scales' gradient norms in one compiled pass
+            both = torch.from_numpy(gradient_sparsity(log.flatten(0, 1).contiguous(), 2 in factors)).to(log.dtype)
+            terms.update({(floor, factor): both[factor - 1] for factor in factors})
+        else:
+            for factor in factors:
+                terms[floor, factor] = _gradient_sparsity(log if factor == 1 else _mean_pool(log, factor))
+        del log  # before the next floor's is made
     out = []
     for score in scores:
         if score == "etf":
@@ -104,6 +110,13 @@ def _scores_of(log_image: Callable[[float], Tensor], latent: Callable[[], Tensor
             value = value * torch.exp((latency - previous.to(latency)) ** 2 / (4 * sigma_us**2))
         out.append(value)
     return torch.stack(out)
+
+
+def _compiled_scales(log: Tensor, factors: set[int]) -> bool:
+    """Whether :mod:`evlatcorr.compiled.gradients` scores ``log`` :math:`(K, 1, H, W)` at ``factors``: on a CPU, at full
+    and half resolution, images of one channel at least 4 pixels each way."""
+    return (log.device.type == "cpu" and compiled.ENABLED and factors <= {1, 2} and log.dim() == 4
+            and log.shape[1] == 1 and min(log.shape[-2:]) >= 4)
 
 
 def _mean_pool(image: Tensor, factor: int) -> Tensor:

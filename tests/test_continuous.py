@@ -15,7 +15,7 @@ from evlatcorr.simulate import simulate
 def reads(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
     """Both ways a CPU reads windows: the compiled pass over each pixel's events (at every pixel: where few have events
     the tables are the faster), and the tables (a GPU's way)."""
-    monkeypatch.setattr("evlatcorr.continuous.COMPILED_READS", request.param == "compiled")
+    monkeypatch.setattr("evlatcorr.compiled.ENABLED", request.param == "compiled")
     if request.param == "compiled":
         monkeypatch.setattr("evlatcorr.continuous.SPARSE_SHARE", 0.0)
     return request.param
@@ -24,7 +24,7 @@ def reads(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> st
 @pytest.fixture
 def tables(monkeypatch: pytest.MonkeyPatch) -> None:
     """The tables on a CPU too: what the tests of the tables' own machinery (strips, blocks, slots) read."""
-    monkeypatch.setattr("evlatcorr.continuous.COMPILED_READS", False)
+    monkeypatch.setattr("evlatcorr.compiled.ENABLED", False)
 
 
 def one_pixel_events(times: list[float] | torch.Tensor, polarity: list[int] | torch.Tensor, sensor=(1, 2)) -> Events:

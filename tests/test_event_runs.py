@@ -3,6 +3,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+import evlatcorr.compiled
 import evlatcorr.continuous
 from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.events import Events
@@ -30,7 +31,7 @@ def _events(seed: int = 0) -> Events:
 
 
 def _prepared(events: Events, compiled: bool, monkeypatch: pytest.MonkeyPatch, max_log_range: float | None = 15.0):
-    monkeypatch.setattr(evlatcorr.continuous, "COMPILED_READS", compiled)
+    monkeypatch.setattr(evlatcorr.compiled, "ENABLED", compiled)
     return ContinuousIntegral(events, 0.2, max_log_range=max_log_range)
 
 
@@ -66,8 +67,8 @@ def test_each_pixels_events_keep_their_order(monkeypatch):
 def test_the_threads_split_the_events_and_not_the_result(monkeypatch):
     events = _events(seed=2)
     threads = torch.get_num_threads()
-    monkeypatch.setattr("evlatcorr.event_runs._EVENTS_PER_WORKER", 100)  # several shares even for a few events
-    monkeypatch.setattr("evlatcorr.event_runs._BLOCK", 4)
+    monkeypatch.setattr("evlatcorr.compiled.event_runs._EVENTS_PER_WORKER", 100)  # several shares even for a few events
+    monkeypatch.setattr("evlatcorr.compiled.event_runs._BLOCK", 4)
     try:
         torch.set_num_threads(1)
         one = _prepared(events, True, monkeypatch)

@@ -162,3 +162,24 @@ def test_log_grey_floors_black_pixels_and_refuses_other_inputs():
         log_grey(torch.tensor([0.5]), torch.int32)
     with pytest.raises(ValueError, match="tensor"):
         log_grey([0.5], torch.float32)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("size", [(4, 5), (9, 13), (37, 41)])  # the smallest a 7-tap reflection takes, and more
+def test_compiled_moment_equals_the_eager_one(monkeypatch, dtype, size):
+    # a CPU correlates the high-passed images in one compiled pass; eager PyTorch blurs with kornia: the same moment
+    import evlatcorr.compiled
+
+    g = torch.Generator().manual_seed(3)
+    grey = 0.2 + 0.6 * torch.rand(1, 1, *size, generator=g, dtype=dtype)
+    change = torch.randn(6, 1, *size, generator=g, dtype=dtype)
+    log_ratio = 0.3 * torch.randn(6, 1, *size, generator=g, dtype=dtype) - 0.2 * change * torch.arange(-3, 3).view(
+        6, 1, 1, 1)
+    change[5] = 1.0  # a flat event image: no correlation, 0
+    monkeypatch.setattr(evlatcorr.compiled, "ENABLED", False)
+    eager = ghost_moment(grey, log_ratio, change)
+    monkeypatch.setattr(evlatcorr.compiled, "ENABLED", True)
+    compiled = ghost_moment(grey, log_ratio, change)
+    assert compiled.dtype == eager.dtype == dtype and compiled[5] == 0
+    torch.testing.assert_close(compiled, eager, rtol=0, atol=1e-5 if dtype == torch.float32 else 1e-12)
+    assert bool((compiled[:3] < 0).all())  # the strong ghosts read with their sign

@@ -8,8 +8,9 @@ import pytest
 
 
 def run_fresh(code: str, **env: str) -> str:
-    """Run ``code`` in a fresh interpreter without THP_MEM_ALLOC_ENABLE (plus ``env``); its stdout."""
-    environ = {k: v for k, v in os.environ.items() if k != "THP_MEM_ALLOC_ENABLE"} | env
+    """Run ``code`` in a fresh interpreter without THP_MEM_ALLOC_ENABLE and GOMP_SPINCOUNT (plus ``env``); its
+    stdout."""
+    environ = {k: v for k, v in os.environ.items() if k not in ("THP_MEM_ALLOC_ENABLE", "GOMP_SPINCOUNT")} | env
     done = subprocess.run([sys.executable, "-c", code], env=environ, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     return done.stdout.strip()
@@ -45,6 +46,13 @@ def test_prefer_large_pages_keeps_what_the_environment_says(given, expected):
     assert run_fresh(code, **env) == expected
 
 
+@pytest.mark.parametrize(("given", "expected"), [(None, "3000 True"), ("300000", "300000 False")])
+def test_prefer_short_spin_keeps_what_the_environment_says(given, expected):
+    env = {} if given is None else {"GOMP_SPINCOUNT": given}
+    code = "import os, evlatcorr; ok = evlatcorr.prefer_short_spin(); print(os.environ['GOMP_SPINCOUNT'], ok)"
+    assert run_fresh(code, **env) == expected
+
+
 def test_the_command_asks_for_large_pages_before_its_first_import_of_torch():
     # the console script and `python -m evlatcorr` run evlatcorr.__main__.main
     code = ("import os, sys, builtins\n"
@@ -52,7 +60,7 @@ def test_the_command_asks_for_large_pages_before_its_first_import_of_torch():
             "seen = []\n"
             "def spy(name, *args, **kwargs):\n"
             "    if name == 'torch' and not seen:\n"
-            "        seen.append(os.environ.get('THP_MEM_ALLOC_ENABLE'))\n"
+            "        seen.append((os.environ.get('THP_MEM_ALLOC_ENABLE'), os.environ.get('GOMP_SPINCOUNT')))\n"
             "    return real_import(name, *args, **kwargs)\n"
             "builtins.__import__ = spy\n"
             "from evlatcorr.__main__ import main\n"
@@ -62,7 +70,7 @@ def test_the_command_asks_for_large_pages_before_its_first_import_of_torch():
             "except SystemExit:\n"
             "    pass\n"
             "print(seen)")
-    assert run_fresh(code).splitlines()[-1] == "['1']"
+    assert run_fresh(code).splitlines()[-1] == "[('1', '3000')]"
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/statm; glibc's mallopt")

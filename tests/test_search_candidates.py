@@ -21,7 +21,13 @@ def test_scores_of_the_inverse_ratio_equal_the_scores_of_the_latent_images():
                                    rtol=1e-5, atol=0)
 
 
-def test_score_chunk_fills_a_device_budget():
+def test_score_chunk_fills_a_device_budget(monkeypatch):
+    import evlatcorr.compiled
+
+    # a CPU: every DAVIS346 candidate at once for the compiled passes (64 MB of one image each), 16 for eager PyTorch
+    assert _score_chunk(torch.zeros(1, 1, 260, 346)) == 2**26 // (4 * 260 * 346)  # 186 candidates
+    assert _score_chunk(torch.zeros(1, 1, 2**12, 2**12)) == _SCORE_CHUNK
+    monkeypatch.setattr(evlatcorr.compiled, "ENABLED", False)
     assert _score_chunk(torch.zeros(1, 1, 260, 346)) == _SCORE_CHUNK
     on_device = torch.zeros(1, 1, 260, 346, device="meta")  # a device other than the CPU, with no memory
     assert _score_chunk(on_device) == 2**30 // (8 * 4 * 260 * 346)  # 372 candidates

@@ -52,13 +52,13 @@ def test_against_bad_arguments_exit_with_one_clear_line(args, code, message):
     assert "Traceback" not in run.stderr
 
 
-def test_stages_add_up_to_the_whole_search_with_compiled_reads_and_with_tables():
+def test_stages_add_up_to_the_whole_search_compiled_and_eager():
     run = subprocess.run([sys.executable, str(SCRIPT), "--part", "stages", "--height", "24", "--width", "32",
                           "--repeats", "1"], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert run.returncode == 0, run.stderr
     lines = run.stdout.splitlines()
     headers = [k for k, line in enumerate(lines) if " by stage" in line]
-    assert [lines[k].split("by stage, ")[1].split(",")[0] for k in headers] == ["compiled reads", "tables"]
+    assert [lines[k].split("by stage, ")[1].split(",")[0] for k in headers] == ["compiled", "eager"]
     for k in headers:
         times = {line.split(": ")[0].removeprefix("[cpu]   "): float(line.split(": ")[1].split(" ms")[0])
                  for line in lines[k + 1:k + 9]}
@@ -68,7 +68,7 @@ def test_stages_add_up_to_the_whole_search_with_compiled_reads_and_with_tables()
         assert all(value >= 0 for value in times.values())
         parts = sum(value for label, value in times.items() if label != "total")
         assert parts == pytest.approx(times["total"], abs=0.5)  # each printed to 0.1 ms
-    assert float(lines[-1].split("tables/compiled reads: ")[1].removesuffix("x")) > 0
+    assert float(lines[-1].split("eager/compiled: ")[1].removesuffix("x")) > 0
 
 
 def test_batch_part_times_each_batch_size_against_one_frame():
@@ -96,7 +96,7 @@ def test_stream_part_times_the_streaming_corrector_against_the_corrector_alone()
     assert float(line.split("stream/alone: ")[1]) > 0
 
 
-def test_recording_times_the_corrector_with_compiled_reads_and_with_tables(tmp_path):
+def test_recording_times_the_corrector_compiled_and_eager(tmp_path):
     from evlatcorr.io import write_sequence
     from evlatcorr.simulate import simulate
 
@@ -108,7 +108,7 @@ def test_recording_times_the_corrector_with_compiled_reads_and_with_tables(tmp_p
     assert run.returncode == 0, run.stderr
     lines = run.stdout.splitlines()
     assert lines[0].startswith("[cpu] rec.h5: 2 frames 32x24")
-    assert "compiled reads: " in lines[1] and "ms per frame; tables" in lines[1] and "speed-up" in lines[1]
+    assert "compiled passes: " in lines[1] and "ms per frame; eager: " in lines[1] and "speed-up" in lines[1]
     assert float(lines[2].split(": ")[1].split(" us")[0]) < 1.0  # the same latencies either way
     assert lines[3].startswith("[cpu] the recording's θ") and lines[3].endswith(" s (once)")
     missing = subprocess.run([*args, str(tmp_path / "no.h5")], capture_output=True, text=True, cwd=ROOT, timeout=300)

@@ -3,6 +3,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+import evlatcorr.compiled
 import evlatcorr.continuous
 from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.events import Events
@@ -29,7 +30,7 @@ def _frame_events(hot_pixel: bool = True) -> tuple[Events, float, float]:
 
 def _read(events: Events, start: float, end: float, latencies: torch.Tensor, compiled: bool, stride: int = 3,
           monkeypatch: pytest.MonkeyPatch | None = None) -> tuple[torch.Tensor, ...]:
-    monkeypatch.setattr(evlatcorr.continuous, "COMPILED_READS", compiled)
+    monkeypatch.setattr(evlatcorr.compiled, "ENABLED", compiled)
     ci = ContinuousIntegral(events, 0.2, max_log_range=15.0)
     assert ci.active is None  # most pixels have events: a CPU reads them all, by the compiled pass if it may
     k = len(latencies)
@@ -64,7 +65,7 @@ def test_one_window_equals_the_per_pixel_sums(monkeypatch):
     for latency in (0.0, 500.0, 1234.5):
         lat = torch.tensor([latency], dtype=torch.float64)
         compiled = _read(events, start, end, lat, True, monkeypatch=monkeypatch)[3]
-        monkeypatch.setattr(evlatcorr.continuous, "COMPILED_READS", False)
+        monkeypatch.setattr(evlatcorr.compiled, "ENABLED", False)
         sums = ContinuousIntegral(events, 0.2, max_log_range=15.0).log_ratio(start, end, lat)
         torch.testing.assert_close(compiled, sums, rtol=0, atol=1e-12)
 
@@ -77,7 +78,7 @@ def test_few_pixels_with_events_are_read_from_their_tables(monkeypatch):
     ev, start, end = frames.events, float(frames.exposure_start), float(frames.exposure_end)
     corner = (ev.x < 12) & (ev.y < 10)
     events = Events(ev.x[corner], ev.y[corner], ev.t[corner], ev.p[corner], sensor_size=(24, 32))
-    monkeypatch.setattr(evlatcorr.continuous, "COMPILED_READS", True)
+    monkeypatch.setattr(evlatcorr.compiled, "ENABLED", True)
     sparse = ContinuousIntegral(events, 0.2)
     assert sparse.active is not None
     monkeypatch.setattr(evlatcorr.continuous, "SPARSE_SHARE", 0.0)
@@ -109,7 +110,7 @@ def test_a_window_far_below_a_brighter_past_is_summed_from_its_events(monkeypatc
     t = torch.cat([torch.full((150,), 100.0, dtype=torch.float64), torch.tensor([250.0], dtype=torch.float64)])
     p = torch.cat([torch.zeros(150, dtype=torch.long), torch.ones(1, dtype=torch.long)])
     events = Events(torch.zeros(151, dtype=torch.long), torch.zeros(151, dtype=torch.long), t, p, sensor_size=(1, 1))
-    monkeypatch.setattr(evlatcorr.continuous, "COMPILED_READS", True)
+    monkeypatch.setattr(evlatcorr.compiled, "ENABLED", True)
     ci = ContinuousIntegral(events, 0.2)
     assert ci.active is None
     lat = torch.tensor([-200.0, 0.0], dtype=torch.float64)  # the first window [0, 100]: the bright past itself

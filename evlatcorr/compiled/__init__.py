@@ -1,20 +1,27 @@
 """What the compiled CPU passes share: numba, imported and compiled on first use, and threads that split the work.
 
-The passes (:mod:`evlatcorr.event_runs`, :mod:`evlatcorr.window_reads`) walk each pixel's events in a loop, which eager
-PyTorch can only do as a dozen passes over event- or table-sized tensors. They are compiled with numba on first use
-(a few seconds, then loaded from numba's cache beside this package) and run in ``torch.get_num_threads()`` Python
-threads: the compiled code releases the GIL, and plain threads need no OpenMP runtime beside PyTorch's (numba's own
-parallel loops take one, which a process that forks afterwards, as a DataLoader does, cannot use safely).
+The passes (:mod:`~evlatcorr.compiled.event_runs`, :mod:`~evlatcorr.compiled.window_reads`,
+:mod:`~evlatcorr.compiled.high_pass`, :mod:`~evlatcorr.compiled.gradients`) walk each pixel's events, or each image's
+pixels, in a loop, which eager PyTorch can only do as a dozen passes over event-, table- or image-sized tensors. They
+are compiled with numba on first use (a few seconds, then loaded from numba's cache beside this package) and run in
+``torch.get_num_threads()`` Python threads: the compiled code releases the GIL, and plain threads need no OpenMP
+runtime beside PyTorch's (numba's own parallel loops take one, which a process that forks afterwards, as a DataLoader
+does, cannot use safely). A GPU keeps eager PyTorch's way, where launches, not memory traffic, bound the search.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable
 
 import torch
 
-__all__ = ["in_threads", "jit", "workers_for"]
+__all__ = ["ENABLED", "in_threads", "jit", "workers_for"]
+
+# Whether a CPU takes the compiled passes; ``EVLATCORR_COMPILED=0`` (or False here) takes eager PyTorch's way
+# everywhere, e.g. to compare the two
+ENABLED = os.environ.get("EVLATCORR_COMPILED", "1") != "0"
 
 
 def jit(function: Callable) -> Callable:

@@ -1,0 +1,48 @@
+from __future__ import annotations
+
+import pytest
+import torch
+
+import evlatcorr.compiled
+from evlatcorr.sharpness import sharpness_scores
+
+SCORES = ("sparsity", "sparsity_bright", "sparsity_multiscale")
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("size", [(4, 4), (5, 7), (26, 35)])  # odd sizes: the half scale drops a row and a column
+def test_compiled_scores_equal_the_eager_ones(monkeypatch, dtype, size):
+    # a CPU takes each log image's gradient norms at both scales in one compiled pass; eager PyTorch takes difference
+    # tensors and norms: the same scores
+    g = torch.Generator().manual_seed(1)
+    latent = torch.rand(9, 1, *size, generator=g, dtype=dtype).cumsum(-1) + 0.05
+    latent[4] = 0.5  # flat: no gradient, 0
+    latency = torch.linspace(0.0, 800.0, 9, dtype=dtype)
+    monkeypatch.setattr(evlatcorr.compiled, "ENABLED", False)
+    eager = sharpness_scores(latent, latency, None, SCORES, 20.0, 7, 1000.0)
+    monkeypatch.setattr(evlatcorr.compiled, "ENABLED", True)
+    compiled = sharpness_scores(latent, latency, None, SCORES, 20.0, 7, 1000.0)
+    assert compiled.shape == eager.shape == (3, 9) and compiled.dtype == eager.dtype == dtype
+    torch.testing.assert_close(compiled, eager, rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=1e-12)
+    assert bool((compiled[:, 4] == 0).all()) and bool((compiled[:, :4] > 0).all())
+    # with the temporal prior, as eager
+    previous = torch.tensor(300.0, dtype=dtype)
+    prior = sharpness_scores(latent, latency, previous, SCORES, 20.0, 7, 1000.0)
+    monkeypatch.setattr(evlatcorr.compiled, "ENABLED", False)
+    torch.testing.assert_close(prior, sharpness_scores(latent, latency, previous, SCORES, 20.0, 7, 1000.0),
+                               rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=1e-12)
+
+
+def test_the_threads_split_the_images_and_not_the_result():
+    from evlatcorr.compiled.gradients import gradient_sparsity
+
+    image = torch.rand(11, 9, 12, generator=torch.Generator().manual_seed(2))
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = gradient_sparsity(image, True)
+        torch.set_num_threads(3)
+        three = gradient_sparsity(image, True)
+    finally:
+        torch.set_num_threads(threads)
+    assert (one == three).all() and (one > 0).all()
