@@ -128,10 +128,10 @@ def _check_moment_inputs(grey: Tensor, ratio: Tensor, log_change: Tensor, name: 
 def _high_pass_correlation(a: Tensor, b: Tensor, sigma: float) -> Tensor:
     """Correlation of each image of ``a`` with its image of ``b`` :math:`(K, 1, H, W)` after a Gaussian of ``sigma``
     is removed from both (``a`` may be overwritten), from sums: no centred copies. On a CPU, for the cue's σ, one
-    compiled pass (:mod:`evlatcorr.compiled.high_pass`)."""
+    compiled pass (:mod:`evlatcorr.compiled.high_pass`); tensors that ask for a gradient take the eager way."""
     size = 2 * int(3 * sigma + 0.5) + 1
     if (a.device.type == "cpu" and compiled.ENABLED and size == TAPS and min(a.shape[-2:]) > TAPS // 2
-            and a.dtype == b.dtype and a.shape[1] == 1):
+            and a.dtype == b.dtype and a.shape[1] == 1 and not (a.requires_grad or b.requires_grad)):
         taps = kornia.filters.get_gaussian_kernel1d(size, sigma, dtype=torch.float64)[0].numpy()
         out = high_pass_correlation(a.flatten(0, 1).contiguous(), b.flatten(0, 1).contiguous(), taps)
         return torch.from_numpy(out).to(a.dtype)

@@ -114,9 +114,10 @@ def _scores_of(log_image: Callable[[float], Tensor], latent: Callable[[], Tensor
 
 def _compiled_scales(log: Tensor, factors: set[int]) -> bool:
     """Whether :mod:`evlatcorr.compiled.gradients` scores ``log`` :math:`(K, 1, H, W)` at ``factors``: on a CPU, at full
-    and half resolution, images of one channel at least 4 pixels each way."""
+    and half resolution, images of one channel at least 4 pixels each way, with no gradient to keep (the compiled
+    pass is not differentiable; the scores are, through eager PyTorch)."""
     return (log.device.type == "cpu" and compiled.ENABLED and factors <= {1, 2} and log.dim() == 4
-            and log.shape[1] == 1 and min(log.shape[-2:]) >= 4)
+            and log.shape[1] == 1 and min(log.shape[-2:]) >= 4 and not log.requires_grad)
 
 
 def _mean_pool(image: Tensor, factor: int) -> Tensor:

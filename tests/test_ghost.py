@@ -183,3 +183,4 @@ def test_compiled_moment_equals_the_eager_one(monkeypatch, dtype, size):
     assert compiled.dtype == eager.dtype == dtype and compiled[5] == 0
     torch.testing.assert_close(compiled, eager, rtol=0, atol=1e-5 if dtype == torch.float32 else 1e-12)
     assert bool((compiled[:3] < 0).all())  # the strong ghosts read with their sign
+

@@ -46,3 +46,12 @@ def test_the_threads_split_the_images_and_not_the_result():
     finally:
         torch.set_num_threads(threads)
     assert (one == three).all() and (one > 0).all()
+
+
+def test_scores_keep_their_gradient_through_eager_pytorch():
+    # the compiled pass is not differentiable: a latent that asks for a gradient is scored by eager PyTorch
+    latent = (torch.rand(3, 1, 8, 9, generator=torch.Generator().manual_seed(4), dtype=torch.float64) + 0.1)
+    latent.requires_grad_(True)
+    scores = sharpness_scores(latent, torch.zeros(3, dtype=torch.float64), None, SCORES, 20.0, 7, 1000.0)
+    scores.sum().backward()
+    assert latent.grad is not None and bool(latent.grad.abs().sum() > 0)
