@@ -78,3 +78,17 @@ def test_the_threads_split_the_events_and_not_the_result(monkeypatch):
         torch.set_num_threads(threads)
     for name in FIELDS:
         assert torch.equal(getattr(one, name), getattr(three, name)), name
+
+
+def test_sort_into_runs_refuses_what_it_cannot_read():
+    from evlatcorr.compiled.event_runs import sort_into_runs
+
+    x, t, p = torch.zeros(3, dtype=torch.long), torch.zeros(3, dtype=torch.float64), torch.ones(3, dtype=torch.int8)
+    with pytest.raises(ValueError, match="one length"):
+        sort_into_runs(x, x[:2], t, p, (2, 2), 0.2, None)
+    with pytest.raises(ValueError, match="t must be float64 and p int8"):
+        sort_into_runs(x, x, t.float(), p, (2, 2), 0.2, None)
+    with pytest.raises(ValueError, match="theta must be positive"):
+        sort_into_runs(x, x, t, p, (2, 2), 0.0, None)
+    with pytest.raises(ValueError, match="y must be a 1-D CPU tensor"):
+        sort_into_runs(x, x.view(3, 1), t, p, (2, 2), 0.2, None)

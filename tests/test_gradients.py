@@ -55,3 +55,40 @@ def test_scores_keep_their_gradient_through_eager_pytorch():
     scores = sharpness_scores(latent, torch.zeros(3, dtype=torch.float64), None, SCORES, 20.0, 7, 1000.0)
     scores.sum().backward()
     assert latent.grad is not None and bool(latent.grad.abs().sum() > 0)
+
+
+def test_known_answer_of_a_ramp_and_its_half_resolution():
+    from evlatcorr.compiled.gradients import gradient_sparsity
+
+    # I[y, x] = x on 4x4: along rows 2 at the inner columns, 1 at the border ones, nothing down the columns:
+    # 24 / (sqrt(40) sqrt(32)); its 2x2 means [[0.5, 2.5], [0.5, 2.5]]: 8 / (4 sqrt(8))
+    ramp = torch.arange(4, dtype=torch.float64).expand(1, 4, 4).contiguous()
+    full, half = gradient_sparsity(ramp, True)[:, 0]
+    assert full == pytest.approx(24 / (40**0.5 * 32**0.5), rel=1e-12)
+    assert half == pytest.approx(8 / (4 * 8**0.5), rel=1e-12)
+
+
+@pytest.mark.parametrize(("image", "match"), [
+    (torch.zeros(2, 5), "image must be a 3-D CPU tensor, got 2-D"),
+    (torch.zeros(2, 5, 6).transpose(1, 2), "image must be contiguous"),
+    (torch.zeros(2, 5, 6, dtype=torch.int64), "image must be one of"),
+])
+def test_gradient_sparsity_refuses_what_it_cannot_read(image, match):
+    from evlatcorr.compiled.gradients import gradient_sparsity
+
+    with pytest.raises(ValueError, match=match):
+        gradient_sparsity(image, True)
+
+
+def test_high_pass_correlation_refuses_what_it_cannot_read():
+    import numpy as np
+
+    from evlatcorr.compiled.high_pass import high_pass_correlation
+
+    taps = np.full(7, 1 / 7)
+    with pytest.raises(ValueError, match="a and b must be alike"):
+        high_pass_correlation(torch.zeros(2, 5, 6), torch.zeros(2, 5, 7), taps)
+    with pytest.raises(ValueError, match="at least 4 pixels"):
+        high_pass_correlation(torch.zeros(2, 3, 6), torch.zeros(2, 3, 6), taps)
+    with pytest.raises(ValueError, match="kernel must have 7 taps"):
+        high_pass_correlation(torch.zeros(2, 5, 6), torch.zeros(2, 5, 6), taps[:5])

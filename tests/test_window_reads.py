@@ -122,3 +122,22 @@ def test_a_window_far_below_a_brighter_past_is_summed_from_its_events(monkeypatc
     assert log_ratio[0, 0, 0, 0].item() == pytest.approx(0.0, abs=1e-12)  # [0, 100]: level 1 throughout
     inverse = ci.inverse_ratio(200.0, 300.0, lat)
     torch.testing.assert_close(inverse, torch.exp(-log_ratio).float(), rtol=1e-6, atol=0)
+
+
+def test_read_windows_refuses_what_it_cannot_read():
+    from evlatcorr.compiled.window_reads import read_windows
+
+    t, step = torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.int8)
+    bounds, peak = torch.tensor([0, 2, 2]), torch.zeros(2, dtype=torch.int32)
+    times, index = torch.tensor([0.0, 1.0], dtype=torch.float64), torch.tensor([0])
+    ok = dict(t=t, step=step, run_bounds=bounds, peak_count=peak, theta=0.2, times=times, a=index, b=index + 1,
+              r=index, quarters=[], duration=1.0, width=2)
+    read_windows(**ok, out=torch.empty(1, 2))  # accepted
+    with pytest.raises(ValueError, match=r"out shape \(1, 2\)"):
+        read_windows(**ok, out=torch.empty(1, 3))
+    with pytest.raises(ValueError, match="out must be one of"):
+        read_windows(**ok, out=torch.empty(1, 2, dtype=torch.float16))
+    with pytest.raises(ValueError, match="one index per window"):
+        read_windows(**{**ok, "b": torch.tensor([1, 1])}, out=torch.empty(1, 2))
+    with pytest.raises(ValueError, match="change must have 1 rows of 2"):
+        read_windows(**ok, out=torch.empty(1, 2), change=torch.empty(1, 3))

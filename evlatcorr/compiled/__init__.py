@@ -17,7 +17,7 @@ from collections.abc import Callable
 
 import torch
 
-__all__ = ["ENABLED", "in_threads", "jit", "workers_for"]
+__all__ = ["ENABLED", "check_arrays", "in_threads", "jit", "workers_for"]
 
 # Whether a CPU takes the compiled passes; ``EVLATCORR_COMPILED=0`` (or False here) takes eager PyTorch's way
 # everywhere, e.g. to compare the two
@@ -47,3 +47,20 @@ def in_threads(kernel: Callable, workers: int, *args) -> None:
 def workers_for(items: int, per_worker: int = 1) -> int:
     """How many threads share ``items`` (at least ``per_worker`` each): at most ``torch.get_num_threads()``."""
     return max(1, min(torch.get_num_threads(), items // max(1, per_worker)))
+
+
+def check_arrays(arrays: dict[str, torch.Tensor], dims: int, dtypes: tuple[torch.dtype, ...] | None = None) -> None:
+    """Refuse what a compiled pass cannot read safely (it checks no index): each of ``arrays`` (by name) must be a
+    contiguous CPU tensor of ``dims`` dimensions (and one of ``dtypes``, if given).
+
+    Raises:
+        ValueError: naming the first array that is not.
+    """
+    for name, array in arrays.items():
+        if not isinstance(array, torch.Tensor) or array.device.type != "cpu" or array.dim() != dims:
+            got = f"{array.dim()}-D on {array.device}" if isinstance(array, torch.Tensor) else type(array).__name__
+            raise ValueError(f"{name} must be a {dims}-D CPU tensor, got {got}")
+        if not array.is_contiguous():
+            raise ValueError(f"{name} must be contiguous")
+        if dtypes is not None and array.dtype not in dtypes:
+            raise ValueError(f"{name} must be one of {[str(d) for d in dtypes]}, got {array.dtype}")

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evlatcorr.compiled import in_threads, jit, workers_for
+from evlatcorr.compiled import check_arrays, in_threads, jit, workers_for
 
 __all__ = ["PixelRuns", "sort_into_runs"]
 
@@ -55,8 +55,19 @@ def sort_into_runs(x: Tensor, y: Tensor, t: Tensor, p: Tensor, sensor_size: tupl
         max_log_range: a pixel whose θ·count spans more than this (its events' lowest to highest level, 0 before
             the first included) is ignored: its steps and counts are 0; None ignores none.
 
-    Every tensor is on the CPU and contiguous. Equals ``ContinuousIntegral``'s eager preparation exactly.
+    Every tensor is on the CPU and contiguous, the coordinates inside the sensor (as :class:`~evlatcorr.events.Events`
+    ensures; they are not scanned here). Equals ``ContinuousIntegral``'s eager preparation exactly.
+
+    Raises:
+        ValueError: when the events are not four 1-D CPU tensors of one length, or ``theta`` is not positive.
     """
+    check_arrays({"x": x, "y": y, "t": t, "p": p}, 1)
+    if not len(x) == len(y) == len(t) == len(p):
+        raise ValueError(f"x, y, t and p must have one length, got {len(x)}, {len(y)}, {len(t)} and {len(p)}")
+    if t.dtype != torch.float64 or p.dtype != torch.int8:
+        raise ValueError(f"t must be float64 and p int8 (±1), got {t.dtype} and {p.dtype}")
+    if not theta > 0:
+        raise ValueError(f"theta must be positive, got {theta}")
     height, width = sensor_size
     num, num_pixels = len(t), height * width
     index_type = np.int32 if num < 2**31 else np.int64

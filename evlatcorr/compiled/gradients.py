@@ -13,9 +13,10 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+import torch
 from torch import Tensor
 
-from evlatcorr.compiled import in_threads, jit, workers_for
+from evlatcorr.compiled import check_arrays, in_threads, jit, workers_for
 
 __all__ = ["gradient_sparsity"]
 
@@ -28,8 +29,12 @@ def gradient_sparsity(image: Tensor, half: bool) -> np.ndarray:
         half: also score each image's 2x2 block means (the last row and column dropped where odd).
 
     Returns:
-        :math:`(2, K)` float64: row 0 full resolution, row 1 half (unset without ``half``); 0 for a single pixel.
+        :math:`(2, K)` float64: row 0 full resolution, row 1 half (0 without ``half``); 0 for a single pixel.
+
+    Raises:
+        ValueError: when ``image`` is not a contiguous 3-D float CPU tensor.
     """
+    check_arrays({"image": image}, 3, (torch.float32, torch.float64))
     out = np.zeros((2, image.shape[0]), dtype=np.float64)
     in_threads(_kernel(), workers_for(image.shape[0]), image.numpy(), half, out)
     return out

@@ -13,9 +13,10 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+import torch
 from torch import Tensor
 
-from evlatcorr.compiled import in_threads, jit, workers_for
+from evlatcorr.compiled import check_arrays, in_threads, jit, workers_for
 
 __all__ = ["high_pass_correlation", "TAPS"]
 
@@ -32,7 +33,16 @@ def high_pass_correlation(a: Tensor, b: Tensor, kernel: np.ndarray) -> np.ndarra
 
     Returns:
         :math:`(K,)` float64 in [-1, 1]; 0 where either high-passed image is flat.
+
+    Raises:
+        ValueError: when ``a`` and ``b`` are not alike as above, or ``kernel`` has not :data:`TAPS` taps.
     """
+    check_arrays({"a": a, "b": b}, 3, (torch.float32, torch.float64))
+    if a.shape != b.shape or a.dtype != b.dtype or min(a.shape[1:]) <= TAPS // 2:
+        raise ValueError(f"a and b must be alike, at least {TAPS // 2 + 1} pixels each way, got {tuple(a.shape)} "
+                         f"{a.dtype} and {tuple(b.shape)} {b.dtype}")
+    if np.shape(kernel) != (TAPS,):
+        raise ValueError(f"kernel must have {TAPS} taps, got shape {np.shape(kernel)}")
     out = np.empty(a.shape[0], dtype=np.float64)
     in_threads(_kernel(), workers_for(a.shape[0]), a.numpy(), b.numpy(), kernel.astype(a.numpy().dtype), out)
     return out

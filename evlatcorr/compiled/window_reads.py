@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evlatcorr.compiled import in_threads, jit, workers_for
+from evlatcorr.compiled import check_arrays, in_threads, jit, workers_for
 
 __all__ = ["read_windows"]
 
@@ -58,7 +58,25 @@ def read_windows(t: Tensor, step: Tensor, run_bounds: Tensor, peak_count: Tensor
         peak_stride: s.
 
     Every tensor is on the CPU and contiguous; ``out``, ``change`` and ``peak`` are written in place.
+
+    Raises:
+        ValueError: when the arrays are not on the CPU, contiguous, or of the shapes above (the pass checks no index).
     """
+    check_arrays({"t": t, "step": step, "run_bounds": run_bounds, "peak_count": peak_count, "times": times, "a": a,
+                  "b": b, "r": r, **{f"quarters[{i}]": q for i, q in enumerate(quarters)}}, 1)
+    check_arrays({"out": out}, 2, (torch.float32, torch.float64))
+    pixels, k = len(run_bounds) - 1, len(a)
+    if len(t) != len(step) or len(peak_count) != pixels or out.shape != (k, pixels):
+        raise ValueError(f"t and step must have one length, peak_count {pixels} pixels and out shape {(k, pixels)}, "
+                         f"got {len(t)}, {len(step)}, {len(peak_count)} and {tuple(out.shape)}")
+    if any(len(index) != k for index in (b, r, *quarters)):
+        raise ValueError(f"a, b, r and the quarters must each have one index per window ({k})")
+    for name, part, width_of in (("change", change, pixels), ("peak", peak, None)):
+        if part is not None:
+            check_arrays({name: part}, 2, (torch.float32,))
+            if part.shape[0] != k or (width_of is not None and part.shape[1] != width_of):
+                raise ValueError(f"{name} must have {k} rows" + (f" of {width_of}" if width_of else "") +
+                                 f", got {tuple(part.shape)}")
     kernel = _kernel()
     peak_width = -(-width // peak_stride)
     lut_size = int((run_bounds[1:] - run_bounds[:-1]).max()) + 1 if len(run_bounds) > 1 else 1
