@@ -113,3 +113,13 @@ def test_recording_times_the_corrector_compiled_and_eager(tmp_path):
     assert lines[3].startswith("[cpu] the recording's θ") and lines[3].endswith(" s (once)")
     missing = subprocess.run([*args, str(tmp_path / "no.h5")], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert missing.returncode == 1 and "no such file" in missing.stderr
+
+
+def test_profile_lists_the_search_operators_on_a_cpu():
+    script = ROOT / "benchmarks" / "profile_search.py"
+    run = subprocess.run([sys.executable, str(script), "--device", "cpu", "--height", "24", "--width", "32",
+                          "--calls", "1", "--rows", "5"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 0, run.stderr
+    head = next(line for line in run.stdout.splitlines() if line.startswith("[cpu] default search"))
+    assert "1 frame(s) per call" in head and "24x32" in head and "ms per call" in head
+    assert "Self CPU" in run.stdout  # the operators' table
