@@ -8,6 +8,7 @@ call (on a GPU they share one pass, ``evlatcorr.search_batched``).
 
     python benchmarks/profile_search.py --device cuda
     python benchmarks/profile_search.py --device cuda --frames 8 --rows 40
+    python benchmarks/profile_search.py --device cuda --by-line   # which lines of evlatcorr launch and wait
 
 The kernels' time is what a whole-search graph could not go below; the wall time per call less that time is what
 launches, waits and Python cost. Times under the profiler are longer than ``speed.py``'s: use those for figures.
@@ -20,7 +21,9 @@ import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU page
 # isort: split
 
 import argparse
+import collections
 import time
+import traceback
 import warnings
 
 import torch
@@ -38,16 +41,58 @@ def frames_of(device: torch.device, num_frames: int, height: int, width: int):
     return frames.blurry, frames.events, frames.exposure_start, frames.exposure_end
 
 
-def count_waits(call) -> int:
-    """The host-device waits of one ``call()`` on a GPU, as torch's sync debug mode reports them."""
+_OUTSIDE = "(outside evlatcorr)"
+
+
+def _our_line(frames: list[str]) -> str:
+    """The innermost of ``frames`` ("file(line): function" or traceback lines) inside the package, shortened."""
+    for frame in frames:
+        if "evlatcorr/" in frame and "benchmarks/" not in frame:
+            return "evlatcorr/" + frame.split("evlatcorr/", 1)[1]
+    return _OUTSIDE
+
+
+def waits_of(call) -> collections.Counter:
+    """The host-device waits of one ``call()`` on a GPU, as torch's sync debug mode reports them, counted by the
+    package's line that asked for each."""
+    lines: collections.Counter = collections.Counter()
+    show = warnings.showwarning
+
+    def record(message, category, *args, **kwargs):
+        if "synchroniz" in str(message):
+            stack = [f"{f.filename}({f.lineno}): {f.name}" for f in reversed(traceback.extract_stack()[:-1])]
+            lines[_our_line(stack)] += 1
+
     torch.cuda.set_sync_debug_mode("warn")
     try:
-        with warnings.catch_warnings(record=True) as caught:
+        with warnings.catch_warnings():
             warnings.simplefilter("always")
+            warnings.showwarning = record
             call()
     finally:
+        warnings.showwarning = show
         torch.cuda.set_sync_debug_mode("default")
-    return sum("synchroniz" in str(w.message) for w in caught)
+    return lines
+
+
+def operators_by_line(prof, calls: int) -> list[tuple[str, float, float]]:
+    """(line, operators per call, their device µs per call) of the top-level torch operators, by the package's line
+    that called them."""
+    count: collections.Counter = collections.Counter()
+    device_us: collections.Counter = collections.Counter()
+    for event in prof.events():
+        parent = event.cpu_parent
+        if event.device_type.name != "CPU" or not event.name.startswith("aten::") or (
+                parent is not None and parent.name.startswith("aten::")):
+            continue
+        frames = list(event.stack or [])  # older torch; newer torch makes each Python frame a parent event
+        while parent is not None:
+            frames.append(parent.name)
+            parent = parent.cpu_parent
+        line = _our_line(frames)
+        count[line] += 1
+        device_us[line] += event.device_time_total
+    return [(line, n / calls, device_us[line] / calls) for line, n in count.most_common()]
 
 
 def main() -> None:
@@ -58,6 +103,8 @@ def main() -> None:
     parser.add_argument("--rows", type=int, default=30, help="operators listed")
     parser.add_argument("--height", type=int, default=260)
     parser.add_argument("--width", type=int, default=346)
+    parser.add_argument("--by-line", action="store_true",
+                        help="also count the operators, and on a GPU the waits, by the package's line behind them")
     args = parser.parse_args()
     if args.frames < 1 or args.calls < 1:
         parser.error("--frames and --calls must be positive")
@@ -79,9 +126,9 @@ def main() -> None:
         call()
     wait()
     wall = (time.perf_counter() - t0) / args.calls
-    waits = count_waits(call) if device.type == "cuda" else 0
+    waits = waits_of(call) if device.type == "cuda" else collections.Counter()
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-    with profile(activities=activities) as prof:
+    with profile(activities=activities, with_stack=args.by_line) as prof:
         for _ in range(args.calls):
             call()
         wait()
@@ -93,9 +140,21 @@ def main() -> None:
           f"{args.height}x{args.width}: wall {wall * 1000:.2f} ms per call (mean of {args.calls}, unprofiled)")
     if device.type == "cuda":
         print(f"[cuda] per call: device time of kernels and copies {device_us / 1000:.2f} ms, "
-              f"{len(kernels) / args.calls:.0f} kernels and copies ({copies:.0f} copies), {waits} waits")
+              f"{len(kernels) / args.calls:.0f} kernels and copies ({copies:.0f} copies), {waits.total()} waits")
     key = "self_device_time_total" if device.type == "cuda" else "self_cpu_time_total"
     print(averages.table(sort_by=key, row_limit=args.rows, max_name_column_width=60))
+    if args.by_line:
+        by_line = operators_by_line(prof, args.calls)
+        if all(line == _OUTSIDE for line, _, _ in by_line):
+            print(f"[{device.type}] this torch's profiler gave the operators no Python stacks: no count by line")
+        else:
+            print(f"[{device.type}] torch operators per call by the line that called them (top {args.rows}):")
+            for line, n, us in by_line[:args.rows]:
+                print(f"  {n:6.1f} ops {us / 1000:7.3f} ms  {line}")
+        if device.type == "cuda":
+            print("[cuda] waits per call by the line that asked for them:")
+            for line, n in waits.most_common():
+                print(f"  {n:4d}  {line}")
 
 
 if __name__ == "__main__":
