@@ -37,8 +37,8 @@ the same work on both sides, where the defaults compare different amounts of it.
 recording (``--recording``, default the shared low-light DAVIS346 one), each after its untimed first call, with a
 CPU's compiled passes (the default, ``evlatcorr.compiled``) and, in the same run, in eager PyTorch
 (``evlatcorr.compiled.ENABLED = False``), with the median over frames of each frame's median of ``--repeats`` calls,
-and checks that both give the same latencies (a GPU, which has no compiled passes, is timed once); then the time to estimate the recording's θ (what ``threshold="auto"``
-and the command line do once per recording), once.
+and checks that both give the same latencies (a GPU, which has no compiled passes, is timed once); then the time to
+estimate the recording's θ (what ``threshold="auto"`` and the command line do once per recording), once.
 
 ``--part stages`` says where the default search's time goes; on a CPU it does so twice in one run, with the compiled
 passes (the default) and in eager PyTorch (``eager/compiled: <x>``).

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -50,6 +52,23 @@ class TestEvents:
     def test_exceptions(self, kwargs, match):
         with pytest.raises(ValueError, match=match):
             Events(*(torch.tensor(kwargs[k]) for k in "xytp"), sensor_size=(2, 2))
+
+    def test_float32_absolute_times_warn_that_they_are_already_rounded(self):
+        # a DAVIS camera's absolute timestamps (about 1.6e15 us) in float32 are rounded to 2**27 us, over 2 minutes
+        xy, p = torch.tensor([0, 1]), torch.tensor([1, 0])
+        with pytest.warns(UserWarning, match=r"float32 with times up to 1\.6e\+15 us, where it resolves only about "
+                                             r"1\.9\de\+08 us.*pass int64 or float64"):
+            ev = Events(xy, torch.zeros(2), torch.tensor([1.6e15, 1.6e15 + 500.0], dtype=torch.float32), p,
+                        sensor_size=(1, 2))
+        assert ev.t.dtype == torch.float64 and float(ev.t[1] - ev.t[0]) == 0.0  # the 500 us were lost before
+
+    @pytest.mark.parametrize("t", [torch.tensor([0.5, 8.0e6], dtype=torch.float32),  # 8 s: 0.95 us apart at most
+                                   torch.tensor([1.6e15, 1.6e15 + 1], dtype=torch.float64),
+                                   torch.tensor([1_600_000_000_000_000, 1_600_000_000_000_001])])
+    def test_times_fine_enough_pass_quietly(self, t):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            Events(torch.tensor([0, 1]), torch.zeros(2), t, torch.tensor([1, 0]), sensor_size=(1, 2))
 
     def test_sort_option(self):
         ev = Events(torch.tensor([0, 1]), torch.tensor([0, 0]), torch.tensor([5.0, 1.0]), torch.tensor([1, 0]),

@@ -118,7 +118,8 @@ def test_recording_times_the_corrector_compiled_and_eager(tmp_path):
 def test_profile_lists_the_search_operators_on_a_cpu():
     script = ROOT / "benchmarks" / "profile_search.py"
     run = subprocess.run([sys.executable, str(script), "--device", "cpu", "--height", "24", "--width", "32",
-                          "--calls", "1", "--rows", "5", "--by-line"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+                          "--calls", "1", "--rows", "5", "--by-line"], capture_output=True, text=True, cwd=ROOT,
+                         timeout=300)
     assert run.returncode == 0, run.stderr
     head = next(line for line in run.stdout.splitlines() if line.startswith("[cpu] default search"))
     assert "1 frame(s) per call" in head and "24x32" in head and "ms per call" in head
