@@ -98,6 +98,9 @@ def main() -> None:
     parser.add_argument("--members", type=int, default=5)
     parser.add_argument("--epochs", type=int, default=300)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--channels", type=int, default=16, help="each reader's channels")
+    parser.add_argument("--layers", type=int, default=3,
+                        help="each reader's dilated convolutions (receptive field 1 + 4 (2^layers - 1) candidates)")
     parser.add_argument("--ideal-frames", type=int, default=0,
                         help="also train on the ideal events (target 0) of this many constant-latency training cases")
     parser.add_argument("--before-us", type=float, default=0.0,
@@ -118,11 +121,13 @@ def main() -> None:
     print(f"{len(data['targets'])} training frames in {time.perf_counter() - t0:.0f} s", flush=True)
     curves = without_overshoot(data["curves"]) if args.without_overshoot else data["curves"]
     ensemble = train_curve_reader(curves, data["valid"], data["latencies"], data["targets"],
-                                  members=args.members, epochs=args.epochs, seed=args.seed)
+                                  members=args.members, epochs=args.epochs, seed=args.seed, channels=args.channels,
+                                  layers=args.layers)
     provenance = {"cases": list(TRAIN_SPLITS), "frames": len(data["targets"]),
                   "targets": "true latency (constant cases), best constant shift (photoreceptor cases)",
                   "members": args.members,
-                  "epochs": args.epochs, "seed": args.seed, "without_overshoot": args.without_overshoot,
+                  "epochs": args.epochs, "seed": args.seed, "channels": args.channels, "layers": args.layers,
+                  "without_overshoot": args.without_overshoot,
                   "command": "python benchmarks/train_curve_reader.py"}
     if args.ideal_frames:
         provenance["ideal_frames"] = args.ideal_frames

@@ -150,17 +150,19 @@ def without_overshoot(curves: Tensor) -> Tensor:
 class CurveReader(nn.Module):
     """Log-odds :math:`(B, K)` of each candidate being the true latency, from :func:`curve_features` :math:`(B, F, K)`.
 
-    Three dilated convolutions (receptive field 29 candidates) and a 1x1 output; candidates that could not be
-    scored get a large negative logit.
+    ``layers`` 5-tap convolutions, the i-th dilated by 2^i (the shipped 3: a receptive field of 29 candidates), of
+    ``channels`` channels each, and a 1x1 output; candidates that could not be scored get a large negative logit.
     """
 
-    def __init__(self, num_features: int = NUM_FEATURES, channels: int = 16) -> None:
+    def __init__(self, num_features: int = NUM_FEATURES, channels: int = 16, layers: int = 3) -> None:
         super().__init__()
-        self.net = nn.Sequential(
-            nn.Conv1d(num_features, channels, 5, padding=2), nn.ReLU(),
-            nn.Conv1d(channels, channels, 5, padding=4, dilation=2), nn.ReLU(),
-            nn.Conv1d(channels, channels, 5, padding=8, dilation=4), nn.ReLU(),
-            nn.Conv1d(channels, 1, 1))
+        if layers < 1 or channels < 1:
+            raise ValueError(f"a curve reader needs at least one layer and one channel, got {layers} and {channels}")
+        convs: list[nn.Module] = []
+        for i in range(layers):
+            convs += [nn.Conv1d(num_features if i == 0 else channels, channels, 5, padding=2 * 2**i, dilation=2**i),
+                      nn.ReLU()]
+        self.net = nn.Sequential(*convs, nn.Conv1d(channels, 1, 1))
 
     def forward(self, curves: Tensor, valid: Tensor) -> Tensor:
         return self.net(curves)[:, 0].masked_fill(~valid, _MASKED)
@@ -169,9 +171,9 @@ class CurveReader(nn.Module):
 class CurveReaderEnsemble(nn.Module):
     """The mean log-probability :math:`(B, K)` of several :class:`CurveReader`."""
 
-    def __init__(self, members: int = 5, num_features: int = NUM_FEATURES) -> None:
+    def __init__(self, members: int = 5, num_features: int = NUM_FEATURES, channels: int = 16, layers: int = 3) -> None:
         super().__init__()
-        self.members = nn.ModuleList(CurveReader(num_features) for _ in range(members))
+        self.members = nn.ModuleList(CurveReader(num_features, channels, layers) for _ in range(members))
 
     def forward(self, curves: Tensor, valid: Tensor) -> Tensor:
         return torch.stack([torch.log_softmax(m(curves, valid), 1) for m in self.members]).mean(0)
@@ -219,7 +221,7 @@ class FusedCurveReaderEnsemble(nn.Module):
 
 
 def train_curve_reader(curves: Tensor, valid: Tensor, latencies: Tensor, targets: Tensor, members: int = 5,
-                       epochs: int = 300, seed: int = 0) -> CurveReaderEnsemble:
+                       epochs: int = 300, seed: int = 0, channels: int = 16, layers: int = 3) -> CurveReaderEnsemble:
     """Fit an ensemble to frames of known latency (full-batch Adam; seconds on a CPU for a thousand frames).
 
     Args:
@@ -229,6 +231,8 @@ def train_curve_reader(curves: Tensor, valid: Tensor, latencies: Tensor, targets
         targets: each frame's target latency :math:`(N,)` µs (its true one, or its best constant shift).
         members: readers in the ensemble, each from its own seed ``seed + i``.
         epochs: full-batch steps per reader.
+        channels: each reader's channels (see :class:`CurveReader`).
+        layers: each reader's dilated convolutions (see :class:`CurveReader`).
 
     Returns:
         the ensemble, in eval mode.
@@ -238,11 +242,11 @@ def train_curve_reader(curves: Tensor, valid: Tensor, latencies: Tensor, targets
                          f"{tuple(valid.shape)} and {tuple(targets.shape)}")
     target = torch.exp(-0.5 * ((latencies.float()[None] - targets.float()[:, None]) / TARGET_SIGMA_US) ** 2) * valid
     target = target / target.sum(1, keepdim=True).clamp_min(1e-12)
-    ensemble = CurveReaderEnsemble(members, curves.shape[1])
+    ensemble = CurveReaderEnsemble(members, curves.shape[1], channels, layers)
     generator = torch.Generator().manual_seed(seed)
     for i, reader in enumerate(ensemble.members):
         torch.manual_seed(seed + i)  # the layers' initialisation
-        reader.load_state_dict(CurveReader(curves.shape[1]).state_dict())
+        reader.load_state_dict(CurveReader(curves.shape[1], channels, layers).state_dict())
         optimiser = torch.optim.Adam(reader.parameters(), lr=3e-3, weight_decay=1e-3)
         for _ in range(epochs):
             noisy = curves + TRAIN_NOISE * torch.randn(curves.shape, generator=generator) * valid[:, None]
@@ -276,7 +280,10 @@ def load_curve_reader(path: str | None = None) -> CurveReaderEnsemble:
         raise FileNotFoundError(f"no curve reader weights at {path}")
     state = load_file(path)
     members = len({key.split(".")[1] for key in state})
-    ensemble = CurveReaderEnsemble(members, state["members.0.net.0.weight"].shape[1])  # its inputs, as trained
+    # its inputs, channels and layers, as trained (a convolution's weight and bias at every other index of net)
+    convs = len({key.split(".")[3] for key in state if key.startswith("members.0.net.")})
+    first = state["members.0.net.0.weight"]
+    ensemble = CurveReaderEnsemble(members, first.shape[1], first.shape[0], convs - 1)
     ensemble.load_state_dict(state, strict=True)
     return ensemble.eval()
 

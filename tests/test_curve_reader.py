@@ -152,6 +152,30 @@ def test_a_reader_without_the_overshoot_trains_saves_and_loads_with_its_inputs(t
         without_overshoot(fewer)
 
 
+def test_a_wider_deeper_reader_trains_saves_and_loads_with_its_shape(tmp_path):
+    g = torch.Generator().manual_seed(3)
+    curves, valid, latencies, targets = _planted(8, g)
+    ensemble = train_curve_reader(curves, valid, latencies, targets, members=2, epochs=2, channels=8, layers=5)
+    reader = ensemble.members[0]
+    convs = [m for m in reader.net if isinstance(m, torch.nn.Conv1d)]
+    assert [c.dilation[0] for c in convs] == [1, 2, 4, 8, 16, 1] and convs[0].out_channels == 8
+    # 5-tap layers dilated 1..16 see 62 candidates either side (the shipped three, 14): an impulse at the first
+    # candidate moves outputs past the 14th and none past the 62nd
+    impulse = torch.zeros(1, NUM_FEATURES, 101)
+    impulse[0, 0, 0] = 1.0
+    with torch.no_grad():
+        moved = (reader.net(impulse) - reader.net(torch.zeros_like(impulse)))[0, 0]
+    assert float(moved[15:63].abs().max()) > 0 and bool((moved[63:] == 0).all())
+    path = tmp_path / "wide.safetensors"
+    save_curve_reader(ensemble, path)
+    load_curve_reader.cache_clear()
+    loaded = load_curve_reader(str(path))
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(curves, valid), ensemble(curves, valid))
+    with pytest.raises(ValueError, match="at least one layer"):
+        CurveReader(layers=0)
+
+
 def test_shipped_weights_load_strictly():
     ensemble = load_curve_reader()
     assert len(ensemble.members) == 5 and not ensemble.training
