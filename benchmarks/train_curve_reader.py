@@ -12,11 +12,13 @@ the photoreceptor frames' best-shift scans), then about a minute of training.
     python benchmarks/train_curve_reader.py --cache curves.pt --out /tmp/reader.safetensors
     python benchmarks/train_curve_reader.py --cache curves.pt --without-overshoot --out /tmp/reader5.safetensors
     python benchmarks/train_curve_reader.py --cache curves.pt --ideal-frames 300 --out /tmp/ideal300.safetensors
+    python benchmarks/train_curve_reader.py --cache curves.pt --layers 5 --channels 24 --out /tmp/wide.safetensors
 
 ``--ideal-frames N`` also trains on the ideal events (no latency, target 0) of N of the constant-latency training
 cases, evenly spread over them; ``--before-us B`` keeps B µs of events before each exposure and reads the curves from
 −B (read them with ``benchmarks/estimators/reader.py:estimate_before``). Both measured and not shipped
-(``docs/estimator.md``).
+(``docs/estimator.md``). ``--layers`` and ``--channels`` set each reader's depth (its receptive field) and width:
+readers that see the whole curve were measured and not shipped either.
 
 Then ``python benchmarks/accuracy.py --split dev --score learned`` measures it.
 """
