@@ -28,6 +28,8 @@ import warnings
 
 import torch
 from torch.profiler import ProfilerActivity, profile
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_leaves
 
 from evlatcorr.search import search_constant_latency
 from evlatcorr.simulate import simulate
@@ -75,24 +77,33 @@ def waits_of(call) -> collections.Counter:
     return lines
 
 
-def operators_by_line(prof, calls: int) -> list[tuple[str, float, float]]:
-    """(line, operators per call, their device µs per call) of the top-level torch operators, by the package's line
-    that called them."""
-    count: collections.Counter = collections.Counter()
-    device_us: collections.Counter = collections.Counter()
-    for event in prof.events():
-        parent = event.cpu_parent
-        if event.device_type.name != "CPU" or not event.name.startswith("aten::") or (
-                parent is not None and parent.name.startswith("aten::")):
-            continue
-        frames = list(event.stack or [])  # older torch; newer torch makes each Python frame a parent event
-        while parent is not None:
-            frames.append(parent.name)
-            parent = parent.cpu_parent
+class _OperatorsByLine(TorchDispatchMode):
+    """Counts every torch operator dispatched inside it, and those that take a tensor off the host (each a kernel
+    launch or a copy), by the package's line that called it (any device, any torch version: it reads Python's own
+    stack, not the profiler's)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count: collections.Counter = collections.Counter()
+        self.on_device: collections.Counter = collections.Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        frames = [f"{f.filename}({f.lineno}): {f.name}" for f in reversed(traceback.extract_stack()[:-1])]
         line = _our_line(frames)
-        count[line] += 1
-        device_us[line] += event.device_time_total
-    return [(line, n / calls, device_us[line] / calls) for line, n in count.most_common()]
+        self.count[line] += 1
+        if any(isinstance(t, torch.Tensor) and t.device.type != "cpu" for t in tree_leaves((args, kwargs))):
+            self.on_device[line] += 1
+        return func(*args, **(kwargs or {}))
+
+
+def operators_by_line(call, calls: int) -> list[tuple[str, float, float]]:
+    """(line, torch operators per call, those on a device per call) of ``calls`` calls of ``call()``, by the
+    package's line behind them, most device operators (then operators) first."""
+    with _OperatorsByLine() as counting:
+        for _ in range(calls):
+            call()
+    lines = sorted(counting.count, key=lambda line: (-counting.on_device[line], -counting.count[line]))
+    return [(line, counting.count[line] / calls, counting.on_device[line] / calls) for line in lines]
 
 
 def main() -> None:
@@ -128,7 +139,7 @@ def main() -> None:
     wall = (time.perf_counter() - t0) / args.calls
     waits = waits_of(call) if device.type == "cuda" else collections.Counter()
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
-    with profile(activities=activities, with_stack=args.by_line) as prof:
+    with profile(activities=activities) as prof:
         for _ in range(args.calls):
             call()
         wait()
@@ -144,13 +155,10 @@ def main() -> None:
     key = "self_device_time_total" if device.type == "cuda" else "self_cpu_time_total"
     print(averages.table(sort_by=key, row_limit=args.rows, max_name_column_width=60))
     if args.by_line:
-        by_line = operators_by_line(prof, args.calls)
-        if all(line == _OUTSIDE for line, _, _ in by_line):
-            print(f"[{device.type}] this torch's profiler gave the operators no Python stacks: no count by line")
-        else:
-            print(f"[{device.type}] torch operators per call by the line that called them (top {args.rows}):")
-            for line, n, us in by_line[:args.rows]:
-                print(f"  {n:6.1f} ops {us / 1000:7.3f} ms  {line}")
+        print(f"[{device.type}] torch operators per call by the line that called them (top {args.rows}; "
+              "'off host': those that take a tensor on a device, each a kernel or a copy):")
+        for line, n, on_device in operators_by_line(call, args.calls)[:args.rows]:
+            print(f"  {n:6.1f} ops  {on_device:6.1f} off host  {line}")
         if device.type == "cuda":
             print("[cuda] waits per call by the line that asked for them:")
             for line, n in waits.most_common():
