@@ -15,6 +15,7 @@ import math
 import re
 import signal
 import sys
+import tempfile
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -342,17 +343,20 @@ def cmd_correct(args: argparse.Namespace) -> int:
     corrector = _corrector(args, args.mode, args.curve, theta)
     with contextlib.ExitStack() as stack:  # both files appear only when both are complete
         report_tmp = stack.enter_context(atomic_path(report))
-        h5 = None
+        h5 = maps = None
         if not isinstance(rec, EventUtilsRecording):  # our HDF5: the frames are written as they are corrected
-            h5 = stack.enter_context(h5py.File(stack.enter_context(atomic_path(args.output)), "w"))
+            h5 = maps = stack.enter_context(h5py.File(stack.enter_context(atomic_path(args.output)), "w"))
             write_header(h5, rec.sensor_size, source=str(args.input), corrected_mode=args.mode)
-        frames = _correct_frames(args, rec, corrector, theta, device, h5)
+        elif args.mode == "spatial":  # an event_utils output has no place for the maps: a scratch file holds them
+            scratch = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="evlatcorr-maps-")))
+            maps = stack.enter_context(h5py.File(scratch / "maps.h5", "w"))
+        frames = _correct_frames(args, rec, corrector, theta, device, h5, maps)
         if not frames.rows:
             raise ValueError(f"{args.input}: no frames")
         latencies = frames.latencies
         if args.mode == "constant" and args.fuse_frames > 0:
             latencies = _fused(frames.rows, latencies, frames.evidence, args.fuse_frames, args.search_us)
-        _write_corrected(args, rec, h5, frames, latencies)
+        _write_corrected(args, rec, h5, frames, latencies, maps)
         _write_csv(report_tmp, frames.rows)
     rows = frames.rows
     skipped = sum(bool(r["skipped"]) for r in rows)
@@ -364,9 +368,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
 
 class _CorrectedFrames(NamedTuple):
     """What ``evlatcorr correct`` keeps of every frame until the events are written: its CSV row, its latency (a
-    number: its map, in spatial mode, is written to the output's ``frames/estimated_latency_map`` as it comes, or
-    kept where the output is not our HDF5), its exposure and the reader's evidence for fusing. A recording of
-    thousands of frames keeps thousands of numbers, not images."""
+    number: its map, in spatial mode, is written to ``frames/estimated_latency_map`` as it comes, of the output or,
+    where the output is not our HDF5, of a scratch file), its exposure and the reader's evidence for fusing. A
+    recording of thousands of frames keeps thousands of numbers, not images."""
 
     rows: list[dict]
     latencies: list[torch.Tensor]
@@ -376,10 +380,11 @@ class _CorrectedFrames(NamedTuple):
     extremes: list[float]  # the lowest and highest latency of any frame's map, µs
 
 
-def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: torch.device, h5) -> _CorrectedFrames:
-    """Every frame's latency (``corrector``; a frame without events keeps the previous one), its blurry image (and in
-    spatial mode its latency map) appended to ``h5``'s ``frames/blurry`` (``frames/estimated_latency_map``) as it
-    comes, when ``h5`` is an open file."""
+def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: torch.device, h5,
+                    maps=None) -> _CorrectedFrames:
+    """Every frame's latency (``corrector``; a frame without events keeps the previous one), its blurry image appended
+    to ``h5``'s ``frames/blurry`` as it comes when ``h5`` is an open file, and in spatial mode its latency map to
+    ``maps``'s ``frames/estimated_latency_map`` (an open file: the output or a scratch one)."""
     from evlatcorr.frames import EventFrames
     from evlatcorr.restore import has_events
 
@@ -394,8 +399,8 @@ def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: tor
         kept.extremes[:] = [min(kept.extremes[0], float(latency.min())), max(kept.extremes[1], float(latency.max()))]
         if args.mode == "constant":  # one latency for the whole frame
             kept.latencies.append(latency.reshape(-1)[0].double())
-        elif h5 is not None:
-            _append_frame(h5, "frames/estimated_latency_map", latency[None].float().numpy())
+        elif maps is not None:
+            _append_frame(maps, "frames/estimated_latency_map", latency[None].float().numpy())
             kept.latencies.append(latency.double().mean())
         else:
             kept.latencies.append(latency)
@@ -446,22 +451,20 @@ def _append_frame(h5, name: str, image: np.ndarray) -> None:
 
 
 def _write_corrected(args: argparse.Namespace, rec, h5, frames: _CorrectedFrames,
-                     latencies: list[torch.Tensor]) -> None:
-    """The corrected events (each frame's events by ``latencies``, or by its map on ``h5`` in spatial mode): into
-    ``h5`` (our format, with the frames' exposures and latencies), or an event_utils file like the input."""
+                     latencies: list[torch.Tensor], maps=None) -> None:
+    """The corrected events (each frame's events by ``latencies``, or in spatial mode by its map on ``maps``): into
+    ``h5`` (our format, with the frames' exposures and latencies), or chunk by chunk into an event_utils file like
+    the input."""
     from evlatcorr.io import EventWriter, write_event_utils
 
-    on_disk = None if h5 is None else h5.get("frames/estimated_latency_map")
+    on_disk = None if maps is None else maps.get("frames/estimated_latency_map")
     starts, ends = frames.starts, frames.ends
     corrected = _corrected_stream(rec, np.array(starts), latencies, on_disk, frames.extremes)
     if h5 is None:
-        from evlatcorr.events import Events
-
-        chunks = list(corrected)
-        cat = np.concatenate(chunks) if chunks else np.zeros(0)
-        if not len(cat):
+        first = next((chunk for chunk in corrected if len(chunk)), None)
+        if first is None:
             raise ValueError(f"{args.input}: no events")
-        write_event_utils(args.output, Events.from_numpy(cat, sensor_size=rec.sensor_size), like=rec)
+        write_event_utils(args.output, itertools.chain([first], corrected), like=rec, sensor_size=rec.sensor_size)
         return
     writer = EventWriter(h5, "events")
     for chunk in corrected:

@@ -465,7 +465,7 @@ def test_correct_keeps_a_number_per_frame_and_writes_the_frames_as_they_come(sim
 
     kept, appended = [], []
     write, append = cli._write_corrected, cli._append_frame
-    monkeypatch.setattr(cli, "_write_corrected", lambda *a: kept.extend(a[-1]) or write(*a))
+    monkeypatch.setattr(cli, "_write_corrected", lambda *a: kept.extend(a[4]) or write(*a))  # its latencies
     monkeypatch.setattr(cli, "_append_frame", lambda h5, name, image: appended.append(len(kept)) or append(h5, name,
                                                                                                           image))
     out = tmp_path / "out.h5"
@@ -510,3 +510,53 @@ def test_a_cut_off_recording_is_corrected_and_its_warnings_said_once(tmp_path):
     assert any(line.startswith("evlatcorr correct: warning: estimating the contrast threshold from the first frames: "
                                f"{cut}: frame ") for line in lines), r.stderr
     assert len(list(csv.DictReader(open(tmp_path / "out.csv")))) == 7
+
+
+@pytest.fixture(scope="module")
+def event_utils_recording(simulated, tmp_path_factory):
+    """The simulated recording in event_utils layout (µs, its frames as uint8 images)."""
+    from evlatcorr.io import write_event_utils
+
+    rec = H5Recording(simulated)
+    path = tmp_path_factory.mktemp("eu") / "eu.h5"
+    write_event_utils(path, rec.events_between(-1e18, 1e18), like=rec, time_unit="us")
+    return path
+
+
+@pytest.mark.parametrize("mode", ["constant", "spatial"])
+def test_correct_an_event_utils_recording_streams_its_events_and_keeps_numbers(event_utils_recording, tmp_path,
+                                                                               monkeypatch, mode):
+    # the corrected events go to an event_utils file chunk by chunk, and a spatial map per frame goes to a scratch
+    # file, not to memory: a long recording keeps one number per frame
+    import evlatcorr.io as io
+    from evlatcorr import cli
+    from evlatcorr.events import Events
+    from evlatcorr.io import EventUtilsRecording
+
+    kept, given = [], []
+    write, write_event_utils = cli._write_corrected, io.write_event_utils
+    monkeypatch.setattr(cli, "_write_corrected", lambda *a: kept.extend(a[4]) or write(*a))
+    monkeypatch.setattr(io, "write_event_utils", lambda path, events, **k: given.append(events)
+                        or write_event_utils(path, events, **k))
+    out = tmp_path / "corrected.h5"
+    assert cli.main(["correct", str(event_utils_recording), str(out), "--mode", mode, "--num-bins", "100",
+                     "--threshold", "0.2"]) == 0
+    assert len(kept) == 2 and all(latency.dim() == 0 for latency in kept)
+    assert len(given) == 1 and not isinstance(given[0], (Events, np.ndarray, list))  # chunks as they come
+    source, corrected = EventUtilsRecording(event_utils_recording), EventUtilsRecording(out)
+    before, after = source.events_between(-1e18, 1e18), corrected.events_between(-1e18, 1e18)
+    assert len(after) == len(before) and corrected.num_frames == source.num_frames == 2
+    rows = list(csv.DictReader(open(out.with_suffix(".csv"))))
+    starts = np.array([float(r["exposure_start_us"]) for r in rows])
+    frame = np.clip(np.searchsorted(starts, before.t.numpy(), side="right") - 1, 0, 1)
+    if mode == "constant":  # every event of a frame moved by the frame's (fused) latency
+        latency = np.array([float(r["latency_us"]) for r in rows])  # the report rounds it to 0.1 us
+        np.testing.assert_allclose(np.sort(after.t.numpy()), np.sort(before.t.numpy() - latency[frame]), atol=0.06)
+    else:  # by its pixel's latency: within the frame's map's range, and not all alike
+        low, high = (np.array([float(r[k]) for r in rows]) for k in ("latency_min_us", "latency_max_us"))
+        assert float(low.min()) < float(high.max())
+        lo = np.sort(before.t.numpy() - high[frame])
+        hi = np.sort(before.t.numpy() - low[frame])
+        moved = np.sort(after.t.numpy())
+        assert bool((moved >= lo[0] - 1e-3).all() and (moved <= hi[-1] + 1e-3).all())
+        assert abs(float(np.mean(before.t.numpy() - after.t.numpy())) - float(np.mean(kept))) < float(high.max())
