@@ -46,11 +46,11 @@ def frames_of(device: torch.device, num_frames: int, height: int, width: int):
 _OUTSIDE = "(outside evlatcorr)"
 
 
-def _our_line(frames: list[str]) -> str:
-    """The innermost of ``frames`` ("file(line): function" or traceback lines) inside the package, shortened."""
-    for frame in frames:
-        if "evlatcorr/" in frame and "benchmarks/" not in frame:
-            return "evlatcorr/" + frame.split("evlatcorr/", 1)[1]
+def _caller_line() -> str:
+    """The innermost frame of the running Python stack inside the package, as "evlatcorr/file.py(line): function"."""
+    for frame in reversed(traceback.extract_stack()):
+        if "evlatcorr/" in frame.filename and "benchmarks/" not in frame.filename:
+            return f"evlatcorr/{frame.filename.split('evlatcorr/', 1)[1]}({frame.lineno}): {frame.name}"
     return _OUTSIDE
 
 
@@ -62,8 +62,7 @@ def waits_of(call) -> collections.Counter:
 
     def record(message, category, *args, **kwargs):
         if "synchroniz" in str(message):
-            stack = [f"{f.filename}({f.lineno}): {f.name}" for f in reversed(traceback.extract_stack()[:-1])]
-            lines[_our_line(stack)] += 1
+            lines[_caller_line()] += 1
 
     torch.cuda.set_sync_debug_mode("warn")
     try:
@@ -88,8 +87,7 @@ class _OperatorsByLine(TorchDispatchMode):
         self.on_device: collections.Counter = collections.Counter()
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        frames = [f"{f.filename}({f.lineno}): {f.name}" for f in reversed(traceback.extract_stack()[:-1])]
-        line = _our_line(frames)
+        line = _caller_line()
         self.count[line] += 1
         if any(isinstance(t, torch.Tensor) and t.device.type != "cpu" for t in tree_leaves((args, kwargs))):
             self.on_device[line] += 1
