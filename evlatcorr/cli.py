@@ -347,8 +347,11 @@ def cmd_correct(args: argparse.Namespace) -> int:
         if not isinstance(rec, EventUtilsRecording):  # our HDF5: the frames are written as they are corrected
             h5 = maps = stack.enter_context(h5py.File(stack.enter_context(atomic_path(args.output)), "w"))
             write_header(h5, rec.sensor_size, source=str(args.input), corrected_mode=args.mode)
-        elif args.mode == "spatial":  # an event_utils output has no place for the maps: a scratch file holds them
-            scratch = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="evlatcorr-maps-")))
+        elif args.mode == "spatial":  # an event_utils output has no place for the maps: a scratch file holds them,
+            # beside the output, on the disk the user chose for it (the system's temp folder may be in memory)
+            args.output.parent.mkdir(parents=True, exist_ok=True)
+            scratch = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix=f".{args.output.name}.maps-",
+                                                                           dir=args.output.parent)))
             maps = stack.enter_context(h5py.File(scratch / "maps.h5", "w"))
         frames = _correct_frames(args, rec, corrector, theta, device, h5, maps)
         if not frames.rows:

@@ -538,10 +538,17 @@ def test_correct_an_event_utils_recording_streams_its_events_and_keeps_numbers(e
     monkeypatch.setattr(cli, "_write_corrected", lambda *a: kept.extend(a[4]) or write(*a))
     monkeypatch.setattr(io, "write_event_utils", lambda path, events, **k: given.append(events)
                         or write_event_utils(path, events, **k))
-    out = tmp_path / "corrected.h5"
+    scratch_dirs = []
+    temporary_directory = cli.tempfile.TemporaryDirectory
+    monkeypatch.setattr(cli.tempfile, "TemporaryDirectory", lambda **k: scratch_dirs.append(k.get("dir"))
+                        or temporary_directory(**k))
+    out = tmp_path / "results" / "corrected.h5"
     assert cli.main(["correct", str(event_utils_recording), str(out), "--mode", mode, "--num-bins", "100",
                      "--threshold", "0.2"]) == 0
     assert len(kept) == 2 and all(latency.dim() == 0 for latency in kept)
+    # the scratch maps lie beside the output (not in a temp folder that may be in memory), and are gone after
+    assert scratch_dirs == ([out.parent] if mode == "spatial" else [])
+    assert sorted(p.name for p in out.parent.iterdir()) == ["corrected.csv", "corrected.h5"]
     assert len(given) == 1 and not isinstance(given[0], (Events, np.ndarray, list))  # chunks as they come
     source, corrected = EventUtilsRecording(event_utils_recording), EventUtilsRecording(out)
     before, after = source.events_between(-1e18, 1e18), corrected.events_between(-1e18, 1e18)
