@@ -11,6 +11,7 @@ are already checked calls ``_foo`` (the value checks read tensor data: on a GPU 
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -128,14 +129,34 @@ def check_threshold(threshold: object, batch_size: int) -> Tensor:
     return theta
 
 
+# No camera exposes a frame for less than a microsecond: every exposure below it means times in other units
+SHORTEST_EXPOSURE_US = 1.0
+
+
 def check_exposure(start: Tensor, end: Tensor) -> None:
-    """Exposure windows must have positive length."""
-    if bool((end <= start).any()):
-        i = int(torch.nonzero(end <= start)[0, 0])
+    """Exposure windows must have positive length; a warning where every one is shorter than a microsecond (times
+    given in seconds, most likely: evlatcorr reads them as µs).
+
+    Example:
+        >>> check_exposure(torch.tensor([0.0]), torch.tensor([20000.0]))
+        >>> check_exposure(torch.tensor([0.0]), torch.tensor([0.02]))  # doctest: +SKIP
+        UserWarning: every exposure is shorter than 1 us (the longest 0.02 us): evlatcorr takes times in ...
+    """
+    length = end - start
+    if not length.numel():
+        return
+    shortest, longest = torch.stack([length.min(), length.max()]).tolist()  # one read of the device
+    if shortest <= 0:
+        i = int(torch.nonzero(length <= 0)[0, 0])
         raise ValueError(
             f"exposure_end must be after exposure_start; sample {i} has start {float(start[i]):.1f} us "
             f"and end {float(end[i]):.1f} us"
         )
+    if longest < SHORTEST_EXPOSURE_US:
+        warnings.warn(f"every exposure is shorter than {SHORTEST_EXPOSURE_US:g} us (the longest {longest:.3g} us): "
+                      "evlatcorr takes times in microseconds; times in seconds or milliseconds give latencies in "
+                      "the same units and miss its defaults (the search's reach, the reader's training)",
+                      stacklevel=3)
 
 
 def check_search_range(search_range: object, name: str = "search_range") -> tuple[float, float] | None:

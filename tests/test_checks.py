@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 
 import pytest
 import torch
@@ -93,6 +94,22 @@ def test_check_exposure_names_the_first_bad_sample():
     check_exposure(torch.tensor([0.0, 10.0]), torch.tensor([5.0, 20.0]))
     with pytest.raises(ValueError, match=re.escape("sample 1 has start 10.0 us and end 10.0 us")):
         check_exposure(torch.tensor([0.0, 10.0, 30.0]), torch.tensor([5.0, 10.0, 20.0]))
+
+
+def test_check_exposure_warns_when_times_look_like_seconds():
+    # a 20 ms exposure given in seconds is 0.02 "us": no camera exposes so briefly, so the units are wrong
+    with pytest.warns(UserWarning, match=r"shorter than 1 us \(the longest 0.02 us\).*microseconds"):
+        check_exposure(torch.tensor([0.0, 0.04], dtype=torch.float64), torch.tensor([0.02, 0.06], dtype=torch.float64))
+    events = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([0.01]), torch.tensor([1]), sensor_size=(2, 2))
+    with pytest.warns(UserWarning, match="microseconds"):
+        EventFrames(torch.full((1, 1, 2, 2), 0.5), events, torch.tensor([0.0]), torch.tensor([0.02]))
+
+
+def test_check_exposure_is_quiet_for_microsecond_exposures():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_exposure(torch.tensor([0.0, 0.5]), torch.tensor([1.0, 20_000.0]))  # one exposure of 1 us is enough
+        check_exposure(torch.empty(0), torch.empty(0))
 
 
 class TestCheckSearchRange:
