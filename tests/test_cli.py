@@ -310,7 +310,7 @@ def test_corrected_pairs_start_where_the_stamped_events_do():
     # input (read from before_us ahead of the exposure) cannot have
     from types import SimpleNamespace
 
-    from evlatcorr.cli import _Restoration, _restore_frames
+    from evlatcorr.cli.restoration import _Restoration, _restore_frames
 
     seq = simulate("astronaut", num_frames=2, height=32, width=40, exposure_us=4000.0, latency_us=1500.0, seed=0)
     seen = []
@@ -364,11 +364,12 @@ def test_correct_searches_several_frames_per_call_as_frame_by_frame(four_frames_
     # what an accelerator does (frames searched in one pass, evlatcorr.search_batched), forced on this CPU: two
     # frames per call, so frames 1-2 share a call, frame 3 is corrected alone at the end and frame 0 has no events
     from evlatcorr import cli, search_batched
+    from evlatcorr.cli import correct
 
     args = ["correct", str(four_frames_first_empty), "--num-bins", "100", "--search-us", "0", "5000"]
     assert cli.main([*args[:2], str(tmp_path / "alone.h5"), *args[2:]]) == 0
     calls = []
-    corrector = cli._corrector
+    corrector = correct.build_corrector
 
     def counting(*a, **k):
         inner = corrector(*a, **k)
@@ -378,8 +379,8 @@ def test_correct_searches_several_frames_per_call_as_frame_by_frame(four_frames_
             return inner(frames)
         return run
 
-    monkeypatch.setattr(cli, "_frames_per_call", lambda device, mode: 2)
-    monkeypatch.setattr(cli, "_corrector", counting)
+    monkeypatch.setattr(correct, "_frames_per_call", lambda device, mode: 2)
+    monkeypatch.setattr(correct, "build_corrector", counting)
     monkeypatch.setattr(search_batched, "ON_CPU", True)
     together = search_batched.search_frames_together
     passes = []
@@ -412,9 +413,9 @@ def test_the_search_reads_the_exposure_time_past_each_frame_even_with_a_narrower
 
 
 def test_command_line_warnings_print_each_message_once_as_one_line(capsys):
-    from evlatcorr import cli
+    from evlatcorr.cli import common
 
-    show = cli._warning_printer("correct")
+    show = common.warning_printer("correct")
     for _ in range(2):  # the same message noticed in two places
         show(UserWarning("frame 3: no events"), UserWarning, "/somewhere/reader.py", 10)
         show(UserWarning("frame 3: no events"), UserWarning, "/elsewhere/tqdm.py", 99)
@@ -438,14 +439,14 @@ def test_a_range_that_holds_the_estimate_at_its_edge_is_said_of_the_frames_once(
 
 
 def test_sample_warnings_are_reworded_with_frame_numbers_and_summarised():
-    from evlatcorr import cli
+    from evlatcorr.cli import common
     from evlatcorr.sample_warnings import SampleWarning
 
     class Batch:
         def __init__(self, frame):
             self.meta = {"frame": frame}
 
-    said = cli._FrameWarnings()
+    said = common.FrameWarnings()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for first in (3, 5, 9):
@@ -456,17 +457,18 @@ def test_sample_warnings_are_reworded_with_frame_numbers_and_summarised():
     assert [str(w.message) for w in caught] == ["frame 4: fallback 0 us", "something else", "something else",
                                                 "something else", "2 more frames (6, 10): the fallback"]
     assert not any(isinstance(w.message, SampleWarning) for w in caught)  # a plain warning, for the printer
-    assert cli._number_ranges([7, 1, 2, 3, 9, 10]) == "1-3, 7, 9-10"
+    assert common._number_ranges([7, 1, 2, 3, 9, 10]) == "1-3, 7, 9-10"
 
 
 def test_correct_keeps_a_number_per_frame_and_writes_the_frames_as_they_come(simulated, tmp_path, monkeypatch):
     # a recording of thousands of frames must not keep thousands of images and latency maps until the end
     from evlatcorr import cli
+    from evlatcorr.cli import correct
 
     kept, appended = [], []
-    write, append = cli._write_corrected, cli._append_frame
-    monkeypatch.setattr(cli, "_write_corrected", lambda *a: kept.extend(a[4]) or write(*a))  # its latencies
-    monkeypatch.setattr(cli, "_append_frame", lambda h5, name, image: appended.append(len(kept)) or append(h5, name,
+    write, append = correct._write_corrected, correct._append_frame
+    monkeypatch.setattr(correct, "_write_corrected", lambda *a: kept.extend(a[4]) or write(*a))  # its latencies
+    monkeypatch.setattr(correct, "_append_frame", lambda h5, name, image: appended.append(len(kept)) or append(h5, name,
                                                                                                           image))
     out = tmp_path / "out.h5"
     assert cli.main(["correct", str(simulated), str(out), "--num-bins", "100", "--threshold", "0.2"]) == 0
@@ -530,17 +532,18 @@ def test_correct_an_event_utils_recording_streams_its_events_and_keeps_numbers(e
     # file, not to memory: a long recording keeps one number per frame
     import evlatcorr.io as io
     from evlatcorr import cli
+    from evlatcorr.cli import correct
     from evlatcorr.events import Events
     from evlatcorr.io import EventUtilsRecording
 
     kept, given = [], []
-    write, write_event_utils = cli._write_corrected, io.write_event_utils
-    monkeypatch.setattr(cli, "_write_corrected", lambda *a: kept.extend(a[4]) or write(*a))
+    write, write_event_utils = correct._write_corrected, io.write_event_utils
+    monkeypatch.setattr(correct, "_write_corrected", lambda *a: kept.extend(a[4]) or write(*a))
     monkeypatch.setattr(io, "write_event_utils", lambda path, events, **k: given.append(events)
                         or write_event_utils(path, events, **k))
     scratch_dirs = []
-    temporary_directory = cli.tempfile.TemporaryDirectory
-    monkeypatch.setattr(cli.tempfile, "TemporaryDirectory", lambda **k: scratch_dirs.append(k.get("dir"))
+    temporary_directory = correct.tempfile.TemporaryDirectory
+    monkeypatch.setattr(correct.tempfile, "TemporaryDirectory", lambda **k: scratch_dirs.append(k.get("dir"))
                         or temporary_directory(**k))
     out = tmp_path / "results" / "corrected.h5"
     assert cli.main(["correct", str(event_utils_recording), str(out), "--mode", mode, "--num-bins", "100",

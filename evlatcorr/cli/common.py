@@ -1,0 +1,236 @@
+"""What the commands share: reading the options, the recording, its threshold and the corrector; progress; warnings
+said of frames by their number; the per-frame CSV rows."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import math
+import re
+import sys
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+from evlatcorr.sample_warnings import SampleWarning
+
+EXIT_OK, EXIT_ERROR, EXIT_BAD_INPUT = 0, 1, 2
+
+
+def parse_threshold(text: str) -> float | str:
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"--threshold must be a number or 'auto', got {text!r}") from None
+    if value <= 0:
+        raise ValueError(f"--threshold must be positive, got {value}")
+    return value
+
+
+def open_input(args: argparse.Namespace):
+    """The recording ``args.input``; with ``--search-us``, each frame's events reach as far as the search reads (by
+    default: the exposure time past the exposure's end)."""
+    from evlatcorr.io import EventUtilsRecording, open_recording
+    from evlatcorr.restore import search_reach_us
+
+    rec = open_recording(args.input)
+    if isinstance(rec, EventUtilsRecording) and getattr(args, "exposure_us", None) is not None:
+        rec.exposure_us = args.exposure_us
+    if getattr(args, "search_us", None):
+        rec.after_us = search_reach_us(rec, args.search_us[1])
+    return rec
+
+
+def parse_device(text: str) -> torch.device:
+    """``--device``, refused (exit 2) when unknown or not on this machine."""
+    try:
+        device = torch.device(text)
+    except RuntimeError:
+        raise ValueError(f"--device: unknown device {text!r}; use cpu, cuda or cuda:N") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"--device {text}: CUDA is not available on this machine; use --device cpu")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"--device {text}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    elif device.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"--device {text}: MPS is not available on this machine; use --device cpu")
+    elif device.type not in ("cpu", "cuda", "mps"):
+        raise ValueError(f"--device: unsupported device {text!r}; use cpu, cuda or cuda:N")
+    return device
+
+
+def threshold_of_recording(args: argparse.Namespace, rec, device: torch.device) -> float | str:
+    """``--threshold``: a number, or for ``auto`` one θ for the recording (two-frame consistency)."""
+    from evlatcorr.restore import recording_threshold
+
+    theta = parse_threshold(args.threshold)
+    if theta != "auto":
+        return theta
+    # what the search says of a frame here, the main pass says again of every frame, by its number; what the reader
+    # says of a frame read here (with the wider window of a pair) is said to come from here; of the file, as it is
+    with _reworded(lambda message: None if isinstance(message, SampleWarning)
+                   else f"estimating the contrast threshold from the first frames: {message}"
+                   if re.search(r"\bframe \d+:", str(message)) else str(message)):
+        found = recording_threshold(rec, tuple(args.search_us) if args.search_us else None, device=device)
+    if found is None:
+        warnings.warn("no pair of consecutive frames with events: the contrast threshold is estimated per frame",
+                      stacklevel=2)
+        return "auto"
+    print(f"contrast threshold: {found:.3f} (auto: two-frame consistency of the first frames)", file=sys.stderr)
+    return found
+
+
+def build_corrector(args: argparse.Namespace, mode: str = "constant", curve: Path | None = None,
+               theta: float | str = 0.2):
+    from evlatcorr import EventLatencyCorrector
+
+    kwargs = {}
+    if curve is not None:
+        if mode != "spatial":
+            raise ValueError("--curve needs the spatial mode")
+        if not curve.is_file():
+            raise ValueError(f"--curve {curve}: no such file")
+        kwargs["curve"] = str(curve)
+    search = tuple(args.search_us) if args.search_us else None
+    if curve is None:
+        return EventLatencyCorrector(mode=mode, threshold=theta, num_bins=args.num_bins, search_range=search)
+    try:
+        return EventLatencyCorrector(mode=mode, threshold=theta, num_bins=args.num_bins, search_range=search,
+                                     **kwargs)
+    except Exception as exc:  # noqa: BLE001 - whatever the reader raised, the file is not a curve checkpoint
+        raise ValueError(f"--curve {curve}: not a latency curve checkpoint ({type(exc).__name__}: {exc})") from None
+
+
+def progress(iterable, total: int | None, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(iterable, total=total, desc=desc, unit="frame", file=sys.stderr, disable=not sys.stderr.isatty())
+
+
+@contextlib.contextmanager
+def _reworded(reword: Callable[[Warning], str | None]):
+    """The warnings raised inside, warned again as ``reword`` words them (each a :class:`Warning`; None: not
+    again)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    for w in caught:
+        text = reword(w.message)
+        if text is not None:
+            warnings.warn(text, UserWarning if issubclass(w.category, SampleWarning) else w.category, stacklevel=3)
+
+
+class FrameWarnings:
+    """The library's warnings about samples of a call, said of the frames they are (``frame 12``, not ``sample 0``):
+    the first of each kind in full as it happens, and at the end one line for the other frames it happened to."""
+
+    def __init__(self) -> None:
+        self.later: dict[str, tuple[str, list[int]]] = {}
+
+    def naming(self, batches: list):
+        """A context in which the warnings of one call on ``batches`` (in the call's sample order) are reworded."""
+        numbers = [int(batch.meta["frame"]) for batch in batches]
+
+        def reword(message: Warning) -> str | None:
+            if not isinstance(message, SampleWarning):
+                return str(message)
+            if message.kind not in self.later:
+                self.later[message.kind] = (message.summary, [])
+                return _option_names(message.naming([f"frame {n}" for n in numbers]))
+            self.later[message.kind][1].extend(numbers[i] for i in message.samples)
+            return None
+
+        return _reworded(reword)
+
+    def summarise(self) -> None:
+        """One warning per kind for the frames after its first."""
+        for summary, numbers in self.later.values():
+            if numbers:
+                warnings.warn(f"{len(numbers)} more frame{'s' if len(numbers) > 1 else ''} "
+                              f"({_number_ranges(numbers)}): {_option_names(summary)}", stacklevel=2)
+        self.later.clear()
+
+
+def _option_names(text: str) -> str:
+    """The library's words for a setting in the command line's: ``search_range`` is ``--search-us`` here."""
+    return text.replace("search_range ", "--search-us ")
+
+
+def _number_ranges(numbers: list[int]) -> str:
+    """Sorted whole numbers as runs: ``[1, 2, 3, 7]`` -> ``"1-3, 7"``."""
+    runs: list[list[int]] = []
+    for n in sorted(set(numbers)):
+        if runs and n == runs[-1][1] + 1:
+            runs[-1][1] = n
+        else:
+            runs.append([n, n])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+
+
+def skip_warning(batch, why: str) -> None:
+    warnings.warn(f"frame {batch.meta['frame']}: {why}", stacklevel=2)
+
+
+def latency_row(batch, out, theta, seconds: float, skipped: str = "") -> dict:
+    """One CSV row: the frame, its latency (mean, min, max of the map), θ, the search's confidence and what set
+    the latency (``source``: sharpness, ghost, reader or fallback), the learned reader's spread and the hot pixels
+    it left out."""
+    row = {"frame": batch.meta["frame"], "exposure_start_us": f"{float(batch.exposure_start):.1f}",
+           "exposure_end_us": f"{float(batch.exposure_end):.1f}"}
+    if out is not None and out.latency is not None:
+        lat = out.latency[0, 0]
+        cand, score = out.meta.get("etf_curve", (None, None))
+        finite = score[0][torch.isfinite(score[0])] if score is not None else None
+        row.update(latency_us=f"{float(lat.mean()):.1f}", latency_min_us=f"{float(lat.min()):.1f}",
+                   latency_max_us=f"{float(lat.max()):.1f}",
+                   score=f"{float(finite.min()):.5f}" if finite is not None and len(finite) else "",
+                   confidence=f"{float(out.meta['latency_confidence'][0]):.3f}"
+                   if "latency_confidence" in out.meta else "",
+                   fallback=int(bool(out.meta["latency_fallback"][0])) if "latency_fallback" in out.meta else "",
+                   source=out.meta["latency_source"][0] if out.meta.get("latency_source") else "",
+                   spread_us=_spread_of(out),
+                   hot_pixels=out.meta["hot_pixels"][0] if out.meta.get("hot_pixels") else "")
+        theta = out.meta.get("threshold", theta)
+    else:
+        row.update(latency_us="", latency_min_us="", latency_max_us="", score="", confidence="", fallback="",
+                   source="", spread_us="", hot_pixels="")
+    theta = float(theta.flatten()[0]) if isinstance(theta, torch.Tensor) else theta
+    row.update(threshold=f"{theta:.4f}" if isinstance(theta, float) else str(theta),
+               events_in_window=len(batch.events), skipped=skipped, time_s=f"{seconds:.3f}")
+    return row
+
+
+def _spread_of(out) -> str:
+    """The learned reader's spread (µs) of a corrected frame, empty where it has none (other scores)."""
+    spread = out.meta.get("latency_spread_us")
+    value = float(spread[0]) if spread is not None else math.nan
+    return "" if math.isnan(value) else f"{value:.0f}"
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["frame"])
+        w.writeheader()
+        w.writerows(rows)
+
+
+def warning_printer(command: str) -> Callable[..., None]:
+    """A ``warnings.showwarning`` for the command line: each distinct message once, as one line ``evlatcorr COMMAND:
+    warning: MESSAGE`` on stderr, above the progress bar (a user needs what happened to their data, not the source
+    line of the library that noticed it, nor the same line again from another place that noticed it too)."""
+    from tqdm import tqdm
+
+    seen: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ARG001 (the hook's signature)
+        text = str(message)
+        if text not in seen:
+            seen.add(text)
+            tqdm.write(f"evlatcorr {command}: warning: {text}", file=sys.stderr if file is None else file)
+
+    return show

@@ -1,0 +1,101 @@
+"""The ``evlatcorr`` command's arguments: one sub-command each for correct, deblur, interpolate, simulate and info."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from evlatcorr.restore import INTERPOLATION_MODELS, MODELS
+from evlatcorr.temporal import DEFAULT_FUSED_FRAMES
+
+__all__ = ["build_parser"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="evlatcorr",
+        description="Event-camera latency correction for event-guided deblurring and frame interpolation.",
+        epilog="Formats read: AEDAT4 (DAVIS), evlatcorr HDF5, event_utils HDF5, GEM npz pairs, HighREV video folders. "
+               "Times are microseconds.",
+    )
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    c = sub.add_parser("correct", help="estimate latency per frame and write corrected events + a CSV report",
+                       description="Estimate the latency of every frame, remove it from the events and write them "
+                                   "(event_utils input stays event_utils, anything else becomes evlatcorr HDF5), "
+                                   "with a per-frame CSV report next to OUT.")
+    c.add_argument("input", type=Path, help="recording to correct")
+    c.add_argument("output", type=Path, help="corrected recording to write (.h5)")
+    c.add_argument("--report", type=Path, help="per-frame CSV report (default: OUT with the suffix .csv)")
+    c.add_argument("--mode", choices=("constant", "spatial"), default="constant")
+    c.add_argument("--curve", type=Path, help="trained latency curve checkpoint (mode spatial)")
+    c.add_argument("--fuse-frames", type=int, default=DEFAULT_FUSED_FRAMES, metavar="N",
+                   help="constant mode: each frame's latency from the learned reader's evidence of N frames either "
+                        f"side too (a recording's latency changes slowly; default {DEFAULT_FUSED_FRAMES}, 0: each "
+                        "frame alone), 0 where that evidence keeps no latency likely; the report keeps each frame's "
+                        "own estimate as frame_latency_us")
+    _common_options(c)
+
+    d = sub.add_parser("deblur", help="deblur every frame with EDI or a network; PNGs, a side-by-side GIF, a CSV",
+                       description="Deblur every frame with --model and write into OUTDIR: PNGs per frame (blurry, "
+                                   "the model's output with the stamped events and, with --correct, with the "
+                                   "corrected events), side_by_side.gif (blurry | uncorrected | corrected) and "
+                                   "frames.csv (latency, threshold, confidence, the learned reader's spread, "
+                                   "events, time per frame). OUTDIR is "
+                                   "written under a temporary name and appears only when every frame is done.")
+    d.add_argument("input", type=Path)
+    d.add_argument("outdir", type=Path)
+    _restore_options(d, MODELS)
+
+    i = sub.add_parser("interpolate", help="frames between exposures with EDI or REFID; PNGs, a GIF, a CSV",
+                       description="Interpolate --num frames evenly between each pair of consecutive exposures "
+                                   "and write them into OUTDIR as PNGs (with the stamped and, with --correct, the "
+                                   "corrected events), side_by_side.gif and frames.csv (one row per pair).")
+    i.add_argument("input", type=Path)
+    i.add_argument("outdir", type=Path)
+    i.add_argument("--num", type=int, default=1, help="frames between two exposures (default: 1)")
+    _restore_options(i, INTERPOLATION_MODELS)
+
+    s = sub.add_parser("simulate", help="write a simulated recording with known latency (evlatcorr HDF5)")
+    s.add_argument("output", type=Path)
+    s.add_argument("--image", default="astronaut", help="scikit-image photograph (default: astronaut)")
+    s.add_argument("--frames", type=int, default=4)
+    s.add_argument("--size", type=int, nargs=2, default=(260, 346), metavar=("H", "W"))
+    s.add_argument("--exposure-us", type=float, default=20000.0)
+    s.add_argument("--interval-us", type=float, default=25000.0, help="time between exposure starts")
+    s.add_argument("--latency-model", choices=("none", "constant", "intensity"), default="constant")
+    s.add_argument("--latency-us", type=float, default=4000.0, help="constant latency")
+    s.add_argument("--seed", type=int, default=0)
+
+    n = sub.add_parser("info", help="summarise a recording")
+    n.add_argument("input", type=Path)
+    n.add_argument("--exposure-us", type=float, help="exposure for files that only stamp frame times")
+    return p
+
+
+def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> None:
+    p.add_argument("--model", choices=models, default="edi", help="restoration model (default: edi)")
+    p.add_argument("--ckpt", type=Path, help="network weights (default: the shipped ones)")
+    p.add_argument("--correct", nargs="?", const="constant", default="none", choices=("none", "constant", "spatial"),
+                   help="latency correction (default: none; --correct alone: constant)")
+    p.add_argument("--curve", type=Path, help="trained latency curve checkpoint (--correct spatial)")
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty OUTDIR")
+    p.add_argument("--max-frames", type=int, help="only the first N frames (default: all)")
+    p.add_argument("--fuse-frames", type=int, default=DEFAULT_FUSED_FRAMES, metavar="N",
+                   help="--correct constant: each frame's latency from the learned reader's evidence of the N frames "
+                        f"before it too (frame by frame, as a stream; default {DEFAULT_FUSED_FRAMES}, 0: each frame "
+                        "alone), 0 where that evidence keeps no latency likely; frames.csv keeps each frame's own "
+                        "estimate as frame_latency_us")
+    _common_options(p)
+
+
+def _common_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
+    p.add_argument("--threshold", default="auto",
+                   help="contrast threshold θ, or 'auto' (default): one θ for the recording, the one that makes "
+                        "consecutive frames' EDI reconstructions agree best (per frame when it has one frame)")
+    p.add_argument("--num-bins", type=int, default=500, help="EDI sub-intervals per exposure (default: 500)")
+    p.add_argument("--search-us", type=float, nargs=2, metavar=("LOW", "HIGH"),
+                   help="the range the latency lies in, us: bounds the estimate, while the learned reader still "
+                        "reads 0 to the exposure time as trained (default: 0 to the exposure time)")
+    p.add_argument("--exposure-us", type=float, help="exposure for files that only stamp frame times")

@@ -1,0 +1,187 @@
+"""``evlatcorr deblur`` and ``evlatcorr interpolate``: a model on every frame (or pair of frames), with the stamped
+events and, with ``--correct``, the corrected ones; PNGs, a side-by-side GIF and a per-frame CSV."""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+
+from evlatcorr.cli.common import (
+    EXIT_OK,
+    FrameWarnings,
+    build_corrector,
+    latency_row,
+    open_input,
+    parse_device,
+    parse_threshold,
+    progress,
+    skip_warning,
+    threshold_of_recording,
+    write_csv,
+)
+
+__all__ = ["cmd_deblur", "cmd_interpolate"]
+
+GIF_FRAMES = 200  # frames kept in the side-by-side GIF (each held in memory until it is written)
+
+
+def cmd_deblur(args: argparse.Namespace) -> int:
+    return _restore(args, "deblur")
+
+
+def cmd_interpolate(args: argparse.Namespace) -> int:
+    if args.num < 1:
+        raise ValueError(f"--num must be >= 1, got {args.num}")
+    return _restore(args, "interpolation")
+
+
+def _restore(args: argparse.Namespace, task: str) -> int:
+    """deblur / interpolate: the model on every frame (or pair), with stamped and with corrected events."""
+    from evlatcorr.io.outputs import atomic_dir, check_outputs
+
+    if args.max_frames is not None and args.max_frames < 1:
+        raise ValueError(f"--max-frames must be >= 1, got {args.max_frames}")
+    if args.fuse_frames < 0:
+        raise ValueError(f"--fuse-frames must be 0 or more, got {args.fuse_frames}")
+    check_outputs([args.input], folders=[args.outdir], overwrite_folders=args.overwrite)
+    device = parse_device(args.device)
+    parse_threshold(args.threshold)  # a bad value fails before any reading
+    run = _restoration(args, task, device)
+    rows, gif, count = [], [], 0
+    frame_warnings = FrameWarnings()
+    with atomic_dir(args.outdir, overwrite=args.overwrite) as tmp:
+        stream, limit = _restore_inputs(run.rec, args.max_frames, run.pairs)
+        for batch, frames in progress(stream, limit, task):
+            t0 = time.perf_counter()
+            if frames is None:
+                skip_warning(batch, f"{args.model} {task} needs the next frame, and this is the last of its segment")
+                rows.append(latency_row(batch, None, run.theta, 0.0, skipped="no next frame"))
+                continue
+            frames = _with_targets(frames.to(device), task, args.model, args.num if task == "interpolation" else 0)
+            with frame_warnings.naming([batch]):
+                plain, corrected, out, skipped = _restore_frames(run, frames, batch)
+            rows.append(latency_row(batch, out, run.theta, time.perf_counter() - t0, skipped))
+            if out is not None and "frame_latency_us" in out.meta:  # fused: the frame's own estimate too
+                rows[-1]["frame_latency_us"] = f"{float(out.meta['frame_latency_us'][0]):.1f}"
+            _save_restored(tmp, task, args.model, batch.meta["frame"], frames.blurry[0], plain,
+                           corrected if run.corrector is not None else None, gif)
+            count += 1
+        frame_warnings.summarise()
+        if not rows:
+            raise ValueError(f"{args.input}: no frames")
+        write_csv(tmp / "frames.csv", rows)
+        if gif:
+            gif[0].save(tmp / "side_by_side.gif", save_all=True, append_images=gif[1:], duration=200, loop=0)
+    panels = "blurry | uncorrected" + (" | corrected" if run.corrector is not None else "")
+    print(f"wrote {count} {'frames' if task == 'deblur' else 'pairs'} to {args.outdir} ({args.model}; "
+          f"side_by_side.gif: {panels}{f', first {GIF_FRAMES}' if count > GIF_FRAMES else ''}; frames.csv)")
+    return EXIT_OK
+
+
+class _Restoration(NamedTuple):
+    """What a deblur / interpolate run applies to every frame (or pair)."""
+
+    rec: Any
+    model: torch.nn.Module
+    corrector: Any  # an EventLatencyCorrector (streaming with --fuse-frames), or None for --correct none
+    theta: float | str
+    pairs: bool  # the model reads each frame with the next one
+    device: torch.device
+
+
+def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _Restoration:
+    """The model (weights loaded before any reading), the recording, θ and the corrector."""
+    from evlatcorr.restore import build_model, needs_pairs, pair_lead_us, pair_reach_us
+
+    model = build_model(args.model, task, args.ckpt, 0.2, args.num_bins).to(device)  # loads the weights first
+    high = args.search_us[1] if args.search_us else None
+    rec = open_input(args)
+    theta = threshold_of_recording(args, rec, device) if args.model == "edi" or args.correct != "none" else 0.2
+    if args.model == "edi":
+        model = build_model(args.model, task, None, theta, args.num_bins)
+    corrector = None if args.correct == "none" else build_corrector(args, args.correct, args.curve, theta)
+    if args.correct == "constant" and args.fuse_frames > 0:  # frame by frame: each takes the frames before it
+        from evlatcorr.temporal import StreamingLatencyCorrector
+
+        corrector = StreamingLatencyCorrector(corrector, args.fuse_frames)
+    pairs = needs_pairs(args.model, task)
+    if pairs:  # the first frame's events must reach the next exposure's end, plus the latency searched
+        rec.after_us = pair_reach_us(rec, high)
+        rec.before_us = max(rec.before_us, pair_lead_us(rec))  # and REFID reads before the first exposure
+    return _Restoration(rec, model, corrector, theta, pairs, device)
+
+
+def _restore_inputs(rec, max_frames: int | None, pairs: bool):
+    """``(batch, frames)`` for the first ``max_frames`` frames, and their number; ``frames`` is the batch, or
+    for pairs the batch with the next frame (``None`` for the last frame of a segment)."""
+    from evlatcorr.restore import pair_frames
+
+    limit = len(rec) if max_frames is None else min(len(rec), max_frames)
+    frames_read = itertools.islice(rec, limit + 1 if pairs else limit)  # a pair reads one frame more
+    stream = pair_frames(frames_read) if pairs else ((b, b) for b in frames_read)
+    return itertools.islice(stream, limit), limit
+
+
+def _with_targets(frames, task: str, model: str, num: int):
+    """The times to restore: ``num`` between a pair's exposures, mid-exposure for REFID deblurring."""
+    from evlatcorr.restore import between_times
+
+    if task == "interpolation":
+        return frames.replace(target_times=between_times(frames, num))
+    if model == "refid":
+        return frames.replace(target_times=((frames.exposure_start + frames.exposure_end) / 2)[:, None])
+    return frames
+
+
+def _restore_frames(run: _Restoration, frames, batch):
+    """The model's output with the stamped events and with the corrected ones (the same without a corrector
+    or without events to correct), the corrector's output and why correction was skipped."""
+    from evlatcorr.restore import has_events
+
+    with torch.no_grad():
+        plain = run.model(frames).output
+    out, skipped, corrected = None, "", plain
+    if run.corrector is not None:
+        if has_events(frames):
+            out = run.corrector(frames)
+            if run.pairs:  # REFID reads before the exposure: the corrected events start where the stamped ones do
+                out = out.replace(corrected=out.corrected.since(frames.exposure_start - run.rec.before_us))
+            with torch.no_grad():
+                corrected = run.model(out).output
+        else:
+            skipped = "no events"
+            skip_warning(batch, "no events in its exposure and search window: not corrected")
+    if run.device.type == "cuda":
+        torch.cuda.synchronize(run.device)  # so the row's time is the frame's
+    return plain, corrected, out, skipped
+
+
+def _save_restored(tmp: Path, task: str, name: str, i: int, blurry, plain, corrected, gif: list) -> None:
+    """PNGs of frame ``i``'s outputs (and of the blurry frame when deblurring); panels for the GIF while it has
+    room. ``corrected`` is ``None`` without a corrector."""
+    from PIL import Image
+
+    from evlatcorr.restore import side_by_side, to_uint8
+
+    outputs = _restored_images(plain, task)
+    fixed = _restored_images(corrected if corrected is not None else plain, task)
+    if task == "deblur":
+        Image.fromarray(to_uint8(blurry)).save(tmp / f"frame_{i:05d}_blurry.png")
+    for k, (a, c) in enumerate(zip(outputs, fixed)):
+        tag = f"frame_{i:05d}" if task == "deblur" else f"frame_{i:05d}_{k + 1:02d}"
+        Image.fromarray(to_uint8(a)).save(tmp / f"{tag}_{name}.png")
+        if corrected is not None:
+            Image.fromarray(to_uint8(c)).save(tmp / f"{tag}_{name}_corrected.png")
+        if len(gif) < GIF_FRAMES:
+            panels = [blurry, a] + ([c] if corrected is not None else [])
+            gif.append(Image.fromarray(side_by_side(panels)).quantize(colors=256))
+
+
+def _restored_images(output, task: str) -> list:
+    """The images of one sample's output: one ``(C, H, W)`` when deblurring, else one per target time."""
+    return [output[0]] if task == "deblur" and output.dim() == 4 else list(output[0])
