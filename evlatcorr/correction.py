@@ -126,26 +126,31 @@ def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> N
         warnings.warn(SampleWarning(
             "fallback", which, "{which}: the sharpness score has no clear minimum inside the latency range the events "
             "cover (too few events or no texture); their latency is the fallback "
-            f"{[round(float(result.latency[i])) for i in which]} us",
+            f"{_microseconds(result.latency, which)}",
             "no clear sharpness minimum inside the latency range the events cover: the fallback latency"), stacklevel=3)
     if result.ignored_pixels and any(result.ignored_pixels):
         which = [i for i, n in enumerate(result.ignored_pixels) if n]
         counts = [result.ignored_pixels[i] for i in which]
         warnings.warn(SampleWarning(
             "hot_pixels", which, f"{{which}}: hot pixels (events spanning more than e^{HOT_PIXEL_LOG_RANGE:.0f} of "
-            f"intensity, which no scene does) left out of the latency search: {counts}; "
+            f"intensity, which no scene does) left out of the latency search: {', '.join(map(str, counts))}; "
             "their events are corrected like the others", "hot pixels left out of the latency search"), stacklevel=3)
     if result.outside_range is not None and bool(torch.isfinite(result.outside_range).any()):
         which = torch.nonzero(torch.isfinite(result.outside_range)).flatten().tolist()
         low, high = config.search_range
-        likeliest = [round(float(result.outside_range[i])) for i in which]
+        likeliest = _microseconds(result.outside_range, which)
         warnings.warn(SampleWarning(
-            "outside_range", which, f"{{which}}: the learned reader finds the latency likeliest at {likeliest} us, "
+            "outside_range", which, f"{{which}}: the learned reader finds the latency likeliest at {likeliest}, "
             f"outside search_range {low:.0f}-{high:.0f} us "
             f"(more than half its probability lies outside): the estimate is held at the range's edge "
-            f"({[round(float(result.latency[i])) for i in which]} us); widen the range if the latency may lie there",
+            f"({_microseconds(result.latency, which)}); widen the range if the latency may lie there",
             f"the learned reader finds the latency likelier outside search_range {low:.0f}-{high:.0f} us: the "
             "estimate is held at the range's edge"), stacklevel=3)
+
+
+def _microseconds(values: Tensor, which: list[int]) -> str:
+    """The samples' values as a warning says them, in the order of its samples: ``"2600 us"``, ``"80, 120 us"``."""
+    return ", ".join(str(round(float(values[i]))) for i in which) + " us"
 
 
 def _auto_threshold(frames: EventFrames, config: SearchConfig, previous: Tensor | None) -> float | Tensor:

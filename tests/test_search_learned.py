@@ -148,7 +148,7 @@ def test_an_estimate_held_at_the_range_edge_is_reported_not_silent(monkeypatch):
     monkeypatch.setattr(search_learned, "_curve_reader_on", lambda device: _PlantedReader(log_p))
     corrector = EventLatencyCorrector(threshold=0.2, num_bins=50, num_candidates=11, search_range=(20.0, 50.0))
     with pytest.warns(SampleWarning, match=r"samples \[0, 1\]: the learned reader finds the latency likeliest at "
-                                           r"\[80, 80\] us, outside search_range 20-50 us") as caught:
+                                           r"80, 80 us, outside search_range 20-50 us") as caught:
         out = corrector(frames)
     assert all(20.0 <= v <= 50.0 for v in out.latency.flatten().tolist())
     assert out.meta["latency_outside_range_us"].tolist() == [80.0, 80.0]
