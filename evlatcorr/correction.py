@@ -57,13 +57,13 @@ def correct_constant_latency(
         ``meta["latency_confidence"]`` :math:`(B,)` how clear each score curve's minimum was and
         ``meta["latency_fallback"]`` :math:`(B,)` which frames had none and got the fallback
         (``previous_latency``, else the range's lower end); a warning names them.
-        ``meta["latency_source"]`` says per frame what set the latency: ``"sharpness"``, ``"ghost"`` (a flat
-        score curve, decided by :mod:`evlatcorr.ghost`'s cue), ``"reader"`` (no score minimum; the learned curve
-        reader's estimate) or ``"fallback"``. ``meta["hot_pixels"]`` counts per frame the hot pixels the search left
-        out (a warning names them). ``meta["latency_spread_us"]`` :math:`(B,)` is, for the learned reader (the
-        default score), the standard deviation of its probability over the candidates: how unsure it is (NaN for
-        other scores). On the suite's tuning cases (20 ms exposures) the highest third of spreads (above about
-        2.4 ms) held most of the estimates off by more than 2 ms, the lowest third (below about 1 ms) none.
+        ``meta["latency_source"]`` says per frame what set the latency: ``"reader"`` (the learned curve reader's
+        estimate, the default score), ``"sharpness"`` (another score's minimum), ``"ghost"`` (a flat score curve,
+        decided by :mod:`evlatcorr.ghost`'s cue) or ``"fallback"``. ``meta["hot_pixels"]`` counts per frame the hot
+        pixels the search left out (a warning names them). ``meta["latency_spread_us"]`` :math:`(B,)` is, for the
+        learned reader (the default score), the standard deviation of its probability over the candidates: how unsure it
+        is (NaN for other scores). On the suite's tuning cases (20 ms exposures) the highest third of spreads (above
+        about 2.4 ms) held most of the estimates off by more than 2 ms, the lowest third (below about 1 ms) none.
         ``meta["latency_log_probability"]`` :math:`(B, K)` is the reader's log-probability of each candidate of
         ``meta["etf_curve"][0]`` from the frame alone (None for other scores): consecutive frames of a recording
         share their latency, and :func:`evlatcorr.temporal.fuse_latencies` combines their evidence.

@@ -73,10 +73,9 @@ class ConstantSearchResult:
         fallback: :math:`(B,)` bool: the curve had no clear minimum and ``latency`` is the fallback
             (``previous_latency`` when given, else the lower end of the range); with ``score="learned"`` only
             where fewer than three candidates could be scored.
-        source: per sample, what set ``latency``: ``"sharpness"`` (the score's minimum), ``"ghost"`` (the
-            score curve was nearly flat and :mod:`evlatcorr.ghost`'s moment crossed zero once), ``"reader"``
-            (``score="learned"``: the scores had no minimum and the curve reader's estimate stands) or
-            ``"fallback"``.
+        source: per sample, what set ``latency``: ``"reader"`` (``score="learned"``, the default: the curve
+            reader's estimate), ``"sharpness"`` (the other scores: their minimum), ``"ghost"`` (the score curve
+            was nearly flat and :mod:`evlatcorr.ghost`'s moment crossed zero once) or ``"fallback"``.
         ignored_pixels: per sample, the hot pixels the search read as having no events (their events span more
             than :data:`~evlatcorr.search_candidates.HOT_PIXEL_LOG_RANGE` of log intensity; continuous method only).
         latency_spread: :math:`(B,)` µs, ``score="learned"``: the standard deviation of the curve reader's
@@ -435,7 +434,7 @@ def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float
         best, _, fine, fine_score = estimates[chosen]
     latency = min(max(float(to_us(torch.tensor(best, dtype=torch.float64))), low), high)
     return result(latency, to_us(coarse).cpu(), coarse_scores[0], to_us(fine).cpu(), fine_score, confidence, False,
-                  reader.final_ratio(latency), "reader" if confidence == 0.0 else "sharpness")
+                  reader.final_ratio(latency), "reader" if config.score == "learned" else "sharpness")
 
 
 def _read_later(latency: float) -> None:

@@ -59,7 +59,7 @@ def test_correct_writes_events_and_report(simulated):
     # 3000 us injected: measured 4199 and 3947 us (+1199, +947). The image moves at most 1.5 px/ms, so the ETF
     # resolves the latency to about a pixel of motion, 1 to 1.5 ms, at 48x64; uncorrected, the error is 3000 us
     assert all(abs(latency - 3000.0) < 1500.0 for latency in latencies), latencies
-    assert [row["source"] for row in rows] == ["sharpness", "sharpness"] and [row["fallback"] for row in rows] == [
+    assert [row["source"] for row in rows] == ["reader", "reader"] and [row["fallback"] for row in rows] == [
         "0", "0"]
     assert [row["hot_pixels"] for row in rows] == ["0", "0"]
     assert all(float(row["spread_us"]) > 0 for row in rows)  # the learned reader's, µs

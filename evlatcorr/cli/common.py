@@ -178,7 +178,7 @@ def skip_warning(batch, why: str) -> None:
 
 def latency_row(batch, out, theta, seconds: float, skipped: str = "") -> dict:
     """One CSV row: the frame, its latency (mean, min, max of the map), θ, the search's confidence and what set
-    the latency (``source``: sharpness, ghost, reader or fallback), the learned reader's spread and the hot pixels
+    the latency (``source``: reader, sharpness, ghost or fallback), the learned reader's spread and the hot pixels
     it left out."""
     row = {"frame": batch.meta["frame"], "exposure_start_us": f"{float(batch.exposure_start):.1f}",
            "exposure_end_us": f"{float(batch.exposure_end):.1f}"}
