@@ -177,12 +177,25 @@ def test_summary_and_files(tiny, tmp_path):
     assert groups[("constant", "all")]["cases"] == 2
     assert [c["spatial_better"] for c in summary["spatial_vs_constant"]] == [False]
     text = to_markdown(rows, summary)
-    assert "| constant | tiny |" in text and "Spatial vs constant" in text
+    assert "| constant | tiny |" in text and "Spatial vs constant" in text and "worst abs error with a gap" in text
     paths = write_results(rows, tmp_path / "out", summary, header="# title\n\n")
     assert paths["md"].read_text().startswith("# title")
     data = json.loads(paths["json"].read_text())
     assert len(data["results"]) == 4 and data["summary"]["groups"]
     assert paths["csv"].read_text().count("\n") == 5
+
+
+def test_the_worst_error_is_also_reported_over_the_cases_where_latency_changes_the_image():
+    # a smooth gradient's latency changes nothing EDI shows (no gap): its error counts in the worst error, not in the
+    # worst error with a gap, as it does not count in the recoveries
+    rows = [{"latency_model": "constant", "latency_abs_error_us": error, "no_gap": no_gap, "recovery": recovery,
+             "best_shift_us": 0.0, "true_latency_us": 0.0, "best_shift_share": 1.0, "time_s": 0.1,
+             "estimator": "e", "split": "test", "name": f"case-{k}"}
+            for k, (error, no_gap, recovery) in enumerate(((8630.0, True, math.nan), (1651.0, False, 0.48),
+                                                           (300.0, False, 0.97)))]
+    (group, _) = summarize(rows)["groups"]
+    assert group["worst_abs_error_us"] == 8630.0 and group["worst_abs_error_with_gap_us"] == 1651.0
+    assert group["worst_recovery"] == 0.48 and group["no_gap"] == 1
 
 
 def test_the_learned_readers_spread_is_reported_and_banded(tiny):
