@@ -183,6 +183,16 @@ def test_summary_and_files(tiny, tmp_path):
     data = json.loads(paths["json"].read_text())
     assert len(data["results"]) == 4 and data["summary"]["groups"]
     assert paths["csv"].read_text().count("\n") == 5
+    assert paths["png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"  # the figure, beside the tables
+
+
+def test_the_figure_is_refused_without_an_estimate_and_not_written(tmp_path):
+    from evlatcorr.benchmark.accuracy_figure import plot_results
+
+    failed = {"estimator": "e", "split": "test", "name": "case-0", "latency_model": "constant", "error": "boom",
+              "est_latency_us": math.nan}
+    with pytest.raises(ValueError, match="no estimates to draw"):
+        plot_results([failed], tmp_path / "results.png")
 
 
 def test_the_worst_error_is_also_reported_over_the_cases_where_latency_changes_the_image():

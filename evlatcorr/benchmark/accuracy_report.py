@@ -250,11 +250,14 @@ def _json_safe(value: Any) -> Any:
 
 def write_results(results: Sequence[Mapping[str, Any]], out_dir: str | Path, summary: Mapping[str, Any] | None = None,
                   header: str = "") -> dict[str, Path]:
-    """Write ``results.md`` (``header``, then :func:`to_markdown`), ``results.csv`` and ``results.json`` to ``out_dir``.
+    """Write ``results.md`` (``header``, then :func:`to_markdown`), ``results.csv``, ``results.json`` and, where some
+    case has an estimate, ``results.png`` (:func:`~evlatcorr.benchmark.accuracy_figure.plot_results`) to ``out_dir``.
 
     Returns:
         the paths written, by extension.
     """
+    from evlatcorr.benchmark.accuracy_figure import plot_results
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     summary = summary if summary is not None else summarize(results)
@@ -269,4 +272,7 @@ def write_results(results: Sequence[Mapping[str, Any]], out_dir: str | Path, sum
         for r in results:
             writer.writerow({k: " | ".join(v) if isinstance(v, list) else v for k, v in r.items()})
     paths["json"].write_text(json.dumps(_json_safe({"results": list(results), "summary": summary}), indent=1))
+    if any(not r.get("error") and isinstance(r.get("est_latency_us"), float) and math.isfinite(r["est_latency_us"])
+           for r in results):
+        paths["png"] = plot_results(results, out / "results.png")
     return paths
