@@ -16,8 +16,8 @@ model the share of the best constant shift's gain.
 ``--estimator module:function`` (or ``file.py:function``) loads ``f(frames) -> latency map
 (B, 1, H, W) µs``; ``frames.meta["threshold"]`` holds the case's true contrast threshold (or
 ``"auto"`` with ``--auto-threshold``). Writes ``results.md``, ``results.csv``, ``results.json`` and
-``results.png`` (per estimator: the estimated against the true latency, each case's recovery and photoreceptor
-share, sorted) under ``--out``.
+``results.png`` (per estimator: the estimated against the true latency, each case's recovery and share of the best
+constant shift's gain, sorted) under ``--out``.
 """
 
 from __future__ import annotations

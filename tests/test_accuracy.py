@@ -141,8 +141,10 @@ def test_oracle_and_zero_estimators(tiny):
         evaluate_case(case, lambda f: torch.zeros(2, 2), simulated=simulated, reference=ref)
 
 
-def test_photoreceptor_case_has_a_best_shift_oracle():
-    case = tiny_case(latency_model="intensity", latency_us=0.0, brightness=0.3, noise_rate_hz=2.0, leak_rate_hz=0.5,
+@pytest.mark.parametrize("model", ["intensity", "intensity_delay"])
+def test_latency_varying_with_intensity_has_a_best_shift_oracle(model):
+    # no one latency is true: the best constant shift is what constant correction can reach at most
+    case = tiny_case(latency_model=model, latency_us=0.0, brightness=0.3, noise_rate_hz=2.0, leak_rate_hz=0.5,
                      refractory_us=100.0, threshold_sigma=0.05)
     simulated = simulate_case(case)
     result = evaluate_case(case, lambda f: torch.full((1, 1, *TINY), 2000.0), simulated=simulated)

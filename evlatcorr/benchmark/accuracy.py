@@ -100,24 +100,21 @@ def _gain_ratio(value: float, low: float, high: float) -> float:
 def case_reference(case: Case, simulated: tuple[EventFrames, EventFrames, SimulatedSequence] | None = None
                    ) -> dict[str, Any]:
     """What does not depend on the estimator: EDI PSNR with ideal and uncorrected events, true latency stats,
-    and for the ``"constant"`` and ``"intensity"`` models the best constant shift: the oracle latency whose EDI
-    is closest to the sharp frame (a scan of :data:`BEST_SHIFTS_US` refined to 62.5 µs). For a constant
-    latency it shows how far EDI's own optimum lies from the true latency.
+    and the best constant shift: the oracle latency whose EDI is closest to the sharp frame (a scan of
+    :data:`BEST_SHIFTS_US` refined to 62.5 µs). For a constant latency it shows how far EDI's own optimum lies from
+    the true latency; where latency varies with intensity, how much of the gap any one latency can recover.
 
     Returns:
         a dict with ``psnr_ideal``, ``psnr_uncorrected``, ``true_latency_us`` (mean), ``true_latency_min_us``,
-        ``true_latency_max_us``, ``num_events``, ``best_shift_us`` and ``psnr_best_shift`` (NaN for
-        ``"intensity_delay"``).
+        ``true_latency_max_us``, ``num_events``, ``best_shift_us`` and ``psnr_best_shift``.
     """
     delayed, ideal, _ = simulated if simulated is not None else simulate_case(case)
     true = delayed.meta["true_latency"]
     ref: dict[str, Any] = dict(
         psnr_ideal=edi_psnr(ideal, case.threshold), psnr_uncorrected=edi_psnr(delayed, case.threshold),
         true_latency_us=float(true.mean()), true_latency_min_us=float(true.min()),
-        true_latency_max_us=float(true.max()), num_events=len(delayed.events),
-        best_shift_us=math.nan, psnr_best_shift=math.nan)
-    if case.latency_model in ("constant", "intensity"):
-        ref.update(_best_shift(delayed, case.threshold))
+        true_latency_max_us=float(true.max()), num_events=len(delayed.events))
+    ref.update(_best_shift(delayed, case.threshold))
     return ref
 
 
@@ -147,7 +144,7 @@ def training_target(case: Case, delayed: EventFrames) -> float:
     latency is true.
 
     Raises:
-        ValueError: for the ``"intensity_delay"`` model (a map, with no best shift computed).
+        ValueError: for the ``"intensity_delay"`` model (the reader is not trained on its frames).
     """
     if case.latency_model == "constant":
         return case.latency_us
@@ -196,7 +193,7 @@ def evaluate_case(case: Case, estimate: Estimator, *,
         ``latency_error_us`` (constant: estimate − true; maps: mean |map − true| over pixels),
         ``latency_abs_error_us``, ``latency_bias_us`` (mean estimate − mean truth), ``psnr_corrected``,
         ``recovery`` (NaN when there is no gap), ``no_gap``, ``best_shift_share`` (the share of the best
-        constant shift's PSNR gain; NaN for ``"intensity_delay"``), ``latency_spread_us`` (the learned reader's,
+        constant shift's PSNR gain), ``latency_spread_us`` (the learned reader's,
         when ``estimate`` returns the corrector's frames; else NaN), ``ideal_estimate_us`` (the estimator's
         latency on the case's ideal events, where 0 is right), ``ideal_psnr_change_db`` (their EDI PSNR corrected by
         it, minus as they are), ``time_s`` (the estimate's wall time) and

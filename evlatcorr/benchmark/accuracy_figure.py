@@ -1,8 +1,9 @@
 """The accuracy suite's figure (:mod:`evlatcorr.benchmark.accuracy`): what its tables say, at a glance.
 
 One row of panels per estimator: the estimated against the true latency of the constant-latency cases, each case's
-recovery of its EDI PSNR gap (constant latency and per-pixel delay), and each photoreceptor case's share of the best
-constant shift's gain, sorted, with the suite's goals drawn in.
+recovery of its EDI PSNR gap (constant latency and per-pixel delay), and the share of the best constant shift's gain
+of each case whose latency varies with intensity (photoreceptor and per-pixel delay), sorted, with the suite's goals
+drawn in.
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ def plot_results(results: Sequence[Mapping[str, Any]], path: str | Path) -> Path
         _sorted_percent(recovery, {"constant latency": _values(mine, "constant", "recovery"),
                                    "per-pixel delay": _values(mine, "intensity_delay", "recovery")},
                         f"{name}: recovery of the EDI PSNR gap", (90.0, 50.0))
-        _sorted_percent(share, {"photoreceptor": _values(mine, "intensity", "best_shift_share")},
+        _sorted_percent(share, {"photoreceptor": _values(mine, "intensity", "best_shift_share"),
+                                "per-pixel delay": _values(mine, "intensity_delay", "best_shift_share")},
                         f"{name}: share of the best constant shift's gain", (90.0,))
     splits = ", ".join(dict.fromkeys(r["split"] for r in rows))
     fig.suptitle(f"latency estimators on the accuracy suite ({splits}; {len(rows)} estimates)", fontsize=10)

@@ -48,6 +48,8 @@ def _group_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "median_recovery": _median(recovery), "worst_recovery": min(recovery, default=math.nan),
         "no_gap": sum(bool(r["no_gap"]) for r in gap),
         "median_best_shift_share": _median(r["best_shift_share"] for r in photo),
+        "median_delay_best_shift_share": _median(r["best_shift_share"] for r in rows
+                                                 if r["latency_model"] == "intensity_delay"),
         "median_const_best_shift_share": _median(r["best_shift_share"] for r in const),
         "median_time_s": _median(r["time_s"] for r in rows),
         "failed": sum(bool(r.get("error")) for r in rows),
@@ -88,18 +90,17 @@ def summarize(results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Aggregates per estimator, split and latency model (and over all models).
 
     Returns:
-        ``{"groups": [{"estimator", "split", "latency_model", "cases", "median_abs_error_us",
-        "worst_abs_error_us", "worst_abs_error_with_gap_us" (over the cases with a gap, where the latency changes
-        EDI's image), "median_best_shift_error_us" (|oracle shift − true|),
-        "median_const_best_shift_share" (constant cases), "median_map_error_us" (map cases), "median_recovery",
-        "worst_recovery" (constant and intensity_delay cases with a gap), "no_gap",
-        "median_best_shift_share" (intensity), "median_time_s", "failed" (cases whose estimator raised; left out
-        of the other figures), "median_ideal_estimate_us", "worst_ideal_estimate_us", "ideal_within_150us",
-        "ideal_cases" (the estimates on ideal events, whose right answer is 0), "mean_ideal_psnr_change_db",
-        "p10_ideal_psnr_change_db", "worst_ideal_psnr_change_db", "ideal_losing_half_db" (the EDI PSNR change of
-        the ideal events corrected by that estimate, and the cases where it loses more than 0.5 dB)}, ...],
-        "spatial_vs_constant": [...],
-        "spread_bands": [...]}``;
+        ``{"groups": [{"estimator", "split", "latency_model", "cases", "median_abs_error_us", "worst_abs_error_us",
+        "worst_abs_error_with_gap_us" (over the cases with a gap, where the latency changes EDI's image),
+        "median_best_shift_error_us" (|oracle shift − true|), "median_const_best_shift_share" (constant cases),
+        "median_map_error_us" (map cases), "median_recovery", "worst_recovery" (constant and intensity_delay cases with
+        a gap), "no_gap", "median_best_shift_share" (intensity), "median_delay_best_shift_share" (intensity_delay),
+        "median_time_s", "failed" (cases whose estimator raised; left out of the other figures),
+        "median_ideal_estimate_us", "worst_ideal_estimate_us", "ideal_within_150us", "ideal_cases" (the estimates on
+        ideal events, whose right answer is 0), "mean_ideal_psnr_change_db", "p10_ideal_psnr_change_db",
+        "worst_ideal_psnr_change_db", "ideal_losing_half_db" (the EDI PSNR change of the ideal events corrected by that
+        estimate, and the cases where it loses more than 0.5 dB)}, ...], "spatial_vs_constant": [...], "spread_bands":
+        [...]}``;
         the second lists, for map cases evaluated by both ``"constant"`` and ``"spatial"``, their
         map errors and whether spatial's is lower; the third, the constant-latency cases in three bands of the
         learned reader's spread (``latency_spread_us``) with their errors.
@@ -171,8 +172,8 @@ def to_markdown(results: Sequence[Mapping[str, Any]], summary: Mapping[str, Any]
              "median recovery | worst recovery | no gap | median share of best shift | median time s | failed |",
              "|" + " --- |" * 15]
     for g in summary["groups"]:
-        photo = g["latency_model"] == "intensity"
-        share = g["median_best_shift_share"] if photo else g["median_const_best_shift_share"]
+        share = {"intensity": g["median_best_shift_share"], "intensity_delay": g["median_delay_best_shift_share"]
+                 }.get(g["latency_model"], g["median_const_best_shift_share"])
         lines.append(f"| {g['estimator']} | {g['split']} | {g['latency_model']} | {g['cases']} | "
                      f"{_num(g['median_abs_error_us'])} | {_num(g['worst_abs_error_us'])} | "
                      f"{_num(g['worst_abs_error_with_gap_us'])} | {_num(g['median_best_shift_error_us'])} | "
