@@ -55,6 +55,12 @@ def _on_sigterm(signum, frame) -> None:  # noqa: ARG001
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``evlatcorr`` command with ``argv`` (default: the process's arguments); returns its exit code.
+
+    Example:
+        >>> main(["simulate", "rec.h5", "--frames", "2", "--size", "32", "40"])  # doctest: +SKIP
+        0
+    """
     from evlatcorr.io import RecordingError
 
     args = build_parser().parse_args(argv)

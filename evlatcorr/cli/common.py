@@ -21,6 +21,12 @@ EXIT_OK, EXIT_ERROR, EXIT_BAD_INPUT = 0, 1, 2
 
 
 def parse_threshold(text: str) -> float | str:
+    """``--threshold``: ``"auto"`` or a positive number, refused (exit 2) before any reading otherwise.
+
+    Example:
+        >>> parse_threshold("0.25"), parse_threshold("auto")
+        (0.25, 'auto')
+    """
     if text == "auto":
         return text
     try:
