@@ -295,6 +295,16 @@ def test_bad_input_exit_code(tmp_path):
     assert r.returncode == 2
 
 
+@pytest.mark.parametrize("text", ["-1", "0", "inf", "nan", "abc"])
+def test_a_bad_threshold_is_refused_before_any_reading(text):
+    # the same rule as the training commands: a positive finite number or 'auto'
+    from evlatcorr.cli.common import parse_threshold
+
+    with pytest.raises(ValueError, match=r"^--threshold must be a positive number or 'auto', got"):
+        parse_threshold(text)
+    assert parse_threshold("0.3") == 0.3 and parse_threshold("auto") == "auto"
+
+
 def test_correct_estimates_the_recordings_threshold_by_default(tmp_path):
     seq = simulate("astronaut", num_frames=3, height=64, width=80, threshold=0.5, latency_us=3000.0, seed=1)
     write_sequence(tmp_path / "theta05.h5", seq)

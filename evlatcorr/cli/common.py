@@ -21,21 +21,19 @@ EXIT_OK, EXIT_ERROR, EXIT_BAD_INPUT = 0, 1, 2
 
 
 def parse_threshold(text: str) -> float | str:
-    """``--threshold``: ``"auto"`` or a positive number, refused (exit 2) before any reading otherwise.
+    """``--threshold``: ``"auto"`` or a positive finite number (the training commands' rule), refused with a
+    ValueError (exit 2) before any reading otherwise.
 
     Example:
         >>> parse_threshold("0.25"), parse_threshold("auto")
         (0.25, 'auto')
     """
-    if text == "auto":
-        return text
+    from evlatcorr.lightning.arguments import threshold_argument
+
     try:
-        value = float(text)
-    except ValueError:
-        raise ValueError(f"--threshold must be a number or 'auto', got {text!r}") from None
-    if value <= 0:
-        raise ValueError(f"--threshold must be positive, got {value}")
-    return value
+        return threshold_argument(text)
+    except argparse.ArgumentTypeError as exc:
+        raise ValueError(f"--threshold {exc}") from None
 
 
 def open_input(args: argparse.Namespace):
