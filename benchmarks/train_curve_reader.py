@@ -18,7 +18,10 @@ the photoreceptor frames' best-shift scans), then about a minute of training.
 cases, evenly spread over them; ``--before-us B`` keeps B µs of events before each exposure and reads the curves from
 −B (read them with ``benchmarks/estimators/reader.py:estimate_before``). Both measured and not shipped
 (``docs/estimator.md``). ``--layers`` and ``--channels`` set each reader's depth (its receptive field) and width:
-readers that see the whole curve were measured and not shipped either.
+readers that see the whole curve were measured and not shipped either. ``--leave-out`` trains without the frames of
+some photographs, to see how the reader does on photographs it never saw (``docs/estimator.md``):
+
+    python benchmarks/train_curve_reader.py --cache c.pt --leave-out coins grass page retina cell --out A.safetensors
 
 Then ``python benchmarks/accuracy.py --split dev --score learned`` measures it.
 """
@@ -36,6 +39,7 @@ from tqdm import tqdm
 from evlatcorr.benchmark.accuracy import TRAIN_SPLITS, make_cases, simulate_case, training_target
 from evlatcorr.curve_reader import WEIGHTS_NAME, save_curve_reader, train_curve_reader, without_overshoot
 from evlatcorr.search import candidate_curves
+from evlatcorr.simulate import PHOTOGRAPHS_TRAIN
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -93,6 +97,19 @@ def extract_ideal(num: int, cache: Path | None, before_us: float = 0.0) -> dict:
     return _cached(cache, before_us, lambda: _read_curves(picked, "ideal", before_us, lambda case, frame: 0.0))
 
 
+def leave_out(data: dict, photographs: list[str]) -> dict:
+    """``data`` (:func:`extract`'s, one row per training case in order) without the frames of ``photographs``."""
+    unknown = sorted(set(photographs) - set(PHOTOGRAPHS_TRAIN))
+    if unknown:
+        raise SystemExit(f"--leave-out takes training photographs {PHOTOGRAPHS_TRAIN}, got {unknown}")
+    cases = [c for split in TRAIN_SPLITS for c in make_cases(split)]
+    if [c.name for c in cases] != list(data["names"]):
+        raise SystemExit("the cached curves are not the training cases': pass another --cache")
+    keep = torch.tensor([c.procedural or c.scene not in photographs for c in cases])
+    return {key: data[key][keep] for key in ("curves", "valid", "targets")} | {
+        "latencies": data["latencies"], "names": [n for n, k in zip(data["names"], keep.tolist()) if k]}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=ROOT / "checkpoints" / f"{WEIGHTS_NAME}.safetensors")
@@ -111,9 +128,14 @@ def main() -> None:
     parser.add_argument("--without-overshoot", action="store_true",
                         help="train on the other inputs only (what the overshoot adds; measure with "
                              "benchmarks/estimators/reader.py)")
+    parser.add_argument("--leave-out", nargs="+", default=[], metavar="PHOTOGRAPH",
+                        help="train without these training photographs' frames (how the reader does on photographs "
+                             "it never saw)")
     args = parser.parse_args()
     t0 = time.perf_counter()
     data = extract(args.cache, args.before_us)
+    if args.leave_out:
+        data = leave_out(data, args.leave_out)
     if args.ideal_frames:
         name = f"{args.cache.stem}-ideal{args.ideal_frames}.pt" if args.cache is not None else None
         ideal_cache = args.cache.with_name(name) if name is not None else None
@@ -135,6 +157,8 @@ def main() -> None:
         provenance["ideal_frames"] = args.ideal_frames
     if args.before_us:
         provenance["before_us"] = args.before_us
+    if args.leave_out:
+        provenance["left_out"] = args.leave_out
     args.out.parent.mkdir(parents=True, exist_ok=True)
     save_curve_reader(ensemble, args.out, provenance)
     print(f"wrote {args.out} ({time.perf_counter() - t0:.0f} s)")

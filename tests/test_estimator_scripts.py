@@ -190,3 +190,24 @@ def test_no_latency_estimator_answers_zero_above_its_threshold_and_the_corrector
     monkeypatch.setenv("EVLATCORR_NO_LATENCY_MASS", "1.5")
     with pytest.raises(ValueError, match="must be in"):
         estimate(delayed)
+
+
+def test_training_script_leaves_out_every_frame_of_the_named_photographs_and_nothing_else(monkeypatch):
+    monkeypatch.syspath_prepend("benchmarks")  # the script imports its _setup
+    leave_out = load_estimator("benchmarks/train_curve_reader.py:leave_out")
+    from evlatcorr.benchmark.accuracy import TRAIN_SPLITS
+    cases = [c for s in TRAIN_SPLITS for c in make_cases(s)]
+    n = len(cases)
+    rows = torch.arange(n, dtype=torch.float64)
+    data = {"latencies": torch.arange(3.0), "curves": rows[:, None, None].expand(n, 2, 3),
+            "valid": torch.ones(n, 3, dtype=torch.bool), "targets": rows, "names": [c.name for c in cases]}
+    kept = leave_out(data, ["coins", "text"])
+    # procedural text scenes stay: only the photographs go
+    expected = [i for i, c in enumerate(cases) if c.procedural or c.scene not in ("coins", "text")]
+    assert any(c.procedural and c.scene == "text" for c in cases)
+    assert kept["targets"].tolist() == expected and kept["curves"][:, 0, 0].tolist() == expected
+    assert kept["names"] == [cases[i].name for i in expected] and len(expected) < n
+    with pytest.raises(SystemExit, match="training photographs"):
+        leave_out(data, ["camera"])  # a test photograph: never trained on anyway
+    with pytest.raises(SystemExit, match="another --cache"):
+        leave_out(data | {"names": data["names"][::-1]}, ["coins"])
