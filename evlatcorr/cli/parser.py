@@ -29,11 +29,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--report", type=Path, help="per-frame CSV report (default: OUT with the suffix .csv)")
     c.add_argument("--mode", choices=("constant", "spatial"), default="constant")
     c.add_argument("--curve", type=Path, help="trained latency curve checkpoint (mode spatial)")
-    c.add_argument("--fuse-frames", type=int, default=DEFAULT_FUSED_FRAMES, metavar="N",
-                   help="constant mode: each frame's latency from the learned reader's evidence of N frames either "
-                        f"side too (a recording's latency changes slowly; default {DEFAULT_FUSED_FRAMES}, 0: each "
-                        "frame alone), 0 where that evidence keeps no latency likely; the report keeps each frame's "
-                        "own estimate as frame_latency_us")
+    _fuse_frames_option(c, "constant mode", "N frames either side too (a recording's latency changes slowly",
+                        "the report")
     _common_options(c)
 
     d = sub.add_parser("deblur", help="deblur every frame with EDI or a network; PNGs, a side-by-side GIF, a CSV",
@@ -81,12 +78,17 @@ def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> Non
     p.add_argument("--curve", type=Path, help="trained latency curve checkpoint (--correct spatial)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty OUTDIR")
     p.add_argument("--max-frames", type=int, help="only the first N frames (default: all)")
-    p.add_argument("--fuse-frames", type=int, default=DEFAULT_FUSED_FRAMES, metavar="N",
-                   help="--correct constant: each frame's latency from the learned reader's evidence of the N frames "
-                        f"before it too (frame by frame, as a stream; default {DEFAULT_FUSED_FRAMES}, 0: each frame "
-                        "alone), 0 where that evidence keeps no latency likely; frames.csv keeps each frame's own "
-                        "estimate as frame_latency_us")
+    _fuse_frames_option(p, "--correct constant", "the N frames before it too (frame by frame, as a stream",
+                        "frames.csv")
     _common_options(p)
+
+
+def _fuse_frames_option(p: argparse.ArgumentParser, applies: str, which: str, report: str) -> None:
+    """``--fuse-frames N``: ``correct`` fuses frames either side, ``deblur`` / ``interpolate`` the ones before."""
+    p.add_argument("--fuse-frames", type=int, default=DEFAULT_FUSED_FRAMES, metavar="N",
+                   help=f"{applies}: each frame's latency from the learned reader's evidence of {which}; default "
+                        f"{DEFAULT_FUSED_FRAMES}, 0: each frame alone), 0 where that evidence keeps no latency likely; "
+                        f"{report} keeps each frame's own estimate as frame_latency_us")
 
 
 def _common_options(p: argparse.ArgumentParser) -> None:
