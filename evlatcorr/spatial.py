@@ -40,8 +40,9 @@ from torch import Tensor, nn
 
 from evlatcorr.checks import check_has_events, check_threshold, resolve_memory_budget
 from evlatcorr.config import SearchConfig
-from evlatcorr.edi import EventGrid, _check_grid, _edi_deblur, _event_grid, _event_grid_bytes
+from evlatcorr.edi import _check_grid, _edi_deblur
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
+from evlatcorr.event_grid import EventGrid, _event_grid, _event_grid_bytes
 from evlatcorr.frames import EventFrames
 from evlatcorr.latency_table import LatencyTable
 from evlatcorr.search import _search_constant_latency
@@ -140,7 +141,7 @@ def spatial_objective(
         l_const: the frames' constant latencies :math:`(B,)` µs.
         l_max: upper bound of the latency :math:`(B,)` µs.
         etf_const: ETF at ``l_const`` :math:`(B,)`, the normaliser of ``L_ETF``.
-        grid: the batch's linear :func:`~evlatcorr.edi.event_grid` for ``num_bins`` over latencies
+        grid: the batch's linear :func:`~evlatcorr.event_grid.event_grid` for ``num_bins`` over latencies
             ``[0, l_max]``, when it is read more than once (test-time fitting); built here when None.
         table: a :class:`~evlatcorr.latency_table.LatencyTable` of the batch over ``[0, l_max]``: the EDI
             is read from it (exact step integral, linear in the latency between its entries) instead of

@@ -6,15 +6,8 @@ import pytest
 import torch
 
 from evlatcorr import EventFrames, Events
-from evlatcorr.edi import (
-    _event_grid_bytes,
-    _grid_times,
-    edi_deblur,
-    edi_interpolate,
-    edi_log_ratio,
-    estimate_threshold,
-    event_grid,
-)
+from evlatcorr.edi import edi_deblur, edi_interpolate, edi_log_ratio, estimate_threshold
+from evlatcorr.event_grid import _event_grid_bytes, _grid_times, event_grid
 from tests.conftest import random_events
 
 
