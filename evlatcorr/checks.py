@@ -239,7 +239,16 @@ def check_has_events(frames: Any) -> None:
                           for i, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))])
     if bool((counts == 0).any()):
         i = int(torch.nonzero(counts == 0)[0, 0])
+        exposure = float(frames.exposure_time[i])
+        # times given in other units (EventFrames warned when made) are shown, not rounded to 0, and named
+        units = ("" if exposure >= SHORTEST_EXPOSURE_US else
+                 f" (the exposure is {exposure:.3g} us long: evlatcorr takes times in microseconds)")
         raise ValueError(f"sample {i} has no events in its exposure and search window "
-                         f"[{float(frames.exposure_start[i]):.0f}, "
-                         f"{float(frames.exposure_end[i] + frames.exposure_time[i]):.0f}) us: "
+                         f"[{_time_us(float(frames.exposure_start[i]))}, "
+                         f"{_time_us(float(frames.exposure_end[i] + frames.exposure_time[i]))}) us{units}: "
                          "latency cannot be estimated without events")
+
+
+def _time_us(value: float) -> str:
+    """A time in µs for a message: whole microseconds, or 6 significant digits below one (times in other units)."""
+    return f"{value:.0f}" if abs(value) >= 1 or value == 0 else f"{value:.6g}"

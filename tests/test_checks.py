@@ -187,6 +187,18 @@ def test_check_has_events_names_the_empty_sample_and_its_window():
                                                   sensor_size=(2, 2))))
 
 
+def test_check_has_events_says_when_the_times_look_like_other_units():
+    # the same exposures given in seconds: the window is shown as it is, not as [0, 0), and the units named
+    ev = Events(torch.zeros(3), torch.zeros(3), torch.tensor([50.0, 150.0, 1250.0], dtype=torch.float64),
+                torch.ones(3), torch.tensor([0, 0, 1]), sensor_size=(2, 2))
+    with pytest.warns(UserWarning, match="shorter than 1 us"):
+        frames = EventFrames(torch.rand(2, 1, 2, 2), ev, torch.tensor([0.0, 1e-3]), torch.tensor([1e-4, 1.1e-3]))
+    with pytest.raises(ValueError, match=re.escape("sample 0 has no events in its exposure and search window [0, "
+                                                   "0.0002) us (the exposure is 0.0001 us long: evlatcorr takes "
+                                                   "times in microseconds)")):
+        check_has_events(frames)
+
+
 def test_check_threshold_broadcasts_and_refuses_non_positive():
     assert check_threshold(0.2, 3).tolist() == pytest.approx([0.2, 0.2, 0.2])
     theta = torch.tensor([0.1, 0.3])
