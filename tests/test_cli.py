@@ -224,9 +224,14 @@ def test_correct_refuses_outputs_that_destroy_files(simulated, tmp_path):
     r = run("correct", str(simulated), str(simulated), cwd=tmp_path)  # output == input
     assert r.returncode == 2 and "is the input" in r.stderr and "Traceback" not in r.stderr
     assert _snapshot(simulated) == before
-    r = run("correct", str(simulated), str(tmp_path / "out.csv"), cwd=tmp_path)  # report == output
+    r = run("correct", str(simulated), str(tmp_path / "out.h5"), "--report", str(tmp_path / "out.h5"),
+            cwd=tmp_path)  # report == output
     assert r.returncode == 2 and "would replace" in r.stderr
-    assert not (tmp_path / "out.csv").exists()
+    assert not (tmp_path / "out.h5").exists()
+    for command, args in (("correct", (str(simulated),)), ("simulate", ())):  # HDF5 named as another format
+        r = run(command, *args, str(tmp_path / "events.txt"), cwd=tmp_path)
+        assert r.returncode == 2 and "events.txt: this command writes HDF5; name it .h5" in r.stderr, r.stderr
+        assert "Traceback" not in r.stderr and not (tmp_path / "events.txt").exists()
     (tmp_path / "o.csv").mkdir()  # the report's name is a folder; o.h5 holds a user's file
     (tmp_path / "o.h5").write_bytes(b"precious")
     r = run("correct", str(simulated), str(tmp_path / "o.h5"), cwd=tmp_path)

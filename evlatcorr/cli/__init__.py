@@ -27,8 +27,10 @@ __all__ = ["main"]
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from evlatcorr.io import write_sequence
+    from evlatcorr.io.outputs import check_hdf5_name
     from evlatcorr.simulate import simulate
 
+    check_hdf5_name(args.output)
     seq = simulate(args.image, num_frames=args.frames, height=args.size[0], width=args.size[1],
                    exposure_us=args.exposure_us, frame_interval_us=args.interval_us, latency=args.latency_model,
                    latency_us=args.latency_us, seed=args.seed)

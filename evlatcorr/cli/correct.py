@@ -38,8 +38,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
 
     from evlatcorr.io import EventUtilsRecording
     from evlatcorr.io.h5 import atomic_path, write_header
-    from evlatcorr.io.outputs import check_outputs
+    from evlatcorr.io.outputs import check_hdf5_name, check_outputs
 
+    check_hdf5_name(args.output)
     report = args.report if args.report is not None else args.output.with_suffix(".csv")
     if report.resolve() == args.output.resolve():
         raise ValueError(f"the report {report} would replace the corrected recording {args.output}: name the "

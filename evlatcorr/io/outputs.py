@@ -4,6 +4,7 @@ Every writer of the command line goes through these helpers:
 
 - :func:`check_outputs` refuses, before any work, an output that is an input, two outputs with one
   name, an output that is a directory, and a folder that cannot be written;
+- :func:`check_hdf5_name` refuses an HDF5 output named as another format (``events.txt``);
 - :func:`atomic_dir` builds a folder under a hidden temporary name and renames it only when the
   block succeeds (on any exception, KeyboardInterrupt and SIGTERM included, it is removed);
 - :func:`default_file_mode` is the mode a plain ``open()`` would give (``0o666`` less the umask):
@@ -19,7 +20,10 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["check_outputs", "atomic_dir", "default_file_mode"]
+__all__ = ["check_outputs", "check_hdf5_name", "atomic_dir", "default_file_mode"]
+
+# names an HDF5 file goes by
+HDF5_SUFFIXES = (".h5", ".hdf5", ".hdf", ".he5")
 
 
 def _umask() -> int:
@@ -50,6 +54,25 @@ def _writable_folder(path: Path) -> Path:
     while not parent.exists():
         parent = parent.parent
     return parent
+
+
+def check_hdf5_name(path: str | Path) -> None:
+    """Refuse an HDF5 output whose name says it is something else (``events.txt`` would hold HDF5, and a user who
+    asked for a text file would find out only when reading it).
+
+    Raises:
+        ValueError: naming the path and the suffixes taken.
+
+    Example:
+        >>> check_hdf5_name("corrected.h5")
+        >>> check_hdf5_name("corrected.txt")
+        Traceback (most recent call last):
+        ...
+        ValueError: output corrected.txt: this command writes HDF5; name it .h5 (or .hdf5, .hdf, .he5)
+    """
+    if Path(path).suffix.lower() not in HDF5_SUFFIXES:
+        raise ValueError(f"output {path}: this command writes HDF5; name it {HDF5_SUFFIXES[0]} (or "
+                         f"{', '.join(HDF5_SUFFIXES[1:])})")
 
 
 def check_outputs(inputs: Iterable[str | Path], files: Iterable[str | Path] = (), folders: Iterable[str | Path] = (),
