@@ -312,7 +312,8 @@ class ContinuousIntegral:
 
     def inverse_ratio(self, start: float, end: float, latencies: Tensor, reference: float = 0.5,
                       out: Tensor | None = None, change_out: Tensor | None = None,
-                      peak_out: Tensor | None = None, peak_stride: int = 1) -> Tensor:
+                      peak_out: Tensor | None = None, peak_stride: int = 1,
+                      peak_frame_height: int | None = None) -> Tensor:
         """``1 / R`` of the same windows as :meth:`log_ratio`, float32: the latent image is ``blurry / R``.
 
         What a search that scores latent images needs: its tables are float32 (half the memory traffic of
@@ -323,13 +324,20 @@ class ContinuousIntegral:
         pixel's log latent rises above its value at the reference over the window:
         ``θ (max C − C(reference))``, the maximum over the window's start, its quarters, its reference and its end
         (what :func:`evlatcorr.overshoot.overshoot` reads); with ``peak_stride`` s, only every s-th row and column's,
-        :math:`(K, 1, ⌈H/s⌉, ⌈W/s⌉)`.
+        :math:`(K, 1, ⌈H/s⌉, ⌈W/s⌉)`. ``peak_frame_height`` h: the sensor's rows are ``H / h`` frames of h rows
+        stacked (several frames read in one pass), and every s-th row of each frame is read, frame after frame:
+        :math:`(K, 1, (H/h)·⌈h/s⌉, ⌈W/s⌉)`.
+
+        Raises:
+            ValueError: for an output of the wrong shape or dtype, a ``peak_stride`` below 1, or a
+                ``peak_frame_height`` that does not divide the sensor's height.
         """
-        return self._read(start, end, latencies, reference, out, torch.float32, change_out, peak_out, peak_stride)
+        return self._read(start, end, latencies, reference, out, torch.float32, change_out, peak_out, peak_stride,
+                          peak_frame_height)
 
     def _read(self, start: float, end: float, latencies: Tensor, reference: float, out: Tensor | None,
               dtype: torch.dtype, change_out: Tensor | None = None, peak_out: Tensor | None = None,
-              peak_stride: int = 1) -> Tensor:
+              peak_stride: int = 1, peak_frame_height: int | None = None) -> Tensor:
         """log R (float64) or 1 / R (float32) of every window, a strip of rows at a time (and the windows' event
         change into ``change_out``, their peak log rise into ``peak_out``)."""
         # the plan (a few hundred times and where each window lies among them) is made on the CPU: on a GPU its
@@ -350,14 +358,18 @@ class ContinuousIntegral:
                              f"{tuple(change_out.shape)}")
         if isinstance(peak_stride, bool) or not isinstance(peak_stride, int) or peak_stride < 1:
             raise ValueError(f"peak_stride must be a whole number >= 1, got {peak_stride!r}")
-        peak_shape = (len(lat), 1, -(-height // peak_stride), -(-width // peak_stride))
+        frame_height = height if peak_frame_height is None else peak_frame_height
+        if (isinstance(frame_height, bool) or not isinstance(frame_height, int) or frame_height < 1
+                or height % frame_height):
+            raise ValueError(f"peak_frame_height must divide the sensor's height {height}, got {peak_frame_height!r}")
+        peak_shape = (len(lat), 1, height // frame_height * -(-frame_height // peak_stride), -(-width // peak_stride))
         if peak_out is not None and (peak_out.shape != peak_shape or peak_out.dtype != torch.float32):
             raise ValueError(f"peak_out must be float32 {peak_shape}, got {peak_out.dtype} {tuple(peak_out.shape)}")
         if self._compiled and self.active is None:  # one compiled pass per pixel, no tables
             k = len(lat)
             read_windows(self.t, self.step, self._run_bounds(), self.peak_count, self.theta, times, a, b, r, quarters,
                          end - start, width, out.view(k, -1), None if change_out is None else change_out.view(k, -1),
-                         None if peak_out is None else peak_out.view(k, -1), peak_stride)
+                         None if peak_out is None else peak_out.view(k, -1), peak_stride, frame_height)
             return out
         windows = _Windows(a, b, len(times), self.device)
         num, padded, size = len(times), windows.rows, out.element_size()
@@ -390,7 +402,7 @@ class ContinuousIntegral:
 
         if self.active is not None:
             self._read_active(strip_pixels, strip_sums, (a, b, r, quarters), end - start, out, change_out, peak_out,
-                              peak_stride)
+                              peak_stride, frame_height)
             return out
         for r0 in range(0, height, rows):
             r1 = min(height, r0 + rows)
@@ -401,14 +413,14 @@ class ContinuousIntegral:
             if change_out is not None:  # θ (C(end) − C(start)): whole numbers of events
                 torch.sub(strip_count[b], strip_count[a], out=change_out[:, 0, r0:r1].view(len(lat), p))
                 change_out[:, 0, r0:r1].mul_(self.theta)
-            first = -r0 % peak_stride  # the strip's first row that the peak is read at
-            if peak_out is not None and first < r1 - r0:
+            sampled, placed = _sampled_rows(r0, r1, frame_height, peak_stride, self.device)
+            if peak_out is not None and placed is not None:
                 # θ (max C − C(reference)) over the window's start, quarters, reference and end, at the sampled pixels
-                counts = [_sampled(strip_count[rows_read], r1 - r0, first, peak_stride) for rows_read in (a, b, r)]
-                peak = peak_out[:, 0, (r0 + first) // peak_stride:-(-r1 // peak_stride)]
+                counts = [_sampled(strip_count[rows_read], r1 - r0, sampled, peak_stride) for rows_read in (a, b, r)]
+                peak = peak_out[:, 0, placed]
                 torch.maximum(counts[0], counts[1], out=peak)
                 for rows_read in quarters:
-                    torch.maximum(peak, _sampled(strip_count[rows_read], r1 - r0, first, peak_stride), out=peak)
+                    torch.maximum(peak, _sampled(strip_count[rows_read], r1 - r0, sampled, peak_stride), out=peak)
                 torch.maximum(peak, counts[2], out=peak).sub_(counts[2]).mul_(self.theta)
             if dtype == torch.float64:  # log of the mean level over the window, relative to the level read
                 torch.sub(window.div_(end - start).log_(), strip_count[r].view(len(lat), r1 - r0, width),
@@ -433,7 +445,7 @@ class ContinuousIntegral:
         return self._bounds
 
     def _read_active(self, strip_pixels: int, strip_sums: Callable, rows_read: tuple, duration: float, out: Tensor,
-                     change_out: Tensor | None, peak_out: Tensor | None, peak_stride: int) -> None:
+                     change_out: Tensor | None, peak_out: Tensor | None, peak_stride: int, frame_height: int) -> None:
         """:meth:`_read`'s strips over the pixels with events alone (:data:`SPARSE_SHARE`): every other pixel's
         ratio is 1 (log ratio 0), its change and peak rise 0; each strip's results are scattered into place."""
         a, b, r, quarters = rows_read
@@ -444,8 +456,10 @@ class ContinuousIntegral:
         if peak_out is not None:  # where each sampled pixel with events lies in peak_out (-1: not sampled)
             peak_out.zero_()
             y, x = self.active // width, self.active % width
+            frame, y = y // frame_height, y % frame_height
             sampled = (y % peak_stride == 0) & (x % peak_stride == 0)
-            sampled_place = torch.where(sampled, (y // peak_stride) * peak_out.shape[-1] + x // peak_stride, -1)
+            row = frame * -(-frame_height // peak_stride) + y // peak_stride
+            sampled_place = torch.where(sampled, row * peak_out.shape[-1] + x // peak_stride, -1)
         for c0 in range(0, len(self.active), strip_pixels):
             c1 = min(len(self.active), c0 + strip_pixels)
             pixels = self.active[c0:c1]
@@ -564,10 +578,34 @@ class _Windows:
         return total
 
 
-def _sampled(rows: Tensor, height: int, first: int, stride: int) -> Tensor:
-    """Every ``stride``-th row (from ``first``) and column of table rows :math:`(K, height·W)`, as a view
-    :math:`(K, ⌈(height − first)/stride⌉, ⌈W/stride⌉)`."""
-    return rows.view(rows.shape[0], height, -1)[:, first::stride, ::stride]
+def _sampled_rows(r0: int, r1: int, frame_height: int, stride: int, device: torch.device
+                  ) -> tuple[slice | Tensor, slice | None]:
+    """The rows of a strip ``[r0, r1)`` of frames of ``frame_height`` rows stacked that the peak is read at (every
+    ``stride``-th row of each frame), counted from ``r0``: a slice where they are evenly spaced (one frame, or frames
+    whose height ``stride`` divides), else their indices on ``device``; and the rows of the peak they fill (a slice;
+    None where the strip has none)."""
+    local: list[int] = []
+    for frame in range(r0 // frame_height, -(-r1 // frame_height)):
+        lo, hi = max(r0, frame * frame_height), min(r1, (frame + 1) * frame_height)
+        local.extend(range(lo + (frame * frame_height - lo) % stride - r0, hi - r0, stride))
+    if not local:
+        return slice(0, 0), None
+    per_frame = -(-frame_height // stride)
+
+    def place(row: int) -> int:
+        return (row // frame_height) * per_frame + (row % frame_height) // stride
+
+    placed = slice(place(r0 + local[0]), place(r0 + local[-1]) + 1)  # consecutive: each frame's follow the last's
+    if all(b - a == stride for a, b in zip(local, local[1:])):
+        return slice(local[0], local[-1] + 1, stride), placed
+    return torch.tensor(local, device=device), placed
+
+
+def _sampled(rows: Tensor, height: int, sampled: slice | Tensor, stride: int) -> Tensor:
+    """The ``sampled`` rows (:func:`_sampled_rows`) and every ``stride``-th column of table rows
+    :math:`(K, height·W)`: a view where they are a slice."""
+    table = rows.view(rows.shape[0], height, -1)
+    return (table[:, sampled] if isinstance(sampled, slice) else table.index_select(1, sampled))[..., ::stride]
 
 
 def _block_range(blocks: list[int]) -> tuple[int, int]:

@@ -122,14 +122,11 @@ def _search_pass(grey: Tensor, events: Events, bounds: list[int], spans: list[_W
     overshoots = torch.zeros_like(moments)
     inverse = None
     if len(kept):
-        inverse, change, peak = _read(integral, exposure, kept, frames * height * width, limit)
+        inverse, change, peak = _read(integral, exposure, kept, (frames, height, width), limit)
         block = grey[first:last, 0][None]  # (1, F, H, W): frame j's pixels are block j of the tall image
         tall = (len(kept), frames, height, width)
         values, moment = _scores_and_moments(block, inverse.view(tall), change.view(tall), config)
-        # the peak rise was read at every pixel of the tall image: each frame's own rows and columns for the overshoot
-        stride = overshoot_stride(height, width)
-        sampled_peak = peak.view(tall)[..., ::stride, ::stride]
-        over = overshoot(block.to(inverse), inverse.view(tall), sampled_peak).view(len(kept), frames)
+        over = overshoot(block.to(inverse), inverse.view(tall), peak).view(len(kept), frames)
         for j, n in enumerate(own):
             scores[j, :, :n] = values[:, :n, j]
             moments[j, :n] = moment[:n, j]
@@ -166,19 +163,25 @@ def _tall_events(events: Events, bounds: list[int], spans: list[_Window], first:
                                  ((last - first) * height, width), 1)
 
 
-def _read(integral: ContinuousIntegral, exposure: float, kept: Tensor, pixels: int, limit: int
+def _read(integral: ContinuousIntegral, exposure: float, kept: Tensor, shape: tuple[int, int, int], limit: int
           ) -> tuple[Tensor, Tensor, Tensor]:
-    """``1 / R``, the event change and the peak log rise of the candidates ``kept`` over every frame's windows,
-    :math:`(K, 1, F·H, W)` float32 each, as many candidates per read as the budget allows."""
-    height, width = integral.sensor_size
-    inverse = torch.empty((len(kept), 1, height, width), dtype=torch.float32, device=integral.device)
-    change, peak = torch.empty_like(inverse), torch.empty_like(inverse)
+    """``1 / R`` and the event change of the candidates ``kept`` over every frame's windows, :math:`(K, 1, F·H, W)`
+    float32 each, and the peak log rise at each frame's own every s-th row and column (the overshoot's pixels,
+    :func:`~evlatcorr.overshoot.overshoot_stride`) :math:`(K, F, ⌈H/s⌉, ⌈W/s⌉)`, as many candidates per read as the
+    budget allows (``shape``: the frames' ``(F, H, W)``)."""
+    frames, height, width = shape
+    stride = overshoot_stride(height, width)
+    inverse = torch.empty((len(kept), 1, frames * height, width), dtype=torch.float32, device=integral.device)
+    change = torch.empty_like(inverse)
+    peak = torch.empty((len(kept), 1, frames * -(-height // stride), -(-width // stride)), dtype=torch.float32,
+                       device=integral.device)
     # the pass was sized to hold every candidate's read (search_frames_together): one read unless over the budget
-    chunk = max(1, limit // (pixels * (continuous.BYTES_PER_CANDIDATE + 8)))
+    chunk = max(1, limit // (inverse[0].numel() * (continuous.BYTES_PER_CANDIDATE + 8)))
     for k in range(0, len(kept), chunk):
         integral.inverse_ratio(0.0, exposure, kept[k:k + chunk], out=inverse[k:k + chunk],
-                               change_out=change[k:k + chunk], peak_out=peak[k:k + chunk])
-    return inverse, change, peak
+                               change_out=change[k:k + chunk], peak_out=peak[k:k + chunk], peak_stride=stride,
+                               peak_frame_height=height)
+    return inverse, change, peak.view(len(kept), frames, -(-height // stride), peak.shape[-1])
 
 
 def _scores_and_moments(grey: Tensor, inverse: Tensor, change: Tensor, config: SearchConfig

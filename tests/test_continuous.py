@@ -336,3 +336,38 @@ def test_reading_the_pixels_with_events_alone_gives_what_every_pixel_gives(monke
     assert bool((ratio[:, 0][:, outside] == 1).all()) and bool((log_ratio[:, 0][:, outside] == 0).all())
     assert bool((change[:, 0][:, outside] == 0).all())
     assert bool((change != 0).any()) and bool((peak != 0).any())  # the corner's events are read
+
+
+@pytest.mark.parametrize("way", ["compiled", "tables in strips", "pixels with events"])
+def test_peak_of_stacked_frames_is_each_frames_own(monkeypatch, way):
+    # three frames of 13 rows stacked as one tall sensor (as several frames searched in one pass are): the peak is read
+    # at every 3rd row and column of each frame, whose sampled rows do not fall every 3rd row of the tall image
+    import evlatcorr.continuous
+
+    monkeypatch.setattr("evlatcorr.compiled.ENABLED", way != "tables in strips")
+    monkeypatch.setattr(evlatcorr.continuous, "SPARSE_SHARE", 0.5 if way == "pixels with events" else 0.0)
+    monkeypatch.setattr(evlatcorr.continuous, "STRIP_BYTES", 60_000)  # strips that cross the frames' edges
+    frames = simulate("camera", num_frames=3, latency="constant", latency_us=1000.0, seed=6, height=13, width=17,
+                      exposure_us=5000.0, frame_interval_us=5000.0).frames("delayed", after_us=5000.0)
+    latencies, stride, per_frame = torch.linspace(0.0, 4000.0, 5), 3, (5, 6)
+    singles, parts = [], []
+    for j in range(3):
+        ev = frames.events.sample(j)
+        keep = (ev.x < 8) if way == "pixels with events" else torch.ones(len(ev), dtype=torch.bool)
+        ev = Events(ev.x[keep], ev.y[keep], ev.t[keep] - float(frames.exposure_start[j]), ev.p[keep],
+                    sensor_size=(13, 17))
+        parts.append(ev)
+        peak = torch.empty(5, 1, *per_frame)
+        ContinuousIntegral(ev, 0.2).inverse_ratio(0.0, 5000.0, latencies, peak_out=peak, peak_stride=stride)
+        singles.append(peak)
+    rows = torch.cat([e.y + 13 * j for j, e in enumerate(parts)])  # frame j's rows moved down by 13 j
+    tall = Events.from_canonical(torch.cat([e.x for e in parts]), rows, torch.cat([e.t for e in parts]),
+                                 torch.cat([e.p for e in parts]), torch.zeros_like(rows), (39, 17), 1)
+    integral = ContinuousIntegral(tall, 0.2, time_sorted=False)
+    assert (integral.active is not None) == (way == "pixels with events")
+    peak = torch.empty(5, 1, 3 * per_frame[0], per_frame[1])
+    integral.inverse_ratio(0.0, 5000.0, latencies, peak_out=peak, peak_stride=stride, peak_frame_height=13)
+    torch.testing.assert_close(peak.view(5, 3, *per_frame), torch.cat(singles, 1))
+    assert bool((peak != 0).any())
+    with pytest.raises(ValueError, match="peak_frame_height must divide"):
+        integral.inverse_ratio(0.0, 5000.0, latencies, peak_out=peak, peak_stride=stride, peak_frame_height=12)

@@ -36,7 +36,8 @@ _TINY = 2.2250738585072014e-308
 
 def read_windows(t: Tensor, step: Tensor, run_bounds: Tensor, peak_count: Tensor, theta: float, times: Tensor,
                  a: Tensor, b: Tensor, r: Tensor, quarters: list[Tensor], duration: float, width: int, out: Tensor,
-                 change: Tensor | None = None, peak: Tensor | None = None, peak_stride: int = 1) -> None:
+                 change: Tensor | None = None, peak: Tensor | None = None, peak_stride: int = 1,
+                 frame_height: int | None = None) -> None:
     """Write every window's ratio (and event change, peak rise) of every pixel.
 
     Args:
@@ -53,9 +54,11 @@ def read_windows(t: Tensor, step: Tensor, run_bounds: Tensor, peak_count: Tensor
         width: the sensor's width (pixel ``i`` is row ``i // width``).
         out: :math:`(K, P)` float32 receives ``1 / R``; float64 receives ``log R``.
         change: optional :math:`(K, P)` float32 that receives ``θ (C(b) − C(a))``.
-        peak: optional :math:`(K, ⌈H/s⌉·⌈W/s⌉)` float32 that receives ``θ (max C − C(r))`` over ``a``, the quarters,
-            ``r`` and ``b`` at every ``peak_stride``-th row and column.
+        peak: optional :math:`(K, F·⌈h/s⌉·⌈W/s⌉)` float32 that receives ``θ (max C − C(r))`` over ``a``, the
+            quarters, ``r`` and ``b`` at every ``peak_stride``-th row and column of each frame.
         peak_stride: s.
+        frame_height: h, the height of each of the ``F`` frames stacked as the sensor's rows (their sampled rows
+            restart at each frame's first); None: one frame, the sensor's height.
 
     Every tensor is on the CPU and contiguous; ``out``, ``change`` and ``peak`` are written in place.
 
@@ -79,6 +82,8 @@ def read_windows(t: Tensor, step: Tensor, run_bounds: Tensor, peak_count: Tensor
                                  f", got {tuple(part.shape)}")
     kernel = _kernel()
     peak_width = -(-width // peak_stride)
+    frame_height = pixels // width if frame_height is None else frame_height
+    peak_rows = -(-frame_height // peak_stride)
     lut_size = int((run_bounds[1:] - run_bounds[:-1]).max()) + 1 if len(run_bounds) > 1 else 1
     # exp(θ·c) of every count c relative to the pixel's peak (0 down to minus its events): no exp per event or time
     lut = np.exp(-float(theta) * np.arange(lut_size, dtype=np.float64))
@@ -86,8 +91,8 @@ def read_windows(t: Tensor, step: Tensor, run_bounds: Tensor, peak_count: Tensor
     nothing = np.empty((0, 0), dtype=np.float32)
     args = (t.numpy(), step.numpy(), run_bounds.numpy(), peak_count.numpy(), lut, times.numpy(), a.numpy(),
             b.numpy(), r.numpy(), np.ascontiguousarray(quarter_rows), float(duration), int(peak_stride), int(width),
-            int(peak_width), float(theta), out.dtype == torch.float64, out.numpy(),
-            nothing if change is None else change.numpy(), nothing if peak is None else peak.numpy())
+            int(peak_width), int(max(frame_height, 1)), int(peak_rows), float(theta), out.dtype == torch.float64,
+            out.numpy(), nothing if change is None else change.numpy(), nothing if peak is None else peak.numpy())
     in_threads(kernel, workers_for(len(run_bounds) - 1, _BLOCK), *args)
 
 
@@ -96,7 +101,8 @@ def _kernel():
     """The compiled per-pixel pass."""
 
     def read_blocks(first_block, block_step, t, step, run_bounds, peak_count, lut, g, ia, ib, ir, iq, duration,
-                    stride, width, peak_width, theta, log_out, out, change, peak):  # pragma: no cover (compiled)
+                    stride, width, peak_width, frame_height, peak_rows, theta, log_out, out, change,
+                    peak):  # pragma: no cover (compiled)
         num = g.shape[0]
         k_count = ia.shape[0]
         num_pixels = run_bounds.shape[0] - 1
@@ -111,16 +117,23 @@ def _kernel():
             for pix in range(p0, p1):
                 col = pix - p0
                 lo, hi = run_bounds[pix], run_bounds[pix + 1]
+                # where the pixel lies among the peak's: every stride-th row and column of each frame, frame after
+                # frame (-1: not sampled)
+                place = -1
+                if peak.shape[0] > 0:
+                    y = pix // width
+                    x = pix - y * width
+                    frame = y // frame_height
+                    y -= frame * frame_height
+                    if y % stride == 0 and x % stride == 0:
+                        place = (frame * peak_rows + y // stride) * peak_width + x // stride
                 if lo == hi:
                     for k in range(k_count):
                         ratio[col, k] = ratio_free
                         events[col, k] = 0.0
-                    if peak.shape[0] > 0:
-                        y = pix // width
-                        x = pix - y * width
-                        if y % stride == 0 and x % stride == 0:
-                            for k in range(k_count):
-                                peak[k, (y // stride) * peak_width + x // stride] = 0.0
+                    if place >= 0:
+                        for k in range(k_count):
+                            peak[k, place] = 0.0
                     continue
                 # the count (relative to the pixel's peak) and the integral of exp(θ·count) from g[0] at each time;
                 # an event counts at the times after it
@@ -164,17 +177,13 @@ def _kernel():
                 else:
                     for k in range(k_count):
                         ratio[col, k] = lut[-count[ir[k]]] * duration / window[k]
-                if peak.shape[0] > 0:
-                    y = pix // width
-                    x = pix - y * width
-                    if y % stride == 0 and x % stride == 0:
-                        place = (y // stride) * peak_width + x // stride
-                        for k in range(k_count):
-                            reference = count[ir[k]]
-                            top = max(max(count[ia[k]], count[ib[k]]), reference)
-                            for i in range(iq.shape[0]):
-                                top = max(top, count[iq[i, k]])
-                            peak[k, place] = theta * (top - reference)
+                if place >= 0:
+                    for k in range(k_count):
+                        reference = count[ir[k]]
+                        top = max(max(count[ia[k]], count[ib[k]]), reference)
+                        for i in range(iq.shape[0]):
+                            top = max(top, count[iq[i, k]])
+                        peak[k, place] = theta * (top - reference)
             for k in range(k_count):
                 for col in range(p1 - p0):
                     out[k, p0 + col] = ratio[col, k]
