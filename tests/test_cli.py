@@ -247,6 +247,9 @@ def test_deblur_refuses_bad_options_with_exit_2(simulated, tmp_path):
     cases = [
         (["--device", "foo"], "unknown device"),
         (["--model", "unet"], "invalid choice"),
+        (["--num-bins", "0"], "argument --num-bins: must be a whole number >= 2, got '0'"),
+        (["--num-bins", "x"], "argument --num-bins: must be a whole number >= 2, got 'x'"),
+        (["--search-us", "0", "nan"], "argument --search-us: must be a finite number of us, got 'nan'"),
         (["--correct", "spatial", "--curve", str(simulated)], "not a latency curve"),
     ]
     if not torch.cuda.is_available():

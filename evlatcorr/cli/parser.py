@@ -3,12 +3,35 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from evlatcorr.restore import INTERPOLATION_MODELS, MODELS
 from evlatcorr.temporal import DEFAULT_FUSED_FRAMES
 
 __all__ = ["build_parser"]
+
+
+def _finite_us(text: str) -> float:
+    """A finite number of µs (argparse's ``float`` takes ``nan`` and ``inf``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number of us, got {text!r}")
+    return value
+
+
+def _num_bins(text: str) -> int:
+    """EDI's sub-intervals of an exposure: a whole number >= 2, refused before any reading."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 2, got {text!r}")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -96,8 +119,8 @@ def _common_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threshold", default="auto",
                    help="contrast threshold θ, or 'auto' (default): one θ for the recording, the one that makes "
                         "consecutive frames' EDI reconstructions agree best (per frame when it has one frame)")
-    p.add_argument("--num-bins", type=int, default=500, help="EDI sub-intervals per exposure (default: 500)")
-    p.add_argument("--search-us", type=float, nargs=2, metavar=("LOW", "HIGH"),
+    p.add_argument("--num-bins", type=_num_bins, default=500, help="EDI sub-intervals per exposure (default: 500)")
+    p.add_argument("--search-us", type=_finite_us, nargs=2, metavar=("LOW", "HIGH"),
                    help="the range the latency lies in, us: bounds the estimate, while the learned reader still "
                         "reads 0 to the exposure time as trained (default: 0 to the exposure time)")
     p.add_argument("--exposure-us", type=float, help="exposure for files that only stamp frame times")
