@@ -170,3 +170,36 @@ def test_frame_conversion_colour_16bit_and_refusals():
         rec._image({**base, "width": 100, "offset_x": 10, "format": "L", "pixels": rgb[:, :100, 0]}, 3)
     with pytest.raises(RecordingError, match="street_static.aedat4: frame 7 has no valid exposure timestamps"):
         rec._exposure({**base, "exposure_begin_t": 0, "exposure_end_t": 0}, 7)
+
+
+@pytest.mark.parametrize("tail", [b"\x00" * 100, b"\x10\x00", (64).to_bytes(4, "little") + b"\x00" * 64],
+                         ids=["empty header", "ends inside the size", "no IOHeader"])
+def test_a_garbled_header_is_refused_before_the_decoder(tmp_path, tail):
+    # the decoder's Rust code panics on these (printing a trace) rather than raising: they are refused before it
+    bad = tmp_path / "g.aedat4"
+    bad.write_bytes(b"#!AER-DAT4.0\r\n" + tail)
+    with pytest.raises(RecordingError, match="g.aedat4: cannot decode the AEDAT4 header"):
+        AedatRecording(bad)
+
+
+def test_a_panic_of_the_decoder_is_a_recording_error(tmp_path, monkeypatch):
+    import aedat
+
+    class PanicException(BaseException):  # pyo3's, as the Rust decoder raises it: not an Exception
+        pass
+
+    def panics(path):
+        raise PanicException("range end index 4 out of range for slice of length 0")
+
+    monkeypatch.setattr(aedat, "Decoder", panics)
+    header = tmp_path / "h.aedat4"
+    header.write_bytes(b"#!AER-DAT4.0\r\n" + (8).to_bytes(4, "little") + b"\x00\x00\x00\x00IOHE")
+    with pytest.raises(RecordingError, match="h.aedat4: cannot decode the AEDAT4 header \\(range end index"):
+        AedatRecording(header)
+
+    def interrupted(path):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(aedat, "Decoder", interrupted)
+    with pytest.raises(KeyboardInterrupt):  # what is not the decoder's failure passes through
+        AedatRecording(header)

@@ -37,6 +37,10 @@ from evlatcorr.io.records import FrameInfo, RecordingError, SegmentEnd
 __all__ = ["AedatRecording", "is_aedat4"]
 
 MAGIC = b"#!AER-DAT4.0"
+# the header after the magic and its line end: its size (little-endian uint32), then an IOHeader flatbuffer, whose
+# file identifier follows its root offset
+_HEADER_START = len(MAGIC) + 2
+_HEADER_ID = b"IOHE"
 # what the aedat decoder says where the file ends inside a packet (Rust's unexpected end of file)
 _END_OF_FILE = "failed to fill whole buffer"
 
@@ -92,9 +96,12 @@ class AedatRecording(Recording):
     def _decoder(self) -> Any:
         import aedat
 
+        _check_header(self.path)  # a garbled header panics in the decoder's Rust code, which prints a trace first
         try:
             return aedat.Decoder(str(self.path))
-        except Exception as exc:  # the Rust decoder raises plain exceptions for corrupt headers
+        except BaseException as exc:  # the Rust decoder raises plain exceptions for corrupt headers, or panics
+            if not _decoder_failed(exc):
+                raise
             raise RecordingError(f"{self.path}: cannot decode the AEDAT4 header ({exc})") from exc
 
     def _numbered_packets(self) -> Iterator[tuple[dict[str, Any], int | None]]:
@@ -115,7 +122,9 @@ class AedatRecording(Recording):
                 packet = next(decoder)
             except StopIteration:
                 return
-            except Exception as exc:
+            except BaseException as exc:
+                if not _decoder_failed(exc):
+                    raise
                 if str(exc) == _END_OF_FILE and index:  # the file stops inside a packet: a recording cut off (a
                     # crash, a full disk) keeps everything before it, which is read, and says so
                     warnings.warn(f"{self.path}: the file ends inside the packet after packet {index} (truncated: a "
@@ -182,3 +191,26 @@ class AedatRecording(Recording):
             ev = packet.get("events")
             if ev is not None and len(ev):
                 yield self._chunk(ev)
+
+
+def _decoder_failed(exc: BaseException) -> bool:
+    """Whether ``exc`` is the decoder's own failure on a bad file: an ``Exception``, or a panic of its Rust code (pyo3's
+    ``PanicException`` derives from ``BaseException``, as ``KeyboardInterrupt`` does, which must pass through)."""
+    return isinstance(exc, Exception) or type(exc).__name__ == "PanicException"
+
+
+def _check_header(path: Path) -> None:
+    """Refuse a file whose header cannot be an IOHeader: too short for the size it gives, or without its identifier.
+
+    Raises:
+        RecordingError: naming the file and what is wrong.
+    """
+    with open(path, "rb") as f:
+        f.seek(_HEADER_START)
+        raw = f.read(4)
+        size = int.from_bytes(raw, "little") if len(raw) == 4 else 0
+        header = f.read(size)
+    if len(raw) < 4 or len(header) < size or size < 8:
+        raise RecordingError(f"{path}: cannot decode the AEDAT4 header (the file ends inside it, or it is empty)")
+    if header[4:8] != _HEADER_ID:
+        raise RecordingError(f"{path}: cannot decode the AEDAT4 header (no IOHeader after the magic: a corrupt file)")
