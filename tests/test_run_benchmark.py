@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from tests.conftest import shared_data_dir
 
@@ -64,3 +65,20 @@ def test_ddp_on_two_cpu_processes_gives_the_same_table(tmp_path):
     for single, ddp in zip(*tables):  # the same up to the order of floating-point sums
         assert single["psnr"] == pytest.approx(ddp["psnr"], rel=1e-5)
         assert single["ssim"] == pytest.approx(ddp["ssim"], rel=1e-5)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--latency-us", "-5"], "--latency-us must be between 0 and 1000000 us, got -5.0"),
+    (["--device", "tpu"], "--device must be cpu or cuda, got 'tpu'"),
+    (["--data", "/no/such/recording"], "--data /no/such/recording: no such file or directory"),
+] + ([] if torch.cuda.is_available() else
+     [(["--device", "cuda"], "--device cuda: CUDA is not available on this machine")]))
+def test_bad_options_are_refused_before_any_scene(argv, message, capsys, tmp_path):
+    # argparse's exit 2 and a line saying what is wrong, before a scene is simulated or read (no traceback)
+    from evlatcorr.benchmark.table1 import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main([*argv, "--quick", "--out", str(tmp_path / "out")])
+    assert exit_.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

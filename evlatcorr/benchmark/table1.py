@@ -46,6 +46,7 @@ from evlatcorr.benchmark.table import format_table
 from evlatcorr.correction import EventLatencyCorrector
 from evlatcorr.io import read_sequence
 from evlatcorr.simulate import PHOTOGRAPHS_TEST
+from evlatcorr.simulation.latency import MAX_LATENCY_US
 
 __all__ = ["METHODS", "parse_args", "build_methods", "main"]
 
@@ -98,6 +99,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--scenes must be >= 1")
     if args.frames_per_scene < 1:
         p.error("--frames-per-scene must be >= 1")
+    if args.data is not None and not args.data.exists():
+        p.error(f"--data {args.data}: no such file or directory")
+    if not 0.0 <= args.latency_us <= MAX_LATENCY_US:  # before any scene is simulated (the simulator refuses it too)
+        p.error(f"--latency-us must be between 0 and {MAX_LATENCY_US:.0f} us, got {args.latency_us}")
+    if args.device not in ("cpu", "cuda"):
+        p.error(f"--device must be cpu or cuda, got {args.device!r}")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        p.error("--device cuda: CUDA is not available on this machine")
     unknown = set(args.methods.split(",")) - set(METHODS)
     if unknown:
         p.error(f"unknown methods {sorted(unknown)}; choose from {sorted(METHODS)}")
