@@ -84,6 +84,20 @@ class TestCommandLine:
         err = capsys.readouterr().err.strip().splitlines()
         assert exc.value.code == 2 and len(err) == 1 and message in err[0]
 
+    @pytest.mark.parametrize("setting, message", [
+        (["--devices", "0"], "`Trainer(devices=0)` value is not a valid input"),
+        (["--strategy", "nope"], "invalid strategy name"),
+    ])
+    def test_settings_lightning_refuses_are_bad_input(self, setting, message, tmp_path, capsys):
+        # one line and exit 2, before any frame is simulated (latency) or a step taken (restore), not a traceback
+        for argv in (["latency"], ["restore", "--model", "efnet", "--max-steps", "1"]):
+            with pytest.raises(SystemExit) as exc:
+                main([*argv, *setting, "--out", str(tmp_path / argv[0])])
+            err = capsys.readouterr().err.strip().splitlines()
+            assert exc.value.code == 2 and err[-1].startswith(f"evlatcorr.lightning {argv[0]}: error: ")
+            assert message in err[-1]
+            assert not (tmp_path / argv[0] / "last.ckpt").exists()
+
     def test_bad_input_names_the_subcommand(self, tmp_path, capsys):
         with pytest.raises(SystemExit) as exc:
             main(["latency", "--data", str(tmp_path / "missing.aedat4"), "--out", str(tmp_path)])

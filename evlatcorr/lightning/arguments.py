@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from typing import NoReturn
+from collections.abc import Callable
+from typing import Any, NoReturn
 
-__all__ = ["CommandParser", "parse_devices", "threshold_argument", "exit_bad_input"]
+__all__ = ["CommandParser", "parse_devices", "threshold_argument", "exit_bad_input", "trainer_or_exit"]
 
 
 class CommandParser(argparse.ArgumentParser):
@@ -50,3 +51,14 @@ def exit_bad_input(label: str, exc: BaseException) -> NoReturn:
     like bad arguments, instead of a traceback."""
     print(f"{label}: error: {exc}", file=sys.stderr)
     raise SystemExit(2) from None
+
+
+def trainer_or_exit(label: str, make: Callable[[], Any]) -> Any:
+    """``make()``, a Lightning ``Trainer``; a setting Lightning refuses (``--devices 0``, ``--accelerator gpu`` on a
+    machine without one, an unknown ``--strategy``) is bad input: one line and exit code 2, not a traceback."""
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
+
+    try:
+        return make()
+    except (MisconfigurationException, ValueError) as exc:  # an unknown strategy name is a ValueError
+        exit_bad_input(label, exc)

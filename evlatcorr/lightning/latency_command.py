@@ -9,7 +9,7 @@ from typing import Any
 import lightning as L
 
 from evlatcorr.frames import EventFrames
-from evlatcorr.lightning.arguments import exit_bad_input, parse_devices
+from evlatcorr.lightning.arguments import exit_bad_input, parse_devices, trainer_or_exit
 from evlatcorr.lightning.data import EventFramesDataModule
 from evlatcorr.lightning.latency import LatencyCorrectionModule
 from evlatcorr.lightning.latency_data import recording_training_frames, simulated_training_frames
@@ -71,6 +71,11 @@ def run(args: argparse.Namespace) -> None:
     """Train and save ``OUT/last.ckpt`` and ``OUT/curve.pt`` (the curve ``evlatcorr deblur --curve`` loads)."""
     L.seed_everything(args.seed, workers=True)
     val: list[EventFrames] = []
+    # the Trainer first: a setting Lightning refuses fails before any frame is made or read
+    trainer = trainer_or_exit(args.error_label, lambda: L.Trainer(
+        max_epochs=args.epochs, max_steps=args.max_steps, accelerator=args.accelerator,
+        devices=parse_devices(args.devices), strategy=args.strategy, default_root_dir=args.out, log_every_n_steps=1,
+        enable_model_summary=False))
     theta = 0.2
     if args.data is not None:
         try:
@@ -85,9 +90,6 @@ def run(args: argparse.Namespace) -> None:
     module = LatencyCorrectionModule(order=args.order, lr=args.lr, num_bins=args.num_bins, threshold=theta,
                                      constant_epochs=args.constant_epochs,
                                      decay_epochs=max(0, args.epochs - args.constant_epochs))
-    trainer = L.Trainer(max_epochs=args.epochs, max_steps=args.max_steps, accelerator=args.accelerator,
-                        devices=parse_devices(args.devices), strategy=args.strategy, default_root_dir=args.out,
-                        log_every_n_steps=1, enable_model_summary=False)
     trainer.fit(module, EventFramesDataModule(frames, val or None, seed=args.seed))
     args.out.mkdir(parents=True, exist_ok=True)
     trainer.save_checkpoint(args.out / "last.ckpt")  # every rank: it synchronises

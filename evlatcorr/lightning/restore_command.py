@@ -19,7 +19,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from torch import Tensor, nn
 
 from evlatcorr.frames import EventFrames
-from evlatcorr.lightning.arguments import exit_bad_input, parse_devices, threshold_argument
+from evlatcorr.lightning.arguments import exit_bad_input, parse_devices, threshold_argument, trainer_or_exit
 from evlatcorr.lightning.export import export_network
 from evlatcorr.lightning.networks import MODELS, build_adapter, checkpoint_name
 from evlatcorr.lightning.restoration import CorrectedRestorationModule, RestorationModule
@@ -391,7 +391,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     except (ValueError, OSError) as exc:  # RecordingError is a ValueError; FileNotFoundError an OSError
         exit_bad_input(args.error_label, exc)
     has_val = args.data is None or bool(data.val_samples)
-    trainer = _trainer(args, info["truth"], has_val)
+    trainer = trainer_or_exit(args.error_label, lambda: _trainer(args, info["truth"], has_val))
     before: dict[str, Any] = {}
     if args.data is not None and has_val:  # the held-out objective of the starting point
         before = trainer.validate(module, data, ckpt_path=resume, verbose=False)[0]
