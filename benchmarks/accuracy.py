@@ -77,6 +77,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--out", type=Path, default=Path("outputs/accuracy"))
     args = p.parse_args(argv)
     if args.threads is not None:
+        if args.threads < 1:
+            p.error(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
 
     splits = {"both": ("dev", "test"), "tuning": ("dev", "dev_wide")}.get(args.split, (args.split,))

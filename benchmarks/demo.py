@@ -28,8 +28,11 @@ def main() -> None:
     args = parser.parse_args()
 
     t0 = time.perf_counter()
-    seq = simulate(args.image, num_frames=1, height=args.size[0], width=args.size[1], exposure_us=args.exposure_us,
-                   latency="constant", latency_us=args.latency_us, seed=args.seed)
+    try:
+        seq = simulate(args.image, num_frames=1, height=args.size[0], width=args.size[1],
+                       exposure_us=args.exposure_us, latency="constant", latency_us=args.latency_us, seed=args.seed)
+    except ValueError as exc:  # a bad --image, --size, --latency-us or --exposure-us: the simulator says which
+        parser.error(str(exc))
     delayed, ideal = seq.frames("delayed"), seq.frames("ideal")
     print(f"simulated '{args.image}' {args.size[1]}x{args.size[0]}: exposure {args.exposure_us / 1000:.0f} ms, "
           f"true latency {args.latency_us:.0f} us, {len(delayed.events)} events ({time.perf_counter() - t0:.1f} s)")

@@ -146,6 +146,11 @@ def main() -> None:
     if min(args.batch_sizes) < 1:
         parser.error("--batch-sizes must be positive")
     devices = args.device or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+    for name in devices:
+        if name not in ("cpu", "cuda"):
+            parser.error(f"--device must be cpu or cuda, got {name!r}")
+        if name == "cuda" and not torch.cuda.is_available():
+            parser.error("--device cuda: CUDA is not available on this machine")
     if args.memory_child:
         memory_child(torch.device(devices[0]), args)
         return

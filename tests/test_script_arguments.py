@@ -1,0 +1,24 @@
+"""The benchmark scripts refuse bad arguments as argparse does: exit 2 and one line, never a traceback."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("script, args, message", [
+    ("speed.py", ["--part", "search", "--device", "tpu"], "--device must be cpu or cuda, got 'tpu'"),
+    ("accuracy.py", ["--split", "test", "--threads", "0"], "--threads must be >= 1, got 0"),
+    ("demo.py", ["--latency-us", "-3"], "latency_us must be in [0, 1000000]"),
+])
+def test_bad_arguments_exit_2_with_one_line(script, args, message, tmp_path):
+    run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=300)
+    assert run.returncode == 2, run.stderr
+    assert message in run.stderr and "Traceback" not in run.stderr
+    assert not list(tmp_path.iterdir())  # nothing written
