@@ -117,6 +117,10 @@ def main() -> None:
     args = parser.parse_args()
     if args.frames < 1 or args.calls < 1:
         parser.error("--frames and --calls must be positive")
+    if args.device not in ("cpu", "cuda"):
+        parser.error(f"--device must be cpu or cuda, got {args.device!r}")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: CUDA is not available on this machine")
     device = torch.device(args.device)
     blurry, events, start, end = frames_of(device, args.frames, args.height, args.width)
 

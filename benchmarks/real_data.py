@@ -23,6 +23,7 @@ import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU page
 
 import argparse
 import csv
+import math
 import statistics
 import time
 import warnings
@@ -64,6 +65,8 @@ def main() -> None:
                                                         "consistency)")
     parser.add_argument("--out", type=Path, default=Path("docs"))
     args = parser.parse_args()
+    if args.threshold is not None and not (math.isfinite(args.threshold) and args.threshold > 0):
+        parser.error(f"--threshold must be a positive number, got {args.threshold}")
     torch.set_num_threads(max(1, torch.get_num_threads()))
 
     args.out.mkdir(parents=True, exist_ok=True)

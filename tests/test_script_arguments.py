@@ -15,6 +15,8 @@ ROOT = Path(__file__).resolve().parents[1]
     ("speed.py", ["--part", "search", "--device", "tpu"], "--device must be cpu or cuda, got 'tpu'"),
     ("accuracy.py", ["--split", "test", "--threads", "0"], "--threads must be >= 1, got 0"),
     ("demo.py", ["--latency-us", "-3"], "latency_us must be in [0, 1000000]"),
+    ("real_data.py", ["--threshold", "-1"], "--threshold must be a positive number, got -1.0"),
+    ("profile_search.py", ["--device", "tpu"], "--device must be cpu or cuda, got 'tpu'"),
 ])
 def test_bad_arguments_exit_2_with_one_line(script, args, message, tmp_path):
     run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args], capture_output=True, text=True,
