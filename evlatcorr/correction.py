@@ -148,6 +148,25 @@ def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> N
             "estimate is held at the range's edge"), stacklevel=3)
 
 
+def _check_spatial_options(options: dict[str, Any]) -> None:
+    """Refuse keyword arguments that are no option of the spatial corrector (a misspelt constant-mode setting would
+    otherwise read as a spatial option).
+
+    Raises:
+        TypeError: naming them and the spatial corrector's options.
+    """
+    import inspect
+
+    from evlatcorr.spatial import SpatialLatencyCorrector
+
+    known = [name for name in inspect.signature(SpatialLatencyCorrector.__init__).parameters
+             if name not in ("self", "curve", "threshold", "config")]
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise TypeError(f"EventLatencyCorrector got unexpected keyword argument(s) {', '.join(unknown)} (its spatial "
+                        f"options: {', '.join(known)})")
+
+
 def _microseconds(values: Tensor, which: list[int]) -> str:
     """The samples' values as a warning says them, in the order of its samples: ``"2600 us"``, ``"80, 120 us"``."""
     return ", ".join(str(round(float(values[i]))) for i in which) + " us"
@@ -242,7 +261,9 @@ class EventLatencyCorrector(nn.Module):
             latency where it is clear (:mod:`evlatcorr.ghost`); 0: only frames with no minimum and no
             previous latency (which would get no shift); None: never.
         curve: ``mode="spatial"`` only: a trained latency curve checkpoint.
-        **spatial_kwargs: ``mode="spatial"`` only: options of the spatial corrector.
+        **spatial_kwargs: ``mode="spatial"`` only: options of the spatial corrector (``steps``, ``lr``,
+            ``train_bins``, ``order``, ``weights``, ``progress``: :class:`~evlatcorr.spatial.SpatialLatencyCorrector`);
+            any other keyword is a :class:`TypeError` naming it.
 
     The search settings are checked here, once (a :class:`~evlatcorr.config.SearchConfig`, ``.config``).
     Both modes refuse a batch with a frame that has no events in ``[exposure_start, exposure_end +
@@ -277,8 +298,11 @@ class EventLatencyCorrector(nn.Module):
         super().__init__()
         if mode not in _MODES:
             raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
+        if spatial_kwargs:
+            _check_spatial_options(spatial_kwargs)
         if mode == "constant" and (curve is not None or spatial_kwargs):
-            raise ValueError("curve and spatial options need mode='spatial'")
+            given = ", ".join((["curve"] if curve is not None else []) + sorted(spatial_kwargs))
+            raise ValueError(f"curve and spatial options need mode='spatial' (given: {given})")
         self.mode, self.threshold = mode, threshold
         self.config = SearchConfig(num_bins=num_bins, search_range=search_range, num_candidates=num_candidates,
                                    refine=refine, score=score, epsilon=epsilon, window=window, sigma_us=sigma_us,

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import math
+import re
 import warnings
 
 import pytest
@@ -40,6 +41,15 @@ class TestCorrectorModule:
     def test_bad_configuration(self, kwargs, match):
         with pytest.raises(ValueError, match=match):
             EventLatencyCorrector(**kwargs)
+
+    def test_a_spatial_option_in_constant_mode_and_an_unknown_option_are_named(self):
+        with pytest.raises(ValueError, match=re.escape("need mode='spatial' (given: steps)")):
+            EventLatencyCorrector(steps=5)
+        # a misspelt or misplaced keyword is not taken for a spatial option
+        message = re.escape("keyword argument(s) fuse_frames (its spatial options: steps")
+        for mode in ("constant", "spatial"):
+            with pytest.raises(TypeError, match=message):
+                EventLatencyCorrector(mode=mode, fuse_frames=2)
 
     def test_fills_latency_corrected_latent(self):
         ev = random_events(3000, (6, 8), (0.0, 200.0), batch_size=2)
