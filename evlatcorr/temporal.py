@@ -13,6 +13,7 @@ its exposure's end) takes its neighbours' latency instead of no shift.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -240,7 +241,8 @@ class StreamingLatencyCorrector(nn.Module):
     Each frame's latency is fused with the evidence of the ``before`` frames before it (:func:`fuse_latencies`
     with ``after=0``: a stream has no later frames; 0 where that evidence keeps no latency likely), and its events are
     corrected and its latent image made with the fused latency. The frames of a batch are taken as consecutive, in
-    batch order, after those of the previous call. :meth:`reset` starts a new recording. For frames that are not one
+    batch order, after those of the previous call. :meth:`reset` starts a new recording; a frame that starts before
+    the last one passed starts one too, with a warning. For frames that are not one
     recording's (a shuffled training batch) use the :class:`~evlatcorr.correction.EventLatencyCorrector` itself.
 
     Args:
@@ -274,6 +276,7 @@ class StreamingLatencyCorrector(nn.Module):
         if not isinstance(corrector, EventLatencyCorrector) or corrector.mode != "constant":
             raise ValueError("StreamingLatencyCorrector takes a constant-mode EventLatencyCorrector")
         self.corrector, self.history = corrector, LatencyHistory(before)
+        self._last_start: float | None = None  # the exposure start of the last frame passed, µs
 
     @property
     def before(self) -> int:
@@ -282,11 +285,21 @@ class StreamingLatencyCorrector(nn.Module):
     def reset(self) -> None:
         """Forget the earlier frames: the next frame starts a new recording."""
         self.history.reset()
+        self._last_start = None
 
     def extra_repr(self) -> str:
         return f"before={self.before}"
 
     def forward(self, frames: EventFrames) -> EventFrames:
+        first, last = frames.exposure_start[[0, -1]].tolist()  # one read of the device
+        if self._last_start is not None and first < self._last_start:
+            # earlier than the frames before: another recording (or the same again), whose latency those frames do
+            # not tell
+            warnings.warn(f"StreamingLatencyCorrector: a frame's exposure starts at {first:.0f} us, before the last "
+                          f"frame's ({self._last_start:.0f} us): taken as a new recording, the earlier frames "
+                          "forgotten; call reset() between recordings", stacklevel=2)
+            self.reset()
+        self._last_start = last
         # the search fuses each frame's evidence with the history's as it decides, and reads the frame's latent image
         # at the fused latency from the frame's own integral
         out = self.corrector(frames.replace(meta={**frames.meta, "latency_history": self.history}))

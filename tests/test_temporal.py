@@ -298,3 +298,21 @@ def test_a_recording_without_latency_gets_none_where_its_frames_together_keep_it
 def test_a_late_recording_keeps_its_fused_latency(astronaut_recordings):
     _, fused, stream = astronaut_recordings[3000.0]
     assert float((fused - 3000.0).abs().max()) < 600.0 and float(stream[1:].min()) > 2000.0
+
+
+def test_the_streaming_corrector_starts_again_when_time_goes_back():
+    # the same recording passed twice without reset(): its second pass is a new recording, with a warning, and its
+    # first frame takes no evidence from the first pass's last frames
+    import warnings
+
+    from evlatcorr.simulate import simulate
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    frames = simulate("camera", num_frames=3, height=32, width=48, latency_us=3000.0, seed=0).frames("delayed")
+    stream = StreamingLatencyCorrector(threshold=0.2)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="StreamingLatencyCorrector")
+        first_pass = [stream(frame) for frame in frames.split()]  # in order: no warning
+    with pytest.warns(UserWarning, match="before the last frame's .* taken as a new recording"):
+        again = stream(frames.split()[0])
+    torch.testing.assert_close(again.latency, first_pass[0].latency)
