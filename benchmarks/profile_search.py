@@ -31,6 +31,7 @@ from torch.profiler import ProfilerActivity, profile
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 
+from evlatcorr.cli.common import parse_cpu_or_cuda
 from evlatcorr.search import search_constant_latency
 from evlatcorr.simulate import simulate
 
@@ -117,11 +118,10 @@ def main() -> None:
     args = parser.parse_args()
     if args.frames < 1 or args.calls < 1:
         parser.error("--frames and --calls must be positive")
-    if args.device not in ("cpu", "cuda"):
-        parser.error(f"--device must be cpu or cuda, got {args.device!r}")
-    if args.device == "cuda" and not torch.cuda.is_available():
-        parser.error("--device cuda: CUDA is not available on this machine")
-    device = torch.device(args.device)
+    try:
+        device = parse_cpu_or_cuda(args.device)
+    except ValueError as exc:
+        parser.error(str(exc))
     blurry, events, start, end = frames_of(device, args.frames, args.height, args.width)
 
     def call():

@@ -70,6 +70,7 @@ from pathlib import Path
 import torch  # noqa: E402
 
 from evlatcorr import EventLatencyCorrector, Events  # noqa: E402
+from evlatcorr.cli.common import parse_cpu_or_cuda  # noqa: E402
 from evlatcorr.edi import edi_deblur  # noqa: E402
 from evlatcorr.search import DEFAULT_SCORE, SCORES, search_constant_latency, sharpness_score  # noqa: E402
 
@@ -147,10 +148,10 @@ def main() -> None:
         parser.error("--batch-sizes must be positive")
     devices = args.device or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
     for name in devices:
-        if name not in ("cpu", "cuda"):
-            parser.error(f"--device must be cpu or cuda, got {name!r}")
-        if name == "cuda" and not torch.cuda.is_available():
-            parser.error("--device cuda: CUDA is not available on this machine")
+        try:
+            parse_cpu_or_cuda(name)
+        except ValueError as exc:
+            parser.error(str(exc))
     if args.memory_child:
         memory_child(torch.device(devices[0]), args)
         return

@@ -43,6 +43,7 @@ from evlatcorr.benchmark.loop import CONST, SPATIAL, BenchmarkModule, BenchmarkS
 from evlatcorr.benchmark.metrics import load_lpips_network
 from evlatcorr.benchmark.scenes import prepare_data, scene_from_sequence
 from evlatcorr.benchmark.table import format_table
+from evlatcorr.cli.common import parse_cpu_or_cuda
 from evlatcorr.correction import EventLatencyCorrector
 from evlatcorr.io import read_sequence
 from evlatcorr.simulate import PHOTOGRAPHS_TEST
@@ -103,10 +104,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(f"--data {args.data}: no such file or directory")
     if not 0.0 <= args.latency_us <= MAX_LATENCY_US:  # before any scene is simulated (the simulator refuses it too)
         p.error(f"--latency-us must be between 0 and {MAX_LATENCY_US:.0f} us, got {args.latency_us}")
-    if args.device not in ("cpu", "cuda"):
-        p.error(f"--device must be cpu or cuda, got {args.device!r}")
-    if args.device == "cuda" and not torch.cuda.is_available():
-        p.error("--device cuda: CUDA is not available on this machine")
+    try:
+        parse_cpu_or_cuda(args.device)
+    except ValueError as exc:
+        p.error(str(exc))
     unknown = set(args.methods.split(",")) - set(METHODS)
     if unknown:
         p.error(f"unknown methods {sorted(unknown)}; choose from {sorted(METHODS)}")

@@ -68,6 +68,18 @@ def parse_device(text: str) -> torch.device:
     return device
 
 
+def parse_cpu_or_cuda(text: str) -> torch.device:
+    """``--device`` of a script that runs on a CPU or the CUDA device only (the benchmarks): ``cpu`` or ``cuda``, as
+    :func:`parse_device` takes them.
+
+    Raises:
+        ValueError: for any other device, or ``cuda`` on a machine without it.
+    """
+    if text not in ("cpu", "cuda"):
+        raise ValueError(f"--device must be cpu or cuda, got {text!r}")
+    return parse_device(text)
+
+
 def threshold_of_recording(args: argparse.Namespace, rec, device: torch.device) -> float | str:
     """``--threshold``: a number, or for ``auto`` one θ for the recording (two-frame consistency)."""
     from evlatcorr.restore import recording_threshold
