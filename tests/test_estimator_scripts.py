@@ -211,3 +211,28 @@ def test_training_script_leaves_out_every_frame_of_the_named_photographs_and_not
         leave_out(data, ["camera"])  # a test photograph: never trained on anyway
     with pytest.raises(SystemExit, match="another --cache"):
         leave_out(data | {"names": data["names"][::-1]}, ["coins"])
+
+
+SELF_CALIBRATION = "benchmarks/estimators/self_calibration.py"
+
+
+def test_ramp_world_frame_is_the_blurry_frame_where_no_pixel_has_events(text_case):
+    _, delayed = text_case
+    ramp_world_frame = load_estimator(f"{SELF_CALIBRATION}:ramp_world_frame")
+    ramps = ramp_world_frame(delayed, torch.tensor([1000.0], dtype=torch.float64)).blurry
+    assert ramps.shape == delayed.blurry.shape and ramps.min() >= 0 and ramps.max() <= 1
+    quiet = torch.ones(96 * 128, dtype=torch.bool)
+    quiet[delayed.events.pixel_index()] = False  # pixels with no event at all: both integrals are 0 there
+    assert quiet.sum() > 100
+    scale = ramps[0, 0].flatten()[quiet] / delayed.blurry[0, 0].flatten()[quiet]
+    torch.testing.assert_close(scale, torch.full_like(scale, float(scale[0])))
+    assert not torch.allclose(ramps, delayed.blurry * scale[0])  # and a different frame where events are
+
+
+def test_self_calibration_estimates_lie_in_the_range_and_thresholds_keep_the_default_s_reading(text_case):
+    case, delayed = text_case
+    default = float(load_estimator(f"{SELF_CALIBRATION}:default")(delayed).unique())
+    thresholds = float(load_estimator(f"{SELF_CALIBRATION}:thresholds")(delayed).unique())
+    boot = load_estimator(f"{SELF_CALIBRATION}:bootstrap")(delayed)
+    assert boot.shape == (1, 1, 96, 128) and float(boot.min()) >= 0.0
+    assert abs(default - case.latency_us) < 500.0 and abs(thresholds - default) < 500.0
