@@ -137,15 +137,21 @@ def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> N
             "their events are corrected like the others", "hot pixels left out of the latency search"), stacklevel=3)
     if result.outside_range is not None and bool(torch.isfinite(result.outside_range).any()):
         which = torch.nonzero(torch.isfinite(result.outside_range)).flatten().tolist()
-        low, high = config.search_range
+        span = _range_text(*config.search_range)
         likeliest = _microseconds(result.outside_range, which)
         warnings.warn(SampleWarning(
             "outside_range", which, f"{{which}}: the learned reader finds the latency likeliest at {likeliest}, "
-            f"outside search_range {low:.0f}-{high:.0f} us "
+            f"outside search_range {span} "
             f"(more than half its probability lies outside): the estimate is held at the range's edge "
             f"({_microseconds(result.latency, which)}); widen the range if the latency may lie there",
-            f"the learned reader finds the latency likelier outside search_range {low:.0f}-{high:.0f} us: the "
+            f"the learned reader finds the latency likelier outside search_range {span}: the "
             "estimate is held at the range's edge"), stacklevel=3)
+
+
+def _range_text(low: float, high: float) -> str:
+    """``"low-high us"``, with decimals where the range is too narrow for whole µs to tell its ends apart."""
+    digits = 0 if high - low >= 10 else 2
+    return f"{low:.{digits}f}-{high:.{digits}f} us"
 
 
 def _check_spatial_options(options: dict[str, Any]) -> None:

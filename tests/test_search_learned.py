@@ -157,6 +157,17 @@ def test_an_estimate_held_at_the_range_edge_is_reported_not_silent(monkeypatch):
     assert held.naming(["frame 7", "frame 8"]).startswith("frames 7, 8: the learned reader")
 
 
+def test_a_range_narrower_than_10_us_is_named_with_its_decimals(monkeypatch):
+    log_p = torch.full((11,), -30.0)
+    log_p[8] = 0.0
+    monkeypatch.setattr(search_learned, "_curve_reader_on", lambda device: _PlantedReader(log_p))
+    ev = random_events(3000, (8, 9), (0.0, 200.0), seed=6)
+    frames = EventFrames(torch.full((1, 1, 8, 9), 0.5), ev, torch.zeros(1), torch.full((1,), 100.0))
+    corrector = EventLatencyCorrector(threshold=0.2, num_bins=50, num_candidates=11, search_range=(33.25, 37.5))
+    with pytest.warns(SampleWarning, match=r"outside search_range 33\.25-37\.50 us"):
+        corrector(frames)
+
+
 def test_learned_search_range_narrower_than_the_candidates_spacing(monkeypatch):
     log_p = torch.full((11,), -30.0)
     log_p[8] = 0.0
