@@ -26,6 +26,7 @@ __all__ = [
     "check_batch_vector",
     "check_finite",
     "check_exposure",
+    "warn_if_coarse_times",
     "check_search_range",
     "check_memory",
     "check_has_events",
@@ -127,6 +128,29 @@ def check_threshold(threshold: object, batch_size: int) -> Tensor:
     if bool((theta <= 0).any()):
         raise ValueError(f"threshold must be positive, got {theta.min().item()}")
     return theta
+
+
+def warn_if_coarse_times(t: Tensor, name: str, stacklevel: int = 2) -> None:
+    """Warn where times in µs come in a floating type too coarse for them (float32 absolute times, which round a
+    camera's timestamps by minutes): the events' order, the exposures and the latency search need µs, and what was
+    rounded away cannot be recovered. ``stacklevel`` as :func:`warnings.warn`'s in the caller (2: the caller's caller).
+
+    Example:
+        >>> warn_if_coarse_times(torch.tensor([0.0, 20_000.0], dtype=torch.float32), "t")  # 2 ms of resolution: fine
+        >>> warn_if_coarse_times(torch.tensor([1.6e15], dtype=torch.float32), "t")  # doctest: +SKIP
+        UserWarning: t is float32 with times up to 1.6e+15 us, where it resolves only about 1.91e+08 us: ...
+    """
+    if not isinstance(t, Tensor) or not t.is_floating_point() or t.dtype == torch.float64 or not t.numel():
+        return
+    largest = float(t.detach().abs().max())
+    if not math.isfinite(largest):
+        return  # refused next, as NaN or infinite
+    resolution = torch.finfo(t.dtype).eps * largest
+    if resolution > 1.0:
+        warnings.warn(f"{name} is {str(t.dtype).removeprefix('torch.')} with times up to {largest:.6g} us, "
+                      f"where it resolves only about {resolution:.3g} us: the times are already rounded; "
+                      "pass int64 or float64 microseconds (e.g. times relative to the recording's start)",
+                      stacklevel=stacklevel + 1)
 
 
 # No camera exposes a frame for less than a microsecond: every exposure below it means times in other units

@@ -8,14 +8,13 @@ per-pixel reduction is one scatter.
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from evlatcorr.checks import check_batch_vector, check_shape
+from evlatcorr.checks import check_batch_vector, check_shape, warn_if_coarse_times
 
 __all__ = ["Events", "polarity_to_signed"]
 
@@ -43,22 +42,6 @@ def polarity_to_signed(p: Tensor | np.ndarray) -> Tensor:
     if values <= {-1, 1}:
         return p.to(torch.int8)
     raise ValueError(f"p (polarity) must be in {{0,1}}, {{-1,+1}} or bool, got values {sorted(values)[:6]}")
-
-
-def _warn_if_coarse_times(t: Tensor) -> None:
-    """Warn where timestamps come in a floating type too coarse for them (float32 absolute times): the events' order
-    and the latency search need µs, and what was rounded away cannot be recovered."""
-    if not t.is_floating_point() or t.dtype == torch.float64 or not t.numel():
-        return
-    largest = float(t.detach().abs().max())
-    if not math.isfinite(largest):
-        return  # refused next, as NaN or infinite
-    resolution = torch.finfo(t.dtype).eps * largest
-    if resolution > 1.0:
-        warnings.warn(f"t (timestamps) is {str(t.dtype).removeprefix('torch.')} with times up to {largest:.6g} us, "
-                      f"where it resolves only about {resolution:.3g} us: the events' times are already rounded; "
-                      "pass int64 or float64 microseconds (e.g. times relative to the recording's start)",
-                      stacklevel=3)
 
 
 class Events:
@@ -121,7 +104,7 @@ class Events:
         if n and (int(y.min()) < 0 or int(y.max()) >= height):
             raise ValueError(f"y must be in [0, {height}) for sensor_size (H, W)={self.sensor_size}, "
                              f"got values in [{int(y.min())}, {int(y.max())}]")
-        _warn_if_coarse_times(t)
+        warn_if_coarse_times(t, "t (timestamps)")
         t = t.to(torch.float64)
         if not bool(torch.isfinite(t).all()):
             raise ValueError("t (timestamps) has NaN or infinite values")

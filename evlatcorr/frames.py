@@ -16,7 +16,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from evlatcorr.checks import check_batch_vector, check_exposure, check_image, check_shape
+from evlatcorr.checks import check_batch_vector, check_exposure, check_image, check_shape, warn_if_coarse_times
 from evlatcorr.events import Events
 
 __all__ = ["EventFrames"]
@@ -109,6 +109,8 @@ class EventFrames:
     def _checked_exposure(self, start: Any, end: Any, suffix: str = "") -> tuple[Tensor, Tensor]:
         """``exposure_start{suffix}``, ``exposure_end{suffix}`` as float64 :math:`(B,)` on the frames' device."""
         b, device = self.blurry.shape[0], self.blurry.device
+        for times, name in ((start, "exposure_start"), (end, "exposure_end")):
+            warn_if_coarse_times(times, name + suffix, stacklevel=4)  # the line calling EventFrames(...)
         start = check_batch_vector(start, b, f"exposure_start{suffix}").to(device, torch.float64)
         end = check_batch_vector(end, b, f"exposure_end{suffix}").to(device, torch.float64)
         check_exposure(start, end)

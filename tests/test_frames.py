@@ -36,6 +36,19 @@ class TestConstruction:
         scalar = _frames(exposure_start=0.0, exposure_end=torch.tensor(25.0))  # one exposure for every sample
         assert scalar.exposure_start.tolist() == [0.0, 0.0] and scalar.exposure_time.tolist() == [25.0, 25.0]
 
+    def test_float32_absolute_exposures_warn_at_the_caller_that_they_are_already_rounded(self):
+        # a camera's absolute times in float32 lose minutes: start and end become one time, refused as empty
+        start, end = torch.tensor([1.6e15], dtype=torch.float32), torch.tensor([1.6e15 + 2e4], dtype=torch.float32)
+        with pytest.warns(UserWarning, match=r"exposure_(start|end) is float32 with times up to 1\.6e\+15 us, where "
+                                             r"it resolves only about 1\.9\de\+08 us.*pass int64 or float64") as caught:
+            with pytest.raises(ValueError, match="exposure_end must be after exposure_start"):
+                _frames(blurry=torch.full((1, 1, 2, 3), 0.5), events=_events(1), exposure_start=start,
+                        exposure_end=end)
+        names = [str(w.message).split()[0] for w in caught]
+        assert names == ["exposure_start", "exposure_end"] and {w.filename for w in caught} == {__file__}
+        fine = _frames(exposure_start=torch.tensor([0.0, 100.0], dtype=torch.float32))  # 8 s of float32 is fine
+        assert fine.exposure_start.dtype == torch.float64
+
     def test_target_times_become_float64_columns(self):
         fr = _frames(target_times=torch.tensor([3.0, 103.0]))
         assert fr.target_times.dtype == torch.float64 and fr.target_times.tolist() == [[3.0], [103.0]]
