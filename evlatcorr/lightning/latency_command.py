@@ -87,6 +87,8 @@ def run(args: argparse.Namespace) -> None:
         print(f"{args.data}: {len(frames)} training and {len(val)} validation samples, threshold {theta:.3f}")
     else:
         frames = simulated_training_frames(args.scenes, tuple(args.size), args.seed)
+    if not val:  # no held-out frames (simulated scenes, --val-every 0): no validation loop, where Lightning would
+        trainer.limit_val_batches = 0  # otherwise run an empty one and warn "Total length of DataLoader ... is zero"
     module = LatencyCorrectionModule(order=args.order, lr=args.lr, num_bins=args.num_bins, threshold=theta,
                                      constant_epochs=args.constant_epochs,
                                      decay_epochs=max(0, args.epochs - args.constant_epochs))
