@@ -38,7 +38,8 @@ class EventFrames:
         blurry: blurry frames :math:`(B, C, H, W)`, linear intensity in [0, 1], C = 1 or 3.
         events: events of each sample (``events.batch`` indexes the frames). They should
             reach past ``exposure_end`` by the largest latency to be searched.
-        exposure_start: exposure start of each frame :math:`(B,)` in µs (float64).
+        exposure_start: exposure start of each frame :math:`(B,)` in µs (held as float64; pass int64 or float64:
+            float32 rounds a camera's absolute times by minutes, and a warning says so).
         exposure_end: exposure end of each frame :math:`(B,)` in µs.
         latency: filled by the corrector: latency map :math:`(B, 1, H, W)` in µs.
         latent: filled by the corrector: EDI latent sharp image at mid-exposure :math:`(B, C, H, W)`.
