@@ -39,6 +39,20 @@ def test_tiles_fused_estimate_lies_where_the_events_are_and_near_the_truth(text_
     assert abs(fused - case.latency_us) < 500.0
 
 
+def test_tile_features_of_the_whole_frame_are_what_the_search_reads(text_case):
+    from evlatcorr.search import candidate_curves
+
+    case, delayed = text_case
+    candidates, valid, whole, tiled = load_estimator(f"{TILES}:tile_features")(delayed, ((3, 3),))
+    expected = candidate_curves(delayed.blurry, delayed.events, float(delayed.exposure_start[0]),
+                                float(delayed.exposure_end[0]), case.threshold)
+    torch.testing.assert_close(candidates, expected[0].double())
+    assert torch.equal(whole, expected[1]) and torch.equal(valid, expected[2])
+    tiles, share = tiled[0]
+    assert tiles.shape == (9, *whole.shape) and float(share.sum()) == pytest.approx(1.0)
+    assert torch.equal(tiles[:, -1], whole[-1].expand(9, -1))  # every tile is read over the same candidates
+
+
 def test_tile_latency_map_covers_the_frame_with_the_tiles_estimates(text_case):
     case, delayed = text_case
     latency = load_estimator(f"{TILES}:estimate_map_3x3")(delayed)

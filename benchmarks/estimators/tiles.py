@@ -39,18 +39,20 @@ from evlatcorr.overshoot import MAX_PIXELS, overshoot, overshoot_stride
 GRIDS = ((2, 2), (3, 3))  # tiles per (rows, columns)
 
 
-def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ...] = GRIDS
-                           ) -> tuple[Tensor, Tensor, Tensor, list[tuple[Tensor, Tensor]]]:
-    """The reader's log-probabilities of the first frame's coarse candidates on the whole frame and per tile.
+def tile_features(frames: EventFrames, grids: tuple[tuple[int, int], ...] = GRIDS
+                  ) -> tuple[Tensor, Tensor, Tensor, list[tuple[Tensor, Tensor]]]:
+    """The reader's inputs (:func:`~evlatcorr.curve_reader.curve_features`) of the first frame's coarse candidates on
+    the whole frame and per tile: what :func:`tile_log_probabilities` reads, and what a second reader fusing the
+    tiles would (``docs/estimator.md``, "a learned fusion of the tiles").
 
     Raises:
         ValueError: for more than one frame, a frame without events or with fewer than three candidates to score,
             a grid whose tiles are under 3x3 pixels, or a frame larger than the suite's (the overshoot's sample).
 
     Returns:
-        the candidates :math:`(K,)` µs, which are valid :math:`(K,)`, the whole frame's log-probability
-        :math:`(K,)` (−inf where not valid) and per grid ``(log-probabilities (T, K), each tile's share of the
-        events' absolute change over the candidates (T,))``.
+        the candidates :math:`(K,)` µs, which are valid :math:`(K,)`, the whole frame's inputs :math:`(F, K)` and
+        per grid ``(the tiles' inputs (T, F, K), each tile's share of the events' absolute change over the
+        candidates (T,))``.
     """
     height, width = frames.sensor_size
     if frames.batch_size != 1:
@@ -89,8 +91,7 @@ def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ..
         moment[:len(kept)] = inverse_ratio_moment(grey[part], inverse[part], change[part]).double()
         over = torch.zeros(num, dtype=torch.float64)
         over[:len(kept)] = overshoot(grey[part], inverse[part], peak[part])
-        log_p = search_learned._read_curves(curve_features(scores, moment, valid, over)[None], valid[None])[0]
-        return torch.full_like(log_p, -math.inf).masked_scatter_(valid, torch.log_softmax(log_p[valid], 0))
+        return curve_features(scores, moment, valid, over)
 
     whole = read((slice(None), slice(None)))
     tiled = []
@@ -100,6 +101,27 @@ def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ..
         activity = torch.stack([change[(..., *region)].abs().sum().double() for region in regions])
         tiled.append((torch.stack([read(region) for region in regions]), activity / activity.sum().clamp_min(1e-12)))
     return reader.to_us(reader.coarse).double(), valid, whole, tiled
+
+
+def tile_log_probabilities(frames: EventFrames, grids: tuple[tuple[int, int], ...] = GRIDS
+                           ) -> tuple[Tensor, Tensor, Tensor, list[tuple[Tensor, Tensor]]]:
+    """The reader's log-probabilities of the first frame's coarse candidates on the whole frame and per tile.
+
+    Raises:
+        ValueError: as :func:`tile_features`.
+
+    Returns:
+        the candidates :math:`(K,)` µs, which are valid :math:`(K,)`, the whole frame's log-probability
+        :math:`(K,)` (−inf where not valid) and per grid ``(log-probabilities (T, K), each tile's share of the
+        events' absolute change over the candidates (T,))``.
+    """
+    candidates, valid, whole, tiled = tile_features(frames, grids)
+
+    def read(features: Tensor) -> Tensor:
+        log_p = search_learned._read_curves(features[None], valid[None])[0]
+        return torch.full_like(log_p, -math.inf).masked_scatter_(valid, torch.log_softmax(log_p[valid], 0))
+
+    return candidates, valid, read(whole), [(torch.stack([read(f) for f in tiles]), share) for tiles, share in tiled]
 
 
 def fused_latency(frames: EventFrames, grids: tuple[tuple[int, int], ...] = GRIDS) -> float:
