@@ -15,6 +15,7 @@ import warnings
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -130,7 +131,7 @@ def check_threshold(threshold: object, batch_size: int) -> Tensor:
     return theta
 
 
-def warn_if_coarse_times(t: Tensor, name: str, stacklevel: int = 2) -> None:
+def warn_if_coarse_times(t: Tensor | np.ndarray, name: str, stacklevel: int = 2) -> None:
     """Warn where times in µs come in a floating type too coarse for them (float32 absolute times, which round a
     camera's timestamps by minutes): the events' order, the exposures and the latency search need µs, and what was
     rounded away cannot be recovered. ``stacklevel`` as :func:`warnings.warn`'s in the caller (2: the caller's caller).
@@ -140,6 +141,8 @@ def warn_if_coarse_times(t: Tensor, name: str, stacklevel: int = 2) -> None:
         >>> warn_if_coarse_times(torch.tensor([1.6e15], dtype=torch.float32), "t")  # doctest: +SKIP
         UserWarning: t is float32 with times up to 1.6e+15 us, where it resolves only about 1.91e+08 us: ...
     """
+    if isinstance(t, np.ndarray) and t.dtype.kind == "f":  # e.g. times loaded as float32 arrays
+        t = torch.from_numpy(t)
     if not isinstance(t, Tensor) or not t.is_floating_point() or t.dtype == torch.float64 or not t.numel():
         return
     largest = float(t.detach().abs().max())

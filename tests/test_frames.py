@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
 import pytest
 import torch
 
@@ -46,6 +47,9 @@ class TestConstruction:
                         exposure_end=end)
         names = [str(w.message).split()[0] for w in caught]
         assert names == ["exposure_start", "exposure_end"] and {w.filename for w in caught} == {__file__}
+        with pytest.warns(UserWarning, match=r"exposure_start is float32 .* about 1\.9\de\+08 us"):  # numpy too
+            _frames(exposure_start=np.array([1.6e15, 1.6e15], dtype=np.float32),
+                    exposure_end=torch.tensor([1.6e15 + 1e8, 1.6e15 + 2e8], dtype=torch.float64))
         fine = _frames(exposure_start=torch.tensor([0.0, 100.0], dtype=torch.float32))  # 8 s of float32 is fine
         assert fine.exposure_start.dtype == torch.float64
 
