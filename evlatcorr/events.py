@@ -229,10 +229,11 @@ class Events:
     def device(self) -> torch.device:
         return self.t.device
 
-    def to(self, device: torch.device | str) -> Events:
-        """Move all tensors to ``device``."""
-        return Events.from_canonical(self.x.to(device), self.y.to(device), self.t.to(device), self.p.to(device),
-                                     self.batch.to(device), self.sensor_size, self.batch_size)
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> Events:
+        """Move all tensors to ``device``; ``non_blocking`` as :meth:`torch.Tensor.to`."""
+        moved = (v.to(device, non_blocking=non_blocking) for v in (self.x, self.y, self.t, self.p, self.batch))
+        x, y, t, p, batch = moved
+        return Events.from_canonical(x, y, t, p, batch, self.sensor_size, self.batch_size)
 
     def select(self, mask: Tensor) -> Events:
         """Keep the events where the boolean ``mask`` :math:`(N,)` is true (order is preserved)."""

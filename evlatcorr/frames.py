@@ -168,13 +168,13 @@ class EventFrames:
             setattr(filled, name, value)
         return filled
 
-    def to(self, device: torch.device | str) -> EventFrames:
-        """Move every tensor (and the events) to ``device``."""
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> EventFrames:
+        """Move every tensor (and the events) to ``device``; ``non_blocking`` as :meth:`torch.Tensor.to`."""
         changes: dict[str, Any] = {}
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if isinstance(v, (Tensor, Events)):
-                changes[f.name] = v.to(device)
+                changes[f.name] = v.to(device, non_blocking=non_blocking)
         return dataclasses.replace(self, **changes)
 
     # batch operations --------------------------------------------------------------------------

@@ -64,12 +64,13 @@ class BenchmarkScene:
     extra: dict[str, Any] = field(default_factory=dict)
     events_before_us: float = 0.0
 
-    def to(self, device: torch.device | str) -> BenchmarkScene:
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> BenchmarkScene:
+        """Move every batch and the true latency to ``device`` (Lightning's default batch transfer calls this)."""
         def move(frames: EventFrames | None) -> EventFrames | None:
-            return None if frames is None else frames.to(device)
+            return None if frames is None else frames.to(device, non_blocking)
 
-        return BenchmarkScene(self.name, self.frames_ideal.to(device), self.frames_delayed.to(device),
-                              move(self.pairs_ideal), move(self.pairs_delayed), self.true_latency.to(device),
+        return BenchmarkScene(self.name, move(self.frames_ideal), move(self.frames_delayed), move(self.pairs_ideal),
+                              move(self.pairs_delayed), self.true_latency.to(device, non_blocking=non_blocking),
                               self.extra, self.events_before_us)
 
 
@@ -159,9 +160,6 @@ class BenchmarkModule(L.LightningModule):
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
         self.stage_seconds[name] = self.stage_seconds.get(name, 0.0) + time.perf_counter() - start
-
-    def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
-        return batch.to(device) if isinstance(batch, BenchmarkScene) else batch
 
     def test_step(self, scene: BenchmarkScene | None, batch_idx: int) -> None:
         if scene is None:  # unreadable: the data module's loader already said why

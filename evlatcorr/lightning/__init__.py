@@ -3,7 +3,7 @@
 =========================  ===============================================================================
 module                     owns
 =========================  ===============================================================================
-``base``                   :class:`EventFramesModule`: moves ``EventFrames`` batches to devices
+``base``                   :class:`EventFramesModule`: the base of the trainers, its batches ``EventFrames``
 ``data``                   datasets, seeded random crops, loaders, :class:`EventFramesDataModule`
 ``latency``                :class:`LatencyCorrectionModule` (self-supervised latency polynomial)
 ``latency_data``           training samples of the polynomial (simulated frames, tiles of a recording)
