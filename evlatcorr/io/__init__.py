@@ -37,18 +37,8 @@ from evlatcorr.io.aedat4 import AedatRecording
 from evlatcorr.io.base import FrameInfo, Recording, RecordingError
 from evlatcorr.io.event_utils import EventUtilsRecording, is_event_utils_h5, write_event_utils
 from evlatcorr.io.gem_npz import GemNpzRecording, is_gem_npz
-from evlatcorr.io.h5 import (
-    EventWriter,
-    H5Recording,
-    is_evlatcorr_h5,
-    is_sequence_file,
-    num_sequences,
-    read_sequence,
-    read_sequences,
-    write_dataset,
-    write_h5_events,
-    write_sequence,
-)
+from evlatcorr.io.h5 import EventWriter, is_evlatcorr_h5, write_dataset, write_h5_events, write_sequence
+from evlatcorr.io.h5_read import H5Recording, is_sequence_file, num_sequences, read_sequence, read_sequences
 from evlatcorr.io.highrev import HighREVRecording, is_highrev
 
 __all__ = [
