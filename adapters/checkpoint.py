@@ -25,165 +25,39 @@ an index that does not match its shards) raises a ``ValueError`` naming it, a mi
 ``FileNotFoundError``. Floating point tensors holding NaN or inf are refused (``check_finite=False`` to load
 them anyway). When a card ``<stem>.json`` beside the weights lists a file under ``"sha256"`` (``{file name:
 hex digest}``, written with :func:`card_sha256`; the shipped cards in ``checkpoints/`` do), the file's SHA-256
-must match before it is read.
+must match before it is read. The file names and these checks are in :mod:`evlatcorr.adapters.checkpoint_files`.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import pickle
-import re
 import warnings
 import zipfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
+from evlatcorr.adapters.checkpoint_files import (
+    INDEX_SUFFIX,
+    SHARD_PATTERN,
+    card_sha256,
+    check_finite_weights,
+    file_sha256,
+    stem_of,
+    verify_listed_sha256,
+)
 from evlatcorr.locations import checkpoint_dirs
 
 __all__ = ["card_sha256", "checkpoint_dirs", "file_sha256", "load_state_dict_file", "load_weights",
            "resolve_checkpoint", "save_weights"]
 
-_SHARD_RE = re.compile(r"^(?P<stem>.+)-(?P<index>\d{5})-of-(?P<total>\d{5})\.safetensors$")
-_SHA256_RE = re.compile(r"[0-9a-fA-F]{64}")
-_INDEX_SUFFIX = ".safetensors.index.json"
 _NESTED_KEYS = ("params", "params_ema", "state_dict", "model_state_dict", "model", "net", "network")
 _MAX_LISTED = 10
 MB = 1_000_000  # max_shard_mb counts decimal megabytes
 _Index = tuple[Path, dict[str, str]]  # a safetensors index file and its weight_map
-
-
-# verifying -------------------------------------------------------------------------------------
-def file_sha256(path: str | Path) -> str:
-    """The SHA-256 of a file's bytes as 64 lowercase hex digits, the hash a checkpoint card lists per file.
-
-    A card is the ``<stem>.json`` beside the weights (``checkpoints/efnet.json`` for ``efnet-*.safetensors``);
-    its ``"sha256"`` entry maps file names to this digest, and :func:`load_state_dict_file` compares it before
-    reading each file it lists.
-
-    Args:
-        path: the file.
-
-    Returns:
-        the hex digest.
-
-    Raises:
-        FileNotFoundError: when the file does not exist.
-        ValueError: when it cannot be read (a folder, no permission, an I/O error).
-
-    Example:
-        >>> import tempfile, os
-        >>> with tempfile.TemporaryDirectory() as d:
-        ...     with open(os.path.join(d, "abc.bin"), "wb") as f:
-        ...         _ = f.write(b"abc")
-        ...     file_sha256(os.path.join(d, "abc.bin"))
-        'ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad'
-    """
-    path = Path(path).expanduser()
-    digest = hashlib.sha256()
-    try:
-        with path.open("rb") as f:
-            while block := f.read(1 << 20):
-                digest.update(block)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"checkpoint not found: {path}") from None
-    except OSError as exc:
-        raise ValueError(f"cannot read {path}: {exc}") from exc
-    return digest.hexdigest()
-
-
-def card_sha256(files: Iterable[str | Path]) -> dict[str, str]:
-    """The ``"sha256"`` entry of a checkpoint card: ``{file name: SHA-256}`` of each weight file in ``files``.
-
-    Call it on what :func:`save_weights` returned and store it in the card ``<stem>.json`` written beside the
-    weights; :func:`load_state_dict_file` then verifies every listed file before reading it. An index
-    (``*.safetensors.index.json``) is left out: it is text, whose line endings git may rewrite on checkout,
-    and its ``weight_map`` is checked against the shards on load instead.
-
-    Args:
-        files: the files written (shards, the single file, the index).
-
-    Returns:
-        the digests of the ``.safetensors`` (and ``torch.save``) files, by file name.
-
-    Raises:
-        FileNotFoundError: when a file does not exist.
-
-    Example:
-        >>> import tempfile, os
-        >>> with tempfile.TemporaryDirectory() as d:
-        ...     files = save_weights(nn.Linear(2, 3), os.path.join(d, "lin.safetensors"))
-        ...     entry = card_sha256(files)
-        >>> list(entry), len(entry["lin.safetensors"])
-        (['lin.safetensors'], 64)
-    """
-    return {Path(f).name: file_sha256(f) for f in files if not str(f).endswith(".json")}
-
-
-def _card_path(path: Path) -> Path:
-    """The card of a checkpoint file: ``<dir>/<stem>.json`` (the stem of its shard set, or of a ``.pth``)."""
-    stem = _stem_of(path)
-    return path.with_name((stem.name if stem != path else path.stem) + ".json")
-
-
-def _listed_sha256(path: Path) -> tuple[Path, str] | None:
-    """The card beside ``path`` and the SHA-256 it lists for ``path``, or None when no card lists one."""
-    card = _card_path(path)
-    if card == path or not card.is_file():
-        return None
-    try:
-        meta = json.loads(card.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:  # ValueError: JSONDecodeError, UnicodeDecodeError
-        raise ValueError(f"cannot read {card}, the checkpoint card of {path}: {exc}") from exc
-    hashes = meta.get("sha256") if isinstance(meta, dict) else None
-    if not isinstance(hashes, dict) or path.name not in hashes:
-        return None
-    expected = hashes[path.name]
-    if not isinstance(expected, str) or not _SHA256_RE.fullmatch(expected):
-        raise ValueError(f"checkpoint card {card} lists an invalid SHA-256 for {path.name}: {expected!r} "
-                         "(expected 64 hex digits)")
-    return card, expected.lower()
-
-
-def _verify_sha256(path: Path) -> None:
-    """Compare ``path`` with the SHA-256 its card lists (nothing to do when no card lists one)."""
-    listed = _listed_sha256(path)
-    if listed is None:
-        return
-    card, expected = listed
-    actual = file_sha256(path)
-    if actual != expected:
-        raise ValueError(f"{path} is corrupt or modified: its SHA-256 is {actual} but its card {card.name} lists "
-                         f"{expected}. Restore the file (reinstall evlatcorr, or copy / export it again); if you "
-                         f"replaced it on purpose, update its entry under 'sha256' in {card}")
-
-
-def _check_finite(state: Mapping[str, Tensor], path: Path) -> None:
-    """Raise when a floating point tensor of ``state`` (read from ``path``) holds NaN or inf.
-
-    One reduction per tensor: a sum is finite only if every element is (NaN propagates, inf + -inf is NaN),
-    and summing in float32 (float64 for float64) is several times faster on the CPU than ``isfinite`` on
-    fp16. Only a non-finite sum, which a large but finite tensor may also give by overflow, is counted
-    element by element.
-    """
-    for k, v in state.items():
-        if not (v.is_floating_point() or v.is_complex()) or v.numel() == 0:
-            continue
-        if v.is_complex():
-            exact = v
-        else:
-            acc = torch.float64 if v.dtype == torch.float64 else torch.float32
-            exact = v if v.dtype in (torch.float16, torch.bfloat16, torch.float32, torch.float64) else v.to(acc)
-            if bool(torch.isfinite(exact.sum(dtype=acc))):
-                continue
-        bad = v.numel() - int(torch.isfinite(exact).sum())
-        if bad:
-            raise ValueError(f"{path} holds non-finite values (NaN or inf) in tensor {k!r}: {bad} of {v.numel()} "
-                             "elements. The file is corrupt, or the weights diverged in training; pass "
-                             "check_finite=False to load it anyway")
 
 
 # reading ----------------------------------------------------------------------------------------
@@ -193,7 +67,7 @@ def _shard_files(stem_path: Path) -> list[Path]:
     groups: dict[int, list[Path]] = {}
     if stem_path.parent.is_dir():
         for f in stem_path.parent.iterdir():
-            m = _SHARD_RE.match(f.name)
+            m = SHARD_PATTERN.match(f.name)
             if m and m.group("stem") == stem:
                 groups.setdefault(int(m.group("total")), []).append(f)
     if not groups:
@@ -203,25 +77,12 @@ def _shard_files(stem_path: Path) -> list[Path]:
                          "delete the stale ones")
     total, files = next(iter(groups.items()))
     files = sorted(files)
-    have = {int(_SHARD_RE.match(f.name).group("index")) for f in files}  # type: ignore[union-attr]
+    have = {int(SHARD_PATTERN.match(f.name).group("index")) for f in files}  # type: ignore[union-attr]
     if have != set(range(1, total + 1)):
         missing = sorted(set(range(1, total + 1)) - have)
         raise FileNotFoundError(f"incomplete shard set {stem_path}-*-of-{total:05d}.safetensors: "
                                 f"shards {missing} are missing")
     return files
-
-
-def _stem_of(path: Path) -> Path:
-    """``dir/name.safetensors`` / ``dir/name.safetensors.index.json`` / a shard -> ``dir/name``."""
-    name = path.name
-    m = _SHARD_RE.match(name)
-    if m:
-        return path.with_name(m.group("stem"))
-    if name.endswith(_INDEX_SUFFIX):
-        return path.with_name(name[: -len(_INDEX_SUFFIX)])
-    if name.endswith(".safetensors"):
-        return path.with_name(name[: -len(".safetensors")])
-    return path
 
 
 def _load_safetensors(files: list[Path], index: _Index | None = None,
@@ -232,7 +93,7 @@ def _load_safetensors(files: list[Path], index: _Index | None = None,
     state: dict[str, Tensor] = {}
     origin: dict[str, str] = {}
     for f in files:
-        _verify_sha256(f)
+        verify_listed_sha256(f)
         try:
             part = load_file(str(f), device="cpu")
         except FileNotFoundError:
@@ -244,7 +105,7 @@ def _load_safetensors(files: list[Path], index: _Index | None = None,
         if dup:
             raise ValueError(f"key {sorted(dup)[0]!r} appears in more than one shard ({f})")
         if check_finite:
-            _check_finite(part, f)
+            check_finite_weights(part, f)
         state.update(part)
         origin.update(dict.fromkeys(part, f.name))
     if index is not None:
@@ -259,7 +120,7 @@ def _load_safetensors(files: list[Path], index: _Index | None = None,
 
 def _read_index(path: Path) -> _Index:
     """Verify and parse a ``.safetensors.index.json``: its path and its ``weight_map``."""
-    _verify_sha256(path)
+    verify_listed_sha256(path)
     try:
         index = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:  # ValueError: JSONDecodeError, UnicodeDecodeError
@@ -278,26 +139,26 @@ def _read_index(path: Path) -> _Index:
 def _resolve_safetensors(path: Path) -> tuple[list[Path], _Index | None] | None:
     """The safetensors file(s) ``path`` names and the index that lists them (if read), or None when ``path``
     is not a safetensors path."""
-    if path.name.endswith(_INDEX_SUFFIX) and path.is_file():
+    if path.name.endswith(INDEX_SUFFIX) and path.is_file():
         index = _read_index(path)
         files = [path.parent / name for name in sorted(set(index[1].values()))]
         absent = [f.name for f in files if not f.is_file()]
         if absent:
             raise FileNotFoundError(f"{path} lists shard files that do not exist: {_short(absent)}")
         return files, index
-    if _SHARD_RE.match(path.name) and path.is_file():
-        return _shard_files(_stem_of(path)), None
+    if SHARD_PATTERN.match(path.name) and path.is_file():
+        return _shard_files(stem_of(path)), None
     if path.name.endswith(".safetensors"):
         if path.is_file():
             return [path], None
         index_path = path.with_name(path.name + ".index.json")
         if index_path.is_file():
             return _resolve_safetensors(index_path)
-        shards = _shard_files(_stem_of(path))
+        shards = _shard_files(stem_of(path))
         if shards:
             return shards, None
         raise FileNotFoundError(f"checkpoint not found: {path} (nor its index {index_path.name} nor shards "
-                                f"{_stem_of(path).name}-XXXXX-of-NNNNN.safetensors)")
+                                f"{stem_of(path).name}-XXXXX-of-NNNNN.safetensors)")
     return None
 
 
@@ -413,10 +274,10 @@ def load_state_dict_file(path: str | Path, key: str | None = None, *,
         return _load_safetensors(*resolved, check_finite=check_finite)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
-    _verify_sha256(path)
+    verify_listed_sha256(path)
     state = _extract_state_dict(_torch_load(path), path, key)
     if check_finite:
-        _check_finite(state, path)
+        check_finite_weights(state, path)
     return state
 
 
@@ -528,7 +389,7 @@ def save_weights(module: nn.Module, path: str | Path, dtype: torch.dtype | None 
     from safetensors.torch import save_file
 
     path = Path(path).expanduser()
-    if not path.name.endswith(".safetensors") or _SHARD_RE.match(path.name):
+    if not path.name.endswith(".safetensors") or SHARD_PATTERN.match(path.name):
         raise ValueError(f"path must be <stem>.safetensors (not a shard name), got {path.name!r}")
     if max_shard_mb <= 0:
         raise ValueError(f"max_shard_mb must be positive, got {max_shard_mb}")
@@ -554,11 +415,11 @@ def save_weights(module: nn.Module, path: str | Path, dtype: torch.dtype | None 
         shards[-1][k] = v
         size += cost
 
-    stem = _stem_of(path)
+    stem = stem_of(path)
     index_path = path.with_name(path.name + ".index.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     for old in [path, index_path, *(f for f in path.parent.iterdir()
-                                    if (m := _SHARD_RE.match(f.name)) and m.group("stem") == stem.name)]:
+                                    if (m := SHARD_PATTERN.match(f.name)) and m.group("stem") == stem.name)]:
         if old.is_file():
             old.unlink()
     metadata = {"format": "pt", "module": type(module).__name__}
@@ -613,9 +474,9 @@ def resolve_checkpoint(name_or_path: str | Path | None, model_name: str) -> Path
     for d in searched:
         if not d.is_dir():
             continue
-        candidates = [*d.glob(f"{model_name}*.safetensors"), *d.glob(f"{model_name}*{_INDEX_SUFFIX}")]
+        candidates = [*d.glob(f"{model_name}*.safetensors"), *d.glob(f"{model_name}*{INDEX_SUFFIX}")]
         # "<model>-<variant>" stems (refid-4-1, refid-deblur) belong to other layouts: exact name only
-        stems = sorted({_stem_of(f).name for f in candidates} - {s for s in (_stem_of(f).name for f in candidates)
+        stems = sorted({stem_of(f).name for f in candidates} - {s for s in (stem_of(f).name for f in candidates)
                                                                    if s.startswith(f"{model_name}-")})
         if not stems:
             continue
@@ -627,7 +488,7 @@ def resolve_checkpoint(name_or_path: str | Path | None, model_name: str) -> Path
             raise ValueError(f"several default checkpoints for {model_name} in {d}: {stems}; "
                              "pass one as a path")
         single = d / f"{stem}.safetensors"
-        index = d / f"{stem}{_INDEX_SUFFIX}"
+        index = d / f"{stem}{INDEX_SUFFIX}"
         if single.is_file():
             return single
         if index.is_file():
