@@ -56,6 +56,8 @@ import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU page
 # isort: split
 
 import argparse
+import functools
+import itertools
 import json
 import resource
 import statistics
@@ -271,6 +273,7 @@ def bench_stages(device: torch.device, args: argparse.Namespace) -> None:
     import evlatcorr.continuous as continuous
     import evlatcorr.search_candidates as search_candidates
     import evlatcorr.search_learned as search_learned
+    import evlatcorr.tile_curves as tile_curves
 
     blurry, ev, start, end = make_frame(args.height, args.width, args.exposure_us, 4000.0, device)
     stages = {"prepare the events (sort by pixel, levels)": (continuous.ContinuousIntegral, "__init__"),
@@ -278,6 +281,9 @@ def bench_stages(device: torch.device, args: argparse.Namespace) -> None:
               "sharpness scores": (search_candidates, "_latent_scores"),
               "ghost moments": (search_learned, "inverse_ratio_moment"),
               "overshoots": (search_learned, "overshoot"),
+              "sharpness scores, whole frame and tiles": (tile_curves, "tile_sparsity_scores"),
+              "ghost moments, whole frame and tiles": (tile_curves, "tile_moments"),
+              "overshoots, whole frame and tiles": (tile_curves, "tile_overshoots"),
               "the estimate's latent (its window read once more)": (continuous.ContinuousIntegral, "log_ratio")}
     spent: dict[str, float] = {}
 
@@ -296,29 +302,36 @@ def bench_stages(device: torch.device, args: argparse.Namespace) -> None:
     try:
         for label, (owner, name) in stages.items():
             setattr(owner, name, wrapped(label, originals[label]))
-        for way, on in ways.items():
+        # the default reads the frame's tiles too (SearchConfig.tiles); the whole frame alone beside it
+        for (way, on), tiles in itertools.product(ways.items(), (True, False)):
             compiled_passes.ENABLED = on
             per_call: dict[str, list[float]] = {label: [] for label in [*stages, "other", "total"]}
+            search = functools.partial(search_constant_latency, blurry, ev, start, end, num_bins=args.bins,
+                                       num_candidates=args.candidates, tiles=tiles)
             for k in range(WARM_UP + args.repeats):
                 spent.clear()
-                total, _ = timed(lambda: search_constant_latency(blurry, ev, start, end, num_bins=args.bins,
-                                                                 num_candidates=args.candidates), device)
+                total, _ = timed(search, device)
                 if k >= WARM_UP:
                     for label in stages:
                         per_call[label].append(spent.get(label, 0.0))
                     per_call["other"].append(total - sum(spent.values()))
                     per_call["total"].append(total)
-            print(f"[{device.type}] default search ({DEFAULT_SCORE}) by stage{', ' + way if way else ''}, {len(ev)} "
-                  f"events, median of {args.repeats}:")
+            reads = "the whole frame and its tiles" if tiles else "the whole frame alone (tiles=False)"
+            print(f"[{device.type}] default search ({DEFAULT_SCORE}) by stage{', ' + way if way else ''}, {reads}, "
+                  f"{len(ev)} events, median of {args.repeats}:")
             for label, values in per_call.items():
-                print(f"[{device.type}]   {label}: {statistics.median(values) * 1000:.1f} ms")
-            totals[way] = statistics.median(per_call["total"])
+                if any(values):
+                    print(f"[{device.type}]   {label}: {statistics.median(values) * 1000:.1f} ms")
+            totals[way, tiles] = statistics.median(per_call["total"])
+            if not tiles:
+                print(f"[{device.type}] tiles/whole frame alone{', ' + way if way else ''}: "
+                      f"{totals[way, True] / totals[way, False]:.2f}x")
     finally:
         compiled_passes.ENABLED = enabled
         for label, (owner, name) in stages.items():
             setattr(owner, name, originals[label])
-    if len(totals) == 2:
-        print(f"[{device.type}] eager/compiled: {totals['eager'] / totals['compiled']:.2f}x")
+    if len(ways) == 2:
+        print(f"[{device.type}] eager/compiled: {totals['eager', True] / totals['compiled', True]:.2f}x")
 
 
 def bench_recording(device: torch.device, args: argparse.Namespace) -> None:

@@ -62,6 +62,9 @@ class SearchConfig:
             score minimum at all and no previous latency, which would otherwise get no shift; 0.01: also
             nearly flat curves (better for a constant latency, worse where it varies with intensity); None:
             never. Continuous method only.
+        tiles: ``score="learned"``: also read the curves of the frame's 3x3 tiles and weigh them against the
+            whole frame's with the tile reader (:mod:`evlatcorr.tile_reader`); False: the whole frame's alone.
+            Frames under 18x18 pixels are read whole (:func:`~evlatcorr.image_tiles.tiles_fit`).
     """
 
     num_bins: int = 500
@@ -73,6 +76,7 @@ class SearchConfig:
     window: int = DEFAULT_WINDOW
     sigma_us: float = DEFAULT_SIGMA_US
     ghost_confidence: float | None = DEFAULT_GHOST_CONFIDENCE
+    tiles: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.num_bins, int) or self.num_bins < 2:

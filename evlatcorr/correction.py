@@ -266,6 +266,8 @@ class EventLatencyCorrector(nn.Module):
         ghost_confidence: frames whose score curve's confidence is at most this get the ghost-moment cue's
             latency where it is clear (:mod:`evlatcorr.ghost`); 0: only frames with no minimum and no
             previous latency (which would get no shift); None: never.
+        tiles: ``score="learned"``: also read the frame's 3x3 tiles and weigh them against the whole frame with
+            the tile reader (default; :mod:`evlatcorr.tile_reader`); False: the whole frame's curves alone.
         curve: ``mode="spatial"`` only: a trained latency curve checkpoint.
         **spatial_kwargs: ``mode="spatial"`` only: options of the spatial corrector (``steps``, ``lr``,
             ``train_bins``, ``order``, ``weights``, ``progress``: :class:`~evlatcorr.spatial.SpatialLatencyCorrector`);
@@ -298,6 +300,7 @@ class EventLatencyCorrector(nn.Module):
         sigma_us: float = DEFAULT_SIGMA_US,
         score: str = DEFAULT_SCORE,
         ghost_confidence: float | None = DEFAULT_GHOST_CONFIDENCE,
+        tiles: bool = True,
         curve: str | None = None,
         **spatial_kwargs: Any,
     ) -> None:
@@ -312,7 +315,7 @@ class EventLatencyCorrector(nn.Module):
         self.mode, self.threshold = mode, threshold
         self.config = SearchConfig(num_bins=num_bins, search_range=search_range, num_candidates=num_candidates,
                                    refine=refine, score=score, epsilon=epsilon, window=window, sigma_us=sigma_us,
-                                   ghost_confidence=ghost_confidence)
+                                   ghost_confidence=ghost_confidence, tiles=tiles)
         self.constant: ConstantLatencyCorrector | None = None
         self.spatial: nn.Module | None = None
         if mode == "constant":

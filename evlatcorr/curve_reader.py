@@ -267,17 +267,10 @@ def load_curve_reader(path: str | None = None) -> CurveReaderEnsemble:
     """
     from safetensors.torch import load_file
 
-    if path is None:
-        from evlatcorr.locations import checkpoint_dirs
+    from evlatcorr.locations import shipped_weights
 
-        candidates = [d / f"{WEIGHTS_NAME}.safetensors" for d in checkpoint_dirs()]
-        found = next((c for c in candidates if c.is_file()), None)
-        if found is None:
-            raise FileNotFoundError(f"no {WEIGHTS_NAME}.safetensors in {[str(d) for d in checkpoint_dirs()]}: "
-                                    "run python benchmarks/train_curve_reader.py, or use another score")
-        path = str(found)
-    elif not Path(path).is_file():
-        raise FileNotFoundError(f"no curve reader weights at {path}")
+    path = shipped_weights(f"{WEIGHTS_NAME}.safetensors", path, "curve reader",
+                           "run python benchmarks/train_curve_reader.py, or use another score")
     state = load_file(path)
     members = len({key.split(".")[1] for key in state})
     # its inputs, channels and layers, as trained (a convolution's weight and bias at every other index of net)

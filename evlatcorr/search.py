@@ -33,6 +33,7 @@ from evlatcorr.checks import check_batch_vector, check_exposure, check_image, ch
 from evlatcorr.config import DEFAULT_SCORE, SCORES, SPARSITY_SCORES, SearchConfig
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.events import Events
+from evlatcorr.image_tiles import tiles_fit
 from evlatcorr.search_binned import _binned_reader
 from evlatcorr.search_candidates import (
     _CandidateReader,
@@ -46,6 +47,7 @@ from evlatcorr.search_learned import (
     _learned_log_p,
     _learned_pick,
     _reader_windows,
+    _tiled_log_p,
     candidate_curves,
 )
 from evlatcorr.sharpness import sharpness_score, sharpness_scores
@@ -136,6 +138,7 @@ def search_constant_latency(
     memory_budget: int | None = None,
     method: str | None = None,
     config: SearchConfig | None = None,
+    tiles: bool = True,
 ) -> ConstantSearchResult:
     """Find the constant latency per sample that minimises the ETF of the EDI latent image.
 
@@ -157,8 +160,9 @@ def search_constant_latency(
         sigma_us: σ of the temporal prior, µs.
         integral: ``"step"`` (impulse events) or ``"linear"`` (each event spread since the previous one
             at its pixel, Eq. 16-18; see :mod:`evlatcorr.integral`).
-        score: ``"learned"`` (default: :mod:`evlatcorr.curve_reader` reads the three sparsity curves and the
-            ghost moment; the estimate is the centre of its probability around its likeliest candidate),
+        score: ``"learned"`` (default: :mod:`evlatcorr.curve_reader` reads the three sparsity curves, the ghost
+            moment and the overshoot, of the whole frame and, with ``tiles``, of each of its tiles; the estimate is
+            the centre of the probability around its likeliest candidate),
             ``"consensus"`` (the median of the estimates of the three sparsity scores), ``"sparsity"``,
             ``"sparsity_bright"``, ``"sparsity_multiscale"`` or ``"etf"`` (paper Eq. 14; see
             :func:`sharpness_score`).
@@ -172,7 +176,10 @@ def search_constant_latency(
             prefix-sum table (trapezoidal rule), as before the continuous integral; kept for comparison.
         config: the search settings as one :class:`~evlatcorr.config.SearchConfig` (already validated); when
             given it replaces ``num_bins``, ``search_range``, ``num_candidates``, ``refine``, ``epsilon``,
-            ``window``, ``sigma_us`` and ``score``, and sets ``ghost_confidence``.
+            ``window``, ``sigma_us``, ``score`` and ``tiles``, and sets ``ghost_confidence``.
+        tiles: ``score="learned"`` (continuous method): also read the curves of the frame's 3x3 tiles and weigh
+            them against the whole frame's with the tile reader (:mod:`evlatcorr.tile_reader`); False: the whole
+            frame's alone.
 
     Candidates whose window ``[exposure_start + l, exposure_end + l]`` runs past a sample's last
     event are never scored. When the curve has no interior minimum (see ``confidence``), the
@@ -202,7 +209,8 @@ def search_constant_latency(
     """
     if config is None:
         config = SearchConfig(num_bins=num_bins, search_range=search_range, num_candidates=num_candidates,
-                              refine=refine, score=score, epsilon=epsilon, window=window, sigma_us=sigma_us)
+                              refine=refine, score=score, epsilon=epsilon, window=window, sigma_us=sigma_us,
+                              tiles=tiles)
     check_image(blurry, "blurry")
     b = blurry.shape[0]
     if events.batch_size != b:
@@ -386,6 +394,10 @@ def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float
     # the learned reader reads the curves as it was trained (no temporal prior) and takes the prior afterwards
     coarse_prev = None if config.score == "learned" else prev
     moment = None
+    if (evidence is None and config.score == "learned" and config.tiles and method == "continuous"
+            and tiles_fit(*grey.shape[-2:])):
+        # the whole frame's and its tiles' curves from the same passes
+        evidence = _Evidence(reader, *_tiled_log_p(reader, grey))
     if evidence is not None:
         coarse_scores = evidence.scores
     else:

@@ -28,6 +28,7 @@ from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.curve_reader import curve_features
 from evlatcorr.events import Events
 from evlatcorr.ghost import stacked_inverse_ratio_moment
+from evlatcorr.image_tiles import TILE_GRID, tile_sums, tiles_fit
 from evlatcorr.overshoot import overshoot, overshoot_stride
 from evlatcorr.search import _SPARSITY, _Evidence, _fuse_with_history, _OneResult, _read_later, _search_one
 from evlatcorr.search_candidates import (
@@ -37,9 +38,11 @@ from evlatcorr.search_candidates import (
     _score_chunk,
     _Window,
 )
-from evlatcorr.search_learned import _read_curves
+from evlatcorr.search_learned import _read_curves, _tile_reader
 from evlatcorr.sharpness import _scores_of
 from evlatcorr.temporal import LatencyHistory
+from evlatcorr.tile_curves import tile_moments, tile_overshoots, tile_sparsity_scores
+from evlatcorr.tile_reader import tile_inputs, tile_log_probability
 
 __all__ = ["frames_can_share_a_pass", "search_frames_together"]
 
@@ -117,24 +120,44 @@ def _search_pass(grey: Tensor, events: Events, bounds: list[int], spans: list[_W
     ignored = integral.ignored.view(frames, -1).sum(1).tolist()
     kept = coarse[coarse <= max(tops)]  # sorted: each frame's own candidates are a prefix of them
     own = [int((kept <= top).sum()) for top in tops]
-    scores = torch.full((frames, len(_SPARSITY), len(coarse)), math.inf, dtype=torch.float64)
-    moments = torch.zeros((frames, len(coarse)), dtype=torch.float64, device=grey.device)
+    tiles = config.tiles and tiles_fit(height, width)
+    regions = 1 + TILE_GRID[0] * TILE_GRID[1] if tiles else 1  # the whole frame, then its tiles
+    scores = torch.full((frames, regions, len(_SPARSITY), len(coarse)), math.inf, dtype=torch.float64)
+    moments = torch.zeros((frames, regions, len(coarse)), dtype=torch.float64, device=grey.device)
     overshoots = torch.zeros_like(moments)
+    activity = torch.zeros((frames, regions - 1), dtype=torch.float64, device=grey.device)
     inverse = None
     if len(kept):
         inverse, change, peak = _read(integral, exposure, kept, (frames, height, width), limit)
         block = grey[first:last, 0][None]  # (1, F, H, W): frame j's pixels are block j of the tall image
         tall = (len(kept), frames, height, width)
-        values, moment = _scores_and_moments(block, inverse.view(tall), change.view(tall), config)
-        over = overshoot(block.to(inverse), inverse.view(tall), peak).view(len(kept), frames)
+        if tiles:
+            values, moment, over = _tile_reductions(block, inverse.view(tall), change.view(tall), peak)
+            # each frame's share of its events' change over its own candidates, as the frame alone takes it
+            activity = torch.stack([tile_sums(change.view(tall)[:n, j].abs().sum(0).double(), TILE_GRID)
+                                    for j, n in enumerate(own)])
+        else:
+            values, moment = _scores_and_moments(block, inverse.view(tall), change.view(tall), config)
+            over = overshoot(block.to(inverse), inverse.view(tall), peak).view(len(kept), frames)
+            values, moment, over = values[..., None], moment[..., None], over[..., None]
         for j, n in enumerate(own):
-            scores[j, :, :n] = values[:, :n, j]
-            moments[j, :n] = moment[:n, j]
-            overshoots[j, :n] = over[:n, j]
+            scores[j, :, :, :n] = values[:, :n, j].permute(2, 0, 1)
+            moments[j, :, :n] = moment[:n, j].T
+            overshoots[j, :, :n] = over[:n, j].T
         del change, peak
-    valid = torch.isfinite(scores[:, 0])
-    curves = curve_features(scores.to(grey.device), moments, valid.to(grey.device), overshoots)
-    log_p = _read_curves(curves, valid)
+    valid = torch.isfinite(scores[:, 0, 0])  # (F, K)
+    every = valid[:, None].expand(-1, regions, -1)
+    curves = curve_features(scores.flatten(0, 1).to(grey.device), moments.flatten(0, 1),
+                            every.flatten(0, 1).to(grey.device), overshoots.flatten(0, 1))
+    log_p = _read_curves(curves, every.flatten(0, 1)).view(frames, regions, -1)
+    curves = curves.view(frames, regions, *curves.shape[1:])
+    if tiles:
+        share = (activity / activity.sum(1, keepdim=True).clamp_min(1e-12)).cpu()
+        inputs = tile_inputs(curves[:, 0].cpu(), log_p[:, 1:], share, valid)
+        log_p = tile_log_probability(inputs, log_p[:, 0], valid, _tile_reader())
+    else:
+        log_p = log_p[:, 0]
+    scores, moments = scores[:, 0], moments[:, 0]
 
     results = []
     for j in range(frames):
@@ -198,6 +221,19 @@ def _scores_and_moments(grey: Tensor, inverse: Tensor, change: Tensor, config: S
     moments = [stacked_inverse_ratio_moment(grey, inverse[k0:k0 + chunk], change[k0:k0 + chunk])
                for k0 in range(0, k, chunk)]
     return torch.cat(values, 1).double().cpu(), torch.cat(moments).double()
+
+
+def _tile_reductions(grey: Tensor, inverse: Tensor, change: Tensor, peak: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The sparsity scores :math:`(3, K, F, 1 + T)` (float64, host), ghost moments and overshoots
+    :math:`(K, F, 1 + T)` (float64, device) of the latents ``grey · inverse`` :math:`(K, F, H, W)` over each whole
+    frame and its tiles, as :func:`evlatcorr.tile_curves.tile_reductions` gives them frame by frame."""
+    k, frames = inverse.shape[:2]
+    grey = grey.to(inverse)
+    chunk = max(1, _score_chunk(grey[:, :1]) // frames)
+    values = [tile_sparsity_scores(grey, inverse[k0:k0 + chunk]) for k0 in range(0, k, chunk)]
+    moments = [tile_moments(grey, inverse[k0:k0 + chunk], change[k0:k0 + chunk]) for k0 in range(0, k, chunk)]
+    over = tile_overshoots(grey, inverse, peak)
+    return torch.cat(values, 1).cpu(), torch.cat(moments).to(grey.device), over.to(grey.device)
 
 
 def _chunk_scores(grey: Tensor, inverse: Tensor, config: SearchConfig) -> Tensor:

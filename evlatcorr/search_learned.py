@@ -4,7 +4,9 @@ Over one frame's coarse candidates (:mod:`evlatcorr.search_candidates`) the thre
 (:mod:`evlatcorr.ghost`) and the overshoot (:mod:`evlatcorr.overshoot`) make the reader's input
 (:func:`~evlatcorr.curve_reader.curve_features`); the shipped reader (:mod:`evlatcorr.curve_reader`) gives each
 candidate a probability, and the estimate is the centre of that probability around the likeliest candidate.
-:func:`candidate_curves` gives what the reader was trained on.
+:func:`candidate_curves` gives what the reader was trained on. With ``SearchConfig.tiles`` (the default) the same
+curves are also read over the frame's tiles (:mod:`evlatcorr.tile_curves`) and the tile reader
+(:mod:`evlatcorr.tile_reader`) weighs them against the whole frame's.
 """
 
 from __future__ import annotations
@@ -51,6 +53,34 @@ def _learned_log_p(reader: _CandidateReader, grey: Tensor, coarse: Tensor, coars
     their ghost moments :math:`(K,)` on the frame's device (0 past the last event)."""
     curves, valid, moment = _curve_inputs(reader, grey, coarse, coarse_scores)
     return _read_curves(curves[None], valid[None])[0], moment
+
+
+def _tiled_log_p(reader: _CandidateReader, grey: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The coarse candidates' sparsity scores :math:`(3, K)` on the host (inf where not valid), the estimate's
+    log-probability :math:`(K,)` float64 on the host (the whole frame's reader and the tile reader together,
+    :func:`evlatcorr.tile_reader.tile_log_probability`) and the whole frame's ghost moments :math:`(K,)` on the
+    frame's device: what :func:`_learned_log_p` gives, with the frame's tiles read too (``SearchConfig.tiles``)."""
+    from evlatcorr.curve_reader import curve_features
+    from evlatcorr.tile_curves import tile_reductions
+    from evlatcorr.tile_reader import tile_inputs, tile_log_probability
+
+    scores, moment, over, share, valid = tile_reductions(reader, grey)
+    curves = curve_features(scores, moment, valid.expand(len(scores), -1), over)
+    log_p = _read_curves(curves, valid.expand(len(scores), -1))  # (1 + T, K) on the host: the whole frame, tiles
+    valid = valid.cpu()
+    inputs = tile_inputs(curves[:1].cpu(), log_p[None, 1:], share[None].cpu(), valid[None])
+    fused = tile_log_probability(inputs, log_p[:1], valid[None], _tile_reader())[0]
+    return scores[0].cpu(), fused, moment[0]
+
+
+@functools.lru_cache(maxsize=1)
+def _tile_reader() -> torch.nn.Module:
+    """The shipped tile reader on the host, its members fused (:func:`_curve_reader_on`): it reads the host's
+    log-probabilities of the tiles."""
+    from evlatcorr.curve_reader import FusedCurveReaderEnsemble
+    from evlatcorr.tile_reader import load_tile_reader
+
+    return FusedCurveReaderEnsemble(load_tile_reader()).eval()
 
 
 def _read_curves(curves: Tensor, valid: Tensor) -> Tensor:
@@ -171,7 +201,8 @@ def _reader_windows(windows: list[_Window]) -> list[_Window]:
 
 def candidate_curves(blurry: Tensor, events: Events, exposure_start: float, exposure_end: float,
                      threshold: float, before_us: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
-    """What ``score="learned"`` reads for one frame at the default settings: the coarse candidates
+    """What the curve reader reads for one frame at the default settings (the whole frame's curves; the tiles':
+    :func:`evlatcorr.tile_curves.candidate_tile_curves`): the coarse candidates
     :math:`(K,)` µs, their :func:`~evlatcorr.curve_reader.curve_features` :math:`(F, K)` and which are valid
     :math:`(K,)` (what :func:`evlatcorr.curve_reader.train_curve_reader` is trained on).
 

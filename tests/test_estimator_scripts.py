@@ -14,7 +14,7 @@ TILES = "benchmarks/estimators/tiles.py"
 def test_tiles_whole_frame_read_is_the_corrector_s_reader_estimate():
     delayed = simulate_case(tiny_case())[0]
     delayed.meta["threshold"] = 0.2
-    corrected = EventLatencyCorrector(threshold=0.2)(delayed)
+    corrected = EventLatencyCorrector(threshold=0.2, tiles=False)(delayed)  # the whole frame's reader alone
     assert corrected.meta["latency_source"][0] in ("sharpness", "reader")
     whole = load_estimator(f"{TILES}:estimate_whole")(delayed)
     assert whole.shape == (1, 1, *delayed.blurry.shape[-2:])
@@ -86,8 +86,8 @@ def test_reader_script_reads_the_shipped_reader_or_one_trained_without_the_overs
     estimate = load_estimator("benchmarks/estimators/reader.py:estimate")
     monkeypatch.delenv("EVLATCORR_READER", raising=False)
     shipped = float(estimate(delayed).unique())
-    # the shipped reader's centre: the corrector's estimate here (no fallback decides this frame)
-    corrected = EventLatencyCorrector(threshold=case.threshold)(delayed)
+    # the shipped reader's centre: the whole-frame corrector's estimate here (no fallback decides this frame)
+    corrected = EventLatencyCorrector(threshold=case.threshold, tiles=False)(delayed)
     assert abs(shipped - float(corrected.latency.mean())) < 1.0 and abs(shipped - case.latency_us) < 500.0
     # a reader trained (briefly) without the overshoot reads the curves without its row
     k = 101
@@ -250,3 +250,19 @@ def test_self_calibration_estimates_lie_in_the_range_and_thresholds_keep_the_def
     boot = load_estimator(f"{SELF_CALIBRATION}:bootstrap")(delayed)
     assert boot.shape == (1, 1, 96, 128) and float(boot.min()) >= 0.0
     assert abs(default - case.latency_us) < 500.0 and abs(thresholds - default) < 500.0
+
+
+def test_tile_reader_script_reads_a_delay_frame_s_tiles_and_takes_known_targets(tmp_path):
+    from evlatcorr.benchmark.accuracy import DELAY_TRAIN_SPLIT
+
+    read_case = load_estimator("benchmarks/train_tile_reader.py:_read_case")
+    known_targets = load_estimator("benchmarks/train_tile_reader.py:known_targets")
+    case = make_cases(DELAY_TRAIN_SPLIT, num=1)[0]
+    assert case.latency_model == "intensity_delay" and len(make_cases(DELAY_TRAIN_SPLIT)) == 300
+    torch.save({"names": [case.name], "targets": torch.tensor([1234.0], dtype=torch.float64)}, tmp_path / "t.pt")
+    known = known_targets([tmp_path / "t.pt"])
+    assert known == {case.name: 1234.0}
+    name, latencies, whole, tiles, share, valid, target = read_case((case, known[case.name]))
+    assert name == case.name and target == 1234.0  # no best-shift scan where the target is known
+    assert tiles.shape == (9, *whole.shape) and whole.shape[-1] == len(latencies) == len(valid)
+    assert float(share.sum()) == pytest.approx(1.0) and int(valid.sum()) >= 3

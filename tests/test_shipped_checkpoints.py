@@ -15,6 +15,7 @@ from evlatcorr.adapters import EFNetAdapter, GEMAdapter, REFIDAdapter
 from evlatcorr.adapters.checkpoint import file_sha256
 from evlatcorr.curve_reader import WEIGHTS_NAME
 from evlatcorr.simulate import PHOTOGRAPHS_TEST, simulate
+from evlatcorr.tile_reader import TILE_WEIGHTS_NAME
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = {
@@ -29,9 +30,10 @@ def _psnr(image: torch.Tensor, target: torch.Tensor) -> float:
 
 
 def test_checkpoint_cards_list_their_files_and_stay_under_the_size_limits():
-    # the curve reader's provenance (curve-reader.json) is not a network card: see test_curve_reader.py
+    # the curve and tile readers' provenance (curve-reader.json, tile-reader.json) is not a network card: see
+    # test_curve_reader.py and test_tiles.py
     cards = [p for p in sorted((ROOT / "checkpoints").glob("*.json"))
-             if not p.name.endswith(".index.json") and p.stem != WEIGHTS_NAME]
+             if not p.name.endswith(".index.json") and p.stem not in (WEIGHTS_NAME, TILE_WEIGHTS_NAME)]
     assert {c.stem for c in cards} == set(SHIPPED)
     total = 0
     for card in cards:

@@ -52,22 +52,27 @@ def test_against_bad_arguments_exit_with_one_clear_line(args, code, message):
     assert "Traceback" not in run.stderr
 
 
-def test_stages_add_up_to_the_whole_search_compiled_and_eager():
+def test_stages_add_up_to_the_whole_search_compiled_and_eager_with_and_without_the_tiles():
     run = subprocess.run([sys.executable, str(SCRIPT), "--part", "stages", "--height", "24", "--width", "32",
                           "--repeats", "1"], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert run.returncode == 0, run.stderr
     lines = run.stdout.splitlines()
     headers = [k for k, line in enumerate(lines) if " by stage" in line]
-    assert [lines[k].split("by stage, ")[1].split(",")[0] for k in headers] == ["compiled", "eager"]
+    tiled, whole = "the whole frame and its tiles", "the whole frame alone (tiles=False)"
+    assert [lines[k].split("by stage, ")[1].split(", ")[:2] for k in headers] == [
+        ["compiled", tiled], ["compiled", whole], ["eager", tiled], ["eager", whole]]
     for k in headers:
+        end = next(j for j in range(k + 1, len(lines)) if lines[j].startswith("[cpu]   total"))
         times = {line.split(": ")[0].removeprefix("[cpu]   "): float(line.split(": ")[1].split(" ms")[0])
-                 for line in lines[k + 1:k + 9]}
-        assert set(times) == {"prepare the events (sort by pixel, levels)", "read the candidates' windows",
-                              "sharpness scores", "ghost moments", "overshoots",
-                              "the estimate's latent (its window read once more)", "other", "total"}
+                 for line in lines[k + 1:end + 1]}
+        reductions = ("sharpness scores", "ghost moments", "overshoots")
+        expected = [f"{r}, whole frame and tiles" for r in reductions] if tiled in lines[k] else list(reductions)
+        assert set(expected) <= set(times) and {"read the candidates' windows", "other", "total"} <= set(times)
         assert all(value >= 0 for value in times.values())
         parts = sum(value for label, value in times.items() if label != "total")
         assert parts == pytest.approx(times["total"], abs=0.5)  # each printed to 0.1 ms
+    ratios = [line for line in lines if "tiles/whole frame alone" in line]
+    assert len(ratios) == 2 and all(float(line.split(": ")[1].removesuffix("x")) > 0 for line in ratios)
     assert float(lines[-1].split("eager/compiled: ")[1].removesuffix("x")) > 0
 
 

@@ -7,14 +7,17 @@ inputs (the three sparsity curves, the ghost moment and the overshoot over the c
 frame and on each tile of a 2x2 and a 3x3 grid, and sums the log-probabilities: the whole frame's with weight 1,
 each grid's tiles with weights that add up to 1 per grid, in proportion to the events in each tile (a tile with no
 motion has flat curves that the reader, reading them relative to their own range, would answer at random). The
-estimate is the centre of the summed probability, as the search takes it for one frame. It was measured on the
-tuning cases and not shipped (``docs/estimator.md``):
+estimate is the centre of the summed probability, as the search takes it for one frame. This form (tiles cropped,
+log-probabilities summed by hand-set weights) was measured on the tuning cases and not shipped; its learned
+successor, which reads the tiles from the search's own passes, is the default (:mod:`evlatcorr.tile_reader`,
+``docs/estimator.md``):
 
     python benchmarks/accuracy.py --split tuning --mode none \\
         --estimator benchmarks/estimators/tiles.py:estimate_whole --estimator benchmarks/estimators/tiles.py:estimate
 
-``estimate_whole`` is the same read on the whole frame only: the default search's reader estimate without its
-fallbacks (a frame whose windows hold no events is refused here), the fair baseline for the tiles.
+``estimate_whole`` is the same read on the whole frame only: the reader's estimate of the search with
+``tiles=False``, without its fallbacks (a frame whose windows hold no events is refused here), the fair baseline for
+the tiles.
 ``estimate_map_2x2`` and ``estimate_map_3x3`` give each tile its own latency instead (its log-probability plus the
 whole frame's), interpolated bilinearly between the tiles' centres: a per-pixel map for latencies that vary with
 intensity, also measured and not shipped.

@@ -51,6 +51,7 @@ from evlatcorr.benchmark import compare
 from evlatcorr.benchmark.accuracy_cases import (  # the suite's cases, here too: the suite's one public face
     BEST_SHIFTS_US,
     DEFAULT_SIZE,
+    DELAY_TRAIN_SPLIT,
     LATENCY_MODELS,
     MOTION_KINDS,
     SPLITS,
@@ -70,6 +71,7 @@ __all__ = [
     "LATENCY_MODELS",
     "MOTION_KINDS",
     "DEFAULT_SIZE",
+    "DELAY_TRAIN_SPLIT",
     "TRAIN_SPLITS",
     "Case",
     "make_cases",
@@ -138,17 +140,19 @@ def _best_shift(delayed: EventFrames, threshold: float) -> dict[str, float]:
     return {"psnr_best_shift": best[0], "best_shift_us": best[1]}
 
 
-def training_target(case: Case, delayed: EventFrames) -> float:
+def training_target(case: Case, delayed: EventFrames, *, delay_best_shift: bool = False) -> float:
     """What the learned curve reader is trained to pick for a training case, µs: the true latency of a constant
     one, the best constant shift (:func:`case_reference`'s oracle) under the photoreceptor model, where no one
-    latency is true.
+    latency is true; with ``delay_best_shift``, the best constant shift under the per-pixel delay model too (the
+    tile reader's delay frames, :mod:`evlatcorr.tile_reader`).
 
     Raises:
-        ValueError: for the ``"intensity_delay"`` model (the reader is not trained on its frames).
+        ValueError: for the ``"intensity_delay"`` model without ``delay_best_shift`` (the curve reader is not
+            trained on its frames).
     """
     if case.latency_model == "constant":
         return case.latency_us
-    if case.latency_model == "intensity":
+    if case.latency_model == "intensity" or (case.latency_model == "intensity_delay" and delay_best_shift):
         return _best_shift(delayed, case.threshold)["best_shift_us"]
     raise ValueError(f"no training target for the {case.latency_model!r} latency model")
 

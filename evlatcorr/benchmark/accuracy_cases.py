@@ -28,8 +28,8 @@ from evlatcorr.frames import EventFrames
 from evlatcorr.scenes import PROCEDURAL_SCENES, procedural_scene
 from evlatcorr.simulate import PHOTOGRAPHS_TEST, PHOTOGRAPHS_TRAIN, ObjectSpec, SimulatedSequence, simulate
 
-__all__ = ["SPLITS", "LATENCY_MODELS", "MOTION_KINDS", "DEFAULT_SIZE", "TRAIN_SPLITS", "Case", "make_cases",
-           "simulate_case"]
+__all__ = ["SPLITS", "LATENCY_MODELS", "MOTION_KINDS", "DEFAULT_SIZE", "TRAIN_SPLITS", "DELAY_TRAIN_SPLIT", "Case",
+           "make_cases", "simulate_case"]
 
 
 SPLITS = ("dev", "dev_wide", "test")
@@ -46,21 +46,24 @@ SCENE_FACTOR = 3  # procedural scenes are this many times the sensor's size
 # the learned curve reader's training cases (evlatcorr.curve_reader): the dev split's photographs, seeds disjoint
 # from dev and test; constant latency in four batches of 200, 300, 400 and 900 cases, then 200 photoreceptor cases
 TRAIN_SPLITS = ("train", "train1", "train2", "train3", "train_photo")
+# and the tile reader's (evlatcorr.tile_reader), beside those: 300 per-pixel delay cases of the same photographs
+DELAY_TRAIN_SPLIT = "train_delay"
 _NUM_CASES = {"dev": 40, "dev_wide": 120, "test": 48, "train": 200, "train1": 300, "train2": 400, "train3": 900,
-              "train_photo": 200}
+              "train_photo": 200, DELAY_TRAIN_SPLIT: 300}
 _PHOTOGRAPHS = {"dev": PHOTOGRAPHS_TRAIN, "dev_wide": PHOTOGRAPHS_TRAIN, "test": PHOTOGRAPHS_TEST,
-                **{s: PHOTOGRAPHS_TRAIN for s in TRAIN_SPLITS}}
+                **{s: PHOTOGRAPHS_TRAIN for s in (*TRAIN_SPLITS, DELAY_TRAIN_SPLIT)}}
 # case draws: generator seed 1000 * split seed + factor index
-_SPLIT_SEED = {"dev": 1, "test": 2, "train": 3, "train1": 4, "train2": 5, "train3": 6, "train_photo": 7, "dev_wide": 11}
+_SPLIT_SEED = {"dev": 1, "test": 2, "train": 3, "train1": 4, "train2": 5, "train3": 6, "train_photo": 7, "dev_wide": 11,
+               DELAY_TRAIN_SPLIT: 13}
 # procedural scenes and sprites: disjoint seed ranges
 _SCENE_SEED = {"dev": 100_000, "test": 200_000, "train": 300_000, "train1": 400_000, "train2": 500_000,
-               "train3": 600_000, "train_photo": 700_000, "dev_wide": 1_100_000}
+               "train3": 600_000, "train_photo": 700_000, "dev_wide": 1_100_000, DELAY_TRAIN_SPLIT: 1_300_000}
 _SIM_SEED = {"dev": 10_000, "test": 20_000, "train": 30_000, "train1": 40_000, "train2": 50_000, "train3": 60_000,
-             "train_photo": 70_000, "dev_wide": 110_000}
+             "train_photo": 70_000, "dev_wide": 110_000, DELAY_TRAIN_SPLIT: 130_000}
 _MOTION_WEIGHTS = (0.3, 0.15, 0.2, 0.15, 0.2)
 _LATENCY_WEIGHTS = (0.5, 0.25, 0.25)
 _TRAIN_LATENCY_WEIGHTS = (1.0, 0.0, 0.0)
-_SPLIT_LATENCY_WEIGHTS = {"train_photo": (0.0, 0.0, 1.0)}
+_SPLIT_LATENCY_WEIGHTS = {"train_photo": (0.0, 0.0, 1.0), DELAY_TRAIN_SPLIT: (0.0, 1.0, 0.0)}
 _MOTION_TAGS = {"translation": "tr", "random": "rnd", "rotation": "rot", "zoom": "zoom", "objects": "obj"}
 _LATENCY_TAGS = {"constant": "const", "intensity_delay": "delay", "intensity": "photo"}
 
@@ -180,7 +183,7 @@ def make_cases(split: str, num: int | None = None, size: tuple[int, int] = DEFAU
     Args:
         split: ``"dev"`` (40 cases), ``"dev_wide"`` (120), ``"test"`` (48 cases), or one of :data:`TRAIN_SPLITS`
             (constant latency, and the photoreceptor model in ``"train_photo"``: what the learned curve reader is
-            trained on; never reported).
+            trained on; never reported), or :data:`DELAY_TRAIN_SPLIT` (per-pixel delay: the tile reader's too).
         num: keep only the first ``num`` cases (a random subset that may miss some factors).
         size: sensor ``(H, W)``.
 
@@ -193,8 +196,8 @@ def make_cases(split: str, num: int | None = None, size: tuple[int, int] = DEFAU
         >>> [c.name for c in make_cases("dev", num=2)]
         ['dev-00-cell-b0.06-rot0.2-delay', 'dev-01-retina-b0.66-rot1.1-photo']
     """
-    if split not in SPLITS + TRAIN_SPLITS:
-        raise ValueError(f"split must be one of {SPLITS + TRAIN_SPLITS}, got {split!r}")
+    if split not in (*SPLITS, *TRAIN_SPLITS, DELAY_TRAIN_SPLIT):
+        raise ValueError(f"split must be one of {(*SPLITS, *TRAIN_SPLITS, DELAY_TRAIN_SPLIT)}, got {split!r}")
     if num is not None and (not isinstance(num, int) or num < 0):
         raise ValueError(f"num must be a non-negative integer or None, got {num!r}")
     if len(size) != 2 or not all(isinstance(s, int) and s >= 16 for s in size):

@@ -1,0 +1,206 @@
+"""The learned reader's curves over each tile of a frame as well as over the whole of it, from the same passes.
+
+:func:`~evlatcorr.curve_reader.curve_features` reads five curves over the candidates: three sparsity scores, the
+ghost moment and the overshoot, each a reduction over the frame's pixels. Here each is reduced over the whole frame
+and over each tile of :data:`~evlatcorr.image_tiles.TILE_GRID` at once (on a CPU inside the compiled passes, which
+keep a sum per tile row and column run beside the whole image's), so that a second reader
+(:mod:`evlatcorr.tile_reader`) can weigh what the tiles show against the whole frame. A tile's sparsity scores take
+the whole frame's brightness floor, its moment the whole frame's high-pass, and its overshoot the tile's own
+brightest pixel (the whole frame's values match :func:`~evlatcorr.search_learned.candidate_curves` to float
+rounding).
+"""
+
+from __future__ import annotations
+
+import math
+
+import kornia
+import torch
+from torch import Tensor
+
+from evlatcorr import compiled
+from evlatcorr.config import SPARSITY_SCORES, SearchConfig
+from evlatcorr.curve_reader import curve_features
+from evlatcorr.events import Events
+from evlatcorr.ghost import HIGH_PASS_SIGMA, _gaussian_blur, log_grey
+from evlatcorr.image_tiles import TILE_GRID, check_grid, tile_counts, tile_edges, tile_sums
+from evlatcorr.overshoot import OVERSHOOT_RANGE, QUANTILE, _upper_quantile, overshoot_stride
+from evlatcorr.search_candidates import _CandidateReader, _continuous_reader, _score_chunk, _Window
+from evlatcorr.sharpness import _mean_pool
+
+__all__ = ["TileCurves", "candidate_tile_curves", "tile_curve_inputs", "tile_gradient_sparsity", "tile_moments",
+           "tile_overshoots", "tile_reductions", "tile_sparsity_scores"]
+
+TileCurves = tuple[Tensor, Tensor, Tensor, Tensor]  # whole (F, K), tiles (T, F, K), shares (T,), valid (K,)
+
+
+def tile_gradient_sparsity(log: Tensor, half: bool, grid: tuple[int, int] = TILE_GRID) -> Tensor:
+    """The gradient sparsity ``‖∇I‖₁ / (‖∇I‖₂ · sqrt(n))`` of each image :math:`(K, 1, H, W)` over the whole image
+    and over each tile, at full resolution and (``half``) of its 2x2 means: :math:`(2, K, 1 + T)` float64 (row 1
+    zero without ``half``). A CPU takes one compiled pass; elsewhere, or for images asking for a gradient, eager
+    PyTorch (the same values)."""
+    height, width = log.shape[-2:]
+    if (log.device.type == "cpu" and compiled.ENABLED and log.dim() == 4 and log.shape[1] == 1
+            and min(height, width) >= 4 and not log.requires_grad):
+        from evlatcorr.compiled.gradients import gradient_tile_sparsity
+
+        return torch.from_numpy(gradient_tile_sparsity(log.flatten(0, 1).contiguous(), half, grid))
+    out = torch.zeros((2, log.shape[0], 1 + grid[0] * grid[1]), dtype=torch.float64, device=log.device)
+    for level, image in enumerate([log, _mean_pool(log, 2)] if half else [log]):
+        l1, l2 = _gradient_norm_maps(image[:, 0])  # in the image's dtype, summed in float64 (as compiled)
+        h, w = image.shape[-2:]
+        check_grid(grid, h, w)
+        counts = torch.cat([torch.tensor([float(h * w)]), tile_counts(h, w, grid)]).to(log.device)
+        sums = [_whole_and_tile_sums(m, grid) for m in (l1, l2)]
+        out[level] = sums[0] / (sums[1].sqrt() * (2 * counts).sqrt() + 1e-12)
+    return out
+
+
+def _whole_and_tile_sums(values: Tensor, grid: tuple[int, int]) -> Tensor:
+    """The sum of each image :math:`(K, H, W)` and of each of its tiles, in float64: :math:`(K, 1 + T)`."""
+    return torch.cat([values.sum((-2, -1), dtype=torch.float64)[:, None], tile_sums(values, grid, torch.float64)], 1)
+
+
+def _gradient_norm_maps(image: Tensor) -> tuple[Tensor, Tensor]:
+    """Each pixel's ``|∂x| + |∂y|`` and ``∂x² + ∂y²`` of :math:`(K, H, W)`: central differences, one-sided at the
+    borders (replicated padding), not halved, as :func:`evlatcorr.sharpness._gradient_sparsity` takes them."""
+    l1, l2 = torch.zeros_like(image), torch.zeros_like(image)
+    height, width = image.shape[-2:]
+    for size, pad, axis in ((width, (1, 1, 0, 0), -1), (height, (0, 0, 1, 1), -2)):
+        if size > 1:
+            padded = torch.nn.functional.pad(image[:, None], pad, mode="replicate")[:, 0]
+            gradient = padded.narrow(axis, 2, size) - padded.narrow(axis, 0, size)
+            l1 += gradient.abs()
+            l2 += gradient.square()
+    return l1, l2
+
+
+def tile_sparsity_scores(grey: Tensor, inverse: Tensor, grid: tuple[int, int] = TILE_GRID) -> Tensor:
+    """The three sparsity scores (:data:`~evlatcorr.config.SPARSITY_SCORES`) of the latents ``grey · inverse``
+    over each whole frame and each of its tiles: ``grey`` :math:`(1, F, H, W)`, ``inverse`` :math:`(K, F, H, W)`
+    (frame ``f``'s candidates in channel ``f``) → :math:`(3, K, F, 1 + T)` float64. Each log latent takes its
+    frame's mean as its floor, as :func:`evlatcorr.search_candidates._latent_scores` does."""
+    k, frames, height, width = inverse.shape
+    mean = torch.einsum("kfhw,fhw->kf", inverse, grey[0].to(inverse)).div_(height * width).clamp_min_(1e-12)
+    scales: dict[float, set[int]] = {}
+    for floor, factors in SPARSITY_SCORES.values():
+        scales.setdefault(floor, set()).update(factors)
+    terms = {}
+    for floor, factors in scales.items():
+        log = torch.addcmul(floor * mean[:, :, None, None], inverse, grey).log_().reshape(k * frames, 1, height, width)
+        both = tile_gradient_sparsity(log, 2 in factors, grid).view(2, k, frames, -1)
+        del log  # before the next floor's is made
+        terms.update({(floor, factor): both[factor - 1] for factor in factors})
+    return torch.stack([sum(terms[floor, factor] for factor in factors)
+                        for floor, factors in SPARSITY_SCORES.values()])
+
+
+def tile_moments(grey: Tensor, inverse: Tensor, log_change: Tensor, grid: tuple[int, int] = TILE_GRID) -> Tensor:
+    """:func:`~evlatcorr.ghost.inverse_ratio_moment` over each whole frame and each of its tiles (the correlation of
+    the high-passed log latent with the high-passed event change over the tile's pixels): ``grey``
+    :math:`(1, F, H, W)`, ``inverse`` and ``log_change`` :math:`(K, F, H, W)` → :math:`(K, F, 1 + T)` float64."""
+    k, frames, height, width = inverse.shape
+    flat = (k * frames, 1, height, width)
+    a = torch.log(inverse).add_(log_grey(grey, inverse.dtype)).view(flat)
+    b = log_change.to(a.dtype).reshape(flat)
+    if a.device.type == "cpu" and compiled.ENABLED and min(height, width) > 3 and not a.requires_grad:
+        from evlatcorr.compiled.high_pass import TAPS, high_pass_tile_correlation
+
+        taps = kornia.filters.get_gaussian_kernel1d(TAPS, HIGH_PASS_SIGMA, dtype=torch.float64)[0].numpy()
+        out = high_pass_tile_correlation(a[:, 0].contiguous(), b[:, 0].contiguous(), taps, grid)
+        return torch.from_numpy(out).view(k, frames, -1)
+    a = (a - _gaussian_blur(a, HIGH_PASS_SIGMA))[:, 0]
+    b = (b - _gaussian_blur(b, HIGH_PASS_SIGMA))[:, 0]
+    check_grid(grid, height, width)
+    n = torch.cat([torch.tensor([float(height * width)]), tile_counts(height, width, grid)]).to(a.device)
+    sum_a, sum_b, sum_ab, sum_aa, sum_bb = (_whole_and_tile_sums(m, grid) for m in (a, b, a * b, a * a, b * b))
+    covariance = sum_ab - sum_a * sum_b / n
+    spread = (sum_aa - sum_a**2 / n) * (sum_bb - sum_b**2 / n)
+    return (covariance / spread.clamp_min(0).sqrt().clamp_min(1e-12)).clamp_(-1.0, 1.0).view(k, frames, -1)
+
+
+def tile_overshoots(grey: Tensor, inverse: Tensor, log_peak: Tensor, grid: tuple[int, int] = TILE_GRID) -> Tensor:
+    """:func:`~evlatcorr.overshoot.overshoot` over each whole frame and each tile of its sampled pixels (each tile
+    against its own brightest pixel): ``grey`` :math:`(1, F, H, W)`, ``inverse`` :math:`(K, F, H, W)`, ``log_peak``
+    as :func:`~evlatcorr.overshoot.overshoot` takes it → :math:`(K, F, 1 + T)` float64, clamped to
+    :data:`~evlatcorr.overshoot.OVERSHOOT_RANGE`."""
+    stride = overshoot_stride(*grey.shape[-2:])
+    grey, inverse = grey[..., ::stride, ::stride], inverse[..., ::stride, ::stride]
+    log_frame = log_grey(grey, inverse.dtype)  # (1, F, h, w)
+    top = torch.log(inverse).add_(log_frame).add_(log_peak)  # (K, F, h, w)
+    height, width = top.shape[-2:]
+    check_grid(grid, height, width)
+    rows, cols = tile_edges(height, grid[0]), tile_edges(width, grid[1])
+    regions = [(slice(None), slice(None))] + [(slice(r0, r1), slice(c0, c1)) for r0, r1 in zip(rows, rows[1:])
+                                              for c0, c1 in zip(cols, cols[1:])]
+    values = [_upper_quantile(top[(..., *region)].flatten(2), QUANTILE)
+              - log_frame[(..., *region)].flatten(2).amax(2) for region in regions]
+    return torch.stack(values, 2).double().clamp_(*OVERSHOOT_RANGE)
+
+
+def tile_reductions(reader: _CandidateReader, grey: Tensor, grid: tuple[int, int] = TILE_GRID
+                    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """One frame's coarse candidates' sparsity scores :math:`(1 + T, 3, K)` (inf where not valid), ghost moments and
+    overshoots :math:`(1 + T, K)` (0 where not valid), over the whole frame (row 0) and each tile, each tile's share
+    of the events' absolute change over the candidates :math:`(T,)`, and which candidates are valid :math:`(K,)`
+    (their windows hold events, a prefix), float64 on the frame's device; ``grey`` :math:`(1, 1, H, W)`."""
+    coarse = reader.coarse
+    kept = coarse[coarse <= reader.top]  # a prefix of the sorted candidates
+    tiles = grid[0] * grid[1]
+    num, regions = len(coarse), 1 + tiles
+    scores = torch.full((regions, len(SPARSITY_SCORES), num), math.inf, dtype=torch.float64, device=grey.device)
+    moment = torch.zeros((regions, num), dtype=torch.float64, device=grey.device)
+    over = torch.zeros_like(moment)
+    activity = torch.zeros(tiles, dtype=torch.float64, device=grey.device)
+    if len(kept):
+        inverse, change = reader.inverse_ratio(kept), reader.log_change(kept)
+        chunk = _score_chunk(grey)
+        for k0 in range(0, len(kept), chunk):  # a few candidates at a time: their images stay in cache
+            k1 = min(k0 + chunk, len(kept))
+            scores[:, :, k0:k1] = tile_sparsity_scores(grey, inverse[k0:k1], grid)[:, :, 0].permute(2, 0, 1)
+            moment[:, k0:k1] = tile_moments(grey, inverse[k0:k1], change[k0:k1], grid)[:, 0].T
+            activity += tile_sums(change[k0:k1, 0].abs().sum(0).double(), grid)
+        over[:, :len(kept)] = tile_overshoots(grey, inverse, reader.log_peak(kept), grid)[:, 0].T
+    valid = torch.arange(num, device=grey.device) < len(kept)
+    return scores, moment, over, activity / activity.sum().clamp_min(1e-12), valid
+
+
+def tile_curve_inputs(reader: _CandidateReader, grey: Tensor, grid: tuple[int, int] = TILE_GRID) -> TileCurves:
+    """:func:`~evlatcorr.curve_reader.curve_features` of one frame's coarse candidates over the whole frame
+    :math:`(F, K)` and over each tile :math:`(T, F, K)`, each tile's share of the events' absolute change over the
+    candidates :math:`(T,)` and which candidates are valid :math:`(K,)` (their windows hold events), on the frame's
+    device; ``grey`` :math:`(1, 1, H, W)`."""
+    scores, moment, over, share, valid = tile_reductions(reader, grey, grid)
+    curves = curve_features(scores, moment, valid.expand(len(scores), -1), over)
+    return curves[0], curves[1:], share, valid
+
+
+def candidate_tile_curves(blurry: Tensor, events: Events, exposure_start: float, exposure_end: float,
+                          threshold: float, grid: tuple[int, int] = TILE_GRID) -> tuple[Tensor, TileCurves]:
+    """What the tile reader reads for one frame at the default settings, on the host: the coarse candidates
+    :math:`(K,)` µs and :func:`tile_curve_inputs` (what :mod:`evlatcorr.tile_reader` is trained on).
+
+    Args:
+        blurry: :math:`(1, C, H, W)` in [0, 1].
+        events: the frame's events (``batch_size == 1``), reaching past ``exposure_end``.
+        exposure_start, exposure_end: µs.
+        threshold: contrast threshold θ.
+        grid: ``(rows, columns)`` of tiles.
+
+    Raises:
+        ValueError: for more than one frame, or a grid whose tiles are under 3x3 pixels.
+    """
+    if blurry.shape[0] != 1 or events.batch_size != 1:
+        raise ValueError(f"candidate_tile_curves takes one frame, got {blurry.shape[0]} images and "
+                         f"{events.batch_size} event samples")
+    height, width = blurry.shape[-2:]
+    if not (isinstance(grid[0], int) and isinstance(grid[1], int) and 1 <= grid[0] <= height // 6
+            and 1 <= grid[1] <= width // 6):
+        raise ValueError(f"grid must be whole numbers of tiles, each at least 6x6 pixels of the {height}x{width} "
+                         f"frame (3x3 at half resolution), got {grid}")
+    grey = kornia.color.rgb_to_grayscale(blurry) if blurry.shape[1] == 3 else blurry
+    last = float(events.t.max()) if len(events) else -math.inf
+    span = _Window(exposure_start, exposure_end, 0.0, exposure_end - exposure_start, last - exposure_end)
+    reader = _continuous_reader(grey, events, span, float(threshold), SearchConfig(score="learned"), None)
+    whole, tiles, share, valid = tile_curve_inputs(reader, grey, grid)
+    return reader.to_us(reader.coarse).cpu(), (whole.cpu(), tiles.cpu(), share.cpu(), valid.cpu())
