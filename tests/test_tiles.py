@@ -141,3 +141,28 @@ def test_the_tile_reader_refuses_the_curve_reader_s_weights(tmp_path):
     with pytest.raises(FileNotFoundError, match="no tile reader weights"):
         load_tile_reader(str(tmp_path / "none.safetensors"))
     assert next(load_tile_reader().parameters()).shape[1] == NUM_TILE_FEATURES
+
+
+def test_the_default_search_takes_the_centre_of_the_tile_reader_s_probability():
+    from evlatcorr.benchmark.accuracy import make_cases, simulate_case
+    from evlatcorr.config import SearchConfig
+    from evlatcorr.curve_reader import load_curve_reader, probability_centre
+    from evlatcorr.search import search_constant_latency
+    from evlatcorr.tile_curves import candidate_tile_curves
+    from evlatcorr.tile_reader import read_tiles
+
+    case = next(c for c in make_cases("dev") if c.name.startswith("dev-17-"))  # text translating, 10.86 ms
+    frames = simulate_case(case)[0]
+    args = (frames.blurry, frames.events, frames.exposure_start, frames.exposure_end, case.threshold)
+    assert SearchConfig().tiles
+    default, whole = search_constant_latency(*args), search_constant_latency(*args, tiles=False)
+    assert default.source == whole.source == ["reader"]
+    # what the search does, step by step: the tiles' curves, the curve reader on each, the tile reader, the centre
+    candidates, (curves, tiles, share, valid) = candidate_tile_curves(
+        frames.blurry, frames.events, float(frames.exposure_start[0]), float(frames.exposure_end[0]), case.threshold)
+    whole_log_p = load_curve_reader()(curves[None], valid[None])
+    inputs = tile_inputs(curves[None], read_tiles(tiles[None], valid[None]), share[None], valid[None])
+    log_p = tile_log_probability(inputs, whole_log_p, valid[None])[0]
+    _, centre = probability_centre(log_p, candidates.double(), int(valid.sum()))
+    assert default.latency.item() == pytest.approx(centre, abs=0.5)
+    assert abs(default.latency.item() - case.latency_us) < 500.0 and default.latency.item() != whole.latency.item()
