@@ -5,9 +5,10 @@ the 300 per-pixel delay cases of :data:`~evlatcorr.benchmark.accuracy.DELAY_TRAI
 over the whole frame and its 3x3 tiles (:func:`evlatcorr.tile_curves.candidate_tile_curves`), has the shipped curve
 reader read the tiles (:func:`evlatcorr.tile_reader.tile_inputs`), and fits an ensemble of 5 readers to each frame's
 target (:func:`evlatcorr.benchmark.accuracy.training_target`: the true latency, or the best constant shift under
-the photoreceptor and per-pixel delay models), the delay frames counted three times. The best-shift scans are most
-of the time: about 35 minutes on 2 CPU cores in all, or a few minutes when ``--targets-from`` gives the targets of
-caches written before (``benchmarks/train_curve_reader.py --cache``, or this script's ``--cache``).
+the photoreceptor and per-pixel delay models), the delay frames counted three times. The best-shift scans of the
+500 photoreceptor and delay frames are most of the time (about 10 minutes per 300 frames on 2 CPU cores); with
+``--targets-from`` taking the targets of caches written before (``benchmarks/train_curve_reader.py --cache``, or this
+script's ``--cache``), reading the frames took 6 minutes with ``--workers 2``, and training 2 minutes.
 
     python benchmarks/train_tile_reader.py                        # writes checkpoints/tile-reader.*
     python benchmarks/train_tile_reader.py --cache tiles.pt --workers 2 --out /tmp/tiles.safetensors
