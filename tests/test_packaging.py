@@ -49,7 +49,10 @@ for name, adapter in adapters.items():
     own = adapter.net.state_dict()
     same[name] = sorted(stored) == sorted(own) and all(
         torch.equal(own[k], v.to(own[k].dtype)) for k, v in stored.items())
-print(json.dumps({"evlatcorr": evlatcorr.__file__, "checkpoint_module": ckpt.__file__,
+from evlatcorr.tile_reader import load_tile_reader
+
+tile_reader = len(load_tile_reader().members)  # found in the installed package, not the repository
+print(json.dumps({"evlatcorr": evlatcorr.__file__, "checkpoint_module": ckpt.__file__, "tile_reader": tile_reader,
                   "dirs": [str(d) for d in ckpt.checkpoint_dirs()],
                   "resolved": {k: str(v) for k, v in resolved.items()}, "same": same}))
 """
@@ -89,6 +92,8 @@ def test_installed_wheel_loads_the_default_checkpoints(tmp_path):
             assert f"evlatcorr/checkpoints/{f}" in names, f"{f} is not in the wheel"
     assert "evlatcorr/checkpoints/README.md" in names
     assert "evlatcorr/adapters/checkpoint.py" in names
+    # and the learned readers' weights the default search reads
+    assert {"evlatcorr/checkpoints/curve-reader.safetensors", "evlatcorr/checkpoints/tile-reader.safetensors"} <= names
 
     site = tmp_path / "site"
     _run([*pip, "install", "--no-deps", "--no-index", "--target", str(site), str(wheels[0])])
@@ -106,6 +111,7 @@ def test_installed_wheel_loads_the_default_checkpoints(tmp_path):
         assert _under(path, site / "evlatcorr" / "checkpoints"), (name, path)
         assert Path(path).name.startswith(name)
     assert out["same"] == dict.fromkeys(SHIPPED, True)  # the adapters hold the installed weights
+    assert out["tile_reader"] == 5  # the default search's tile reader, from the installed package data
 
     # the console script pip wrote runs the command line (evlatcorr.__main__:main)
     script = site / "bin" / "evlatcorr"
