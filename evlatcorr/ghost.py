@@ -137,10 +137,16 @@ def _high_pass_correlation(a: Tensor, b: Tensor, sigma: float) -> Tensor:
         return torch.from_numpy(out).to(a.dtype)
     a = a.sub_(_gaussian_blur(a, sigma)).flatten(1)
     b = (b - _gaussian_blur(b, sigma)).flatten(1)
-    n = a.shape[1]
-    sum_a, sum_b = a.sum(1), b.sum(1)
-    covariance = torch.linalg.vecdot(a, b) - sum_a * sum_b / n
-    spread = (torch.linalg.vecdot(a, a) - sum_a**2 / n) * (torch.linalg.vecdot(b, b) - sum_b**2 / n)
+    return _correlation_of_sums(a.sum(1), b.sum(1), torch.linalg.vecdot(a, b), torch.linalg.vecdot(a, a),
+                                torch.linalg.vecdot(b, b), a.shape[1])
+
+
+def _correlation_of_sums(sum_a: Tensor, sum_b: Tensor, sum_ab: Tensor, sum_aa: Tensor, sum_bb: Tensor,
+                         n: Tensor | int) -> Tensor:
+    """The correlation of two images from their sums over ``n`` pixels (of each, of their product, of their squares),
+    in [-1, 1]; 0 where either is flat."""
+    covariance = sum_ab - sum_a * sum_b / n
+    spread = (sum_aa - sum_a**2 / n) * (sum_bb - sum_b**2 / n)
     return (covariance / spread.clamp_min(0).sqrt().clamp_min(1e-12)).clamp_(-1.0, 1.0)
 
 

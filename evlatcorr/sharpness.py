@@ -8,7 +8,7 @@ ETF (Eq. 14). :func:`sharpness_scores` shares the work several scores have in co
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import torch
 from torch import Tensor
@@ -155,14 +155,22 @@ def _padded_gradient_sparsity(image: Tensor) -> Tensor:
     launches instead of thirty (what a GPU is bound by), for two image-sized copies (what a CPU is bound by)."""
     height, width = image.shape[-2:]
     l1 = l2_squared = torch.zeros(image.shape[0], dtype=image.dtype, device=image.device)
+    for gradient in _padded_gradients(image):
+        gradient = gradient.flatten(1)
+        l1 = l1 + torch.linalg.vector_norm(gradient, 1, dim=1)
+        l2_squared = l2_squared + torch.linalg.vector_norm(gradient, 2, dim=1).square()
+    n = 2 * height * width
+    return l1 / (l2_squared.sqrt() * math.sqrt(n) + 1e-12)
+
+
+def _padded_gradients(image: Tensor) -> Iterator[Tensor]:
+    """The x and then y central differences of :math:`(K, 1, H, W)` as whole images, not halved, their borders
+    one-sided (replicated padding); none along a side of one pixel."""
+    height, width = image.shape[-2:]
     for size, pad, axis in ((width, (1, 1, 0, 0), -1), (height, (0, 0, 1, 1), -2)):
         if size > 1:
             padded = torch.nn.functional.pad(image, pad, mode="replicate")
-            gradient = (padded.narrow(axis, 2, size) - padded.narrow(axis, 0, size)).flatten(1)
-            l1 = l1 + torch.linalg.vector_norm(gradient, 1, dim=1)
-            l2_squared = l2_squared + torch.linalg.vector_norm(gradient, 2, dim=1).square()
-    n = 2 * height * width
-    return l1 / (l2_squared.sqrt() * math.sqrt(n) + 1e-12)
+            yield padded.narrow(axis, 2, size) - padded.narrow(axis, 0, size)
 
 
 def _central_differences(image: Tensor) -> list[Tensor]:

@@ -22,11 +22,11 @@ from evlatcorr import compiled
 from evlatcorr.config import SPARSITY_SCORES, SearchConfig
 from evlatcorr.curve_reader import curve_features
 from evlatcorr.events import Events
-from evlatcorr.ghost import HIGH_PASS_SIGMA, _gaussian_blur, log_grey
+from evlatcorr.ghost import HIGH_PASS_SIGMA, _correlation_of_sums, _gaussian_blur, log_grey
 from evlatcorr.image_tiles import TILE_GRID, check_grid, tile_counts, tile_edges, tile_sums
 from evlatcorr.overshoot import OVERSHOOT_RANGE, QUANTILE, _upper_quantile, overshoot_stride
 from evlatcorr.search_candidates import _CandidateReader, _continuous_reader, _score_chunk, _Window
-from evlatcorr.sharpness import _mean_pool
+from evlatcorr.sharpness import _mean_pool, _padded_gradients
 
 __all__ = ["TileCurves", "candidate_tile_curves", "tile_curve_inputs", "tile_gradient_sparsity", "tile_moments",
            "tile_overshoots", "tile_reductions", "tile_sparsity_scores"]
@@ -62,16 +62,12 @@ def _whole_and_tile_sums(values: Tensor, grid: tuple[int, int]) -> Tensor:
 
 
 def _gradient_norm_maps(image: Tensor) -> tuple[Tensor, Tensor]:
-    """Each pixel's ``|∂x| + |∂y|`` and ``∂x² + ∂y²`` of :math:`(K, H, W)`: central differences, one-sided at the
-    borders (replicated padding), not halved, as :func:`evlatcorr.sharpness._gradient_sparsity` takes them."""
+    """Each pixel's ``|∂x| + |∂y|`` and ``∂x² + ∂y²`` of :math:`(K, H, W)`, the differences
+    :func:`evlatcorr.sharpness._gradient_sparsity` takes."""
     l1, l2 = torch.zeros_like(image), torch.zeros_like(image)
-    height, width = image.shape[-2:]
-    for size, pad, axis in ((width, (1, 1, 0, 0), -1), (height, (0, 0, 1, 1), -2)):
-        if size > 1:
-            padded = torch.nn.functional.pad(image[:, None], pad, mode="replicate")[:, 0]
-            gradient = padded.narrow(axis, 2, size) - padded.narrow(axis, 0, size)
-            l1 += gradient.abs()
-            l2 += gradient.square()
+    for gradient in _padded_gradients(image[:, None]):
+        l1 += gradient[:, 0].abs()
+        l2 += gradient[:, 0].square()
     return l1, l2
 
 
@@ -113,10 +109,8 @@ def tile_moments(grey: Tensor, inverse: Tensor, log_change: Tensor, grid: tuple[
     b = (b - _gaussian_blur(b, HIGH_PASS_SIGMA))[:, 0]
     check_grid(grid, height, width)
     n = torch.cat([torch.tensor([float(height * width)]), tile_counts(height, width, grid)]).to(a.device)
-    sum_a, sum_b, sum_ab, sum_aa, sum_bb = (_whole_and_tile_sums(m, grid) for m in (a, b, a * b, a * a, b * b))
-    covariance = sum_ab - sum_a * sum_b / n
-    spread = (sum_aa - sum_a**2 / n) * (sum_bb - sum_b**2 / n)
-    return (covariance / spread.clamp_min(0).sqrt().clamp_min(1e-12)).clamp_(-1.0, 1.0).view(k, frames, -1)
+    sums = (_whole_and_tile_sums(m, grid) for m in (a, b, a * b, a * a, b * b))
+    return _correlation_of_sums(*sums, n).view(k, frames, -1)
 
 
 def tile_overshoots(grey: Tensor, inverse: Tensor, log_peak: Tensor, grid: tuple[int, int] = TILE_GRID) -> Tensor:
