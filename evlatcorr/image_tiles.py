@@ -41,10 +41,15 @@ def tiles_fit(height: int, width: int, grid: tuple[int, int] = TILE_GRID) -> boo
 def tile_edges(size: int, parts: int) -> list[int]:
     """Where ``parts`` tiles along a side of ``size`` pixels begin, and the side's end (``parts + 1`` values).
 
+    Raises:
+        ValueError: when ``size`` or ``parts`` is not a positive whole number.
+
     Example:
         >>> tile_edges(128, 3)
         [0, 43, 85, 128]
     """
+    if not (isinstance(size, int) and isinstance(parts, int) and size >= 1 and parts >= 1):
+        raise ValueError(f"size and parts must be positive whole numbers, got {size!r} and {parts!r}")
     return [round(i * size / parts) for i in range(parts + 1)]
 
 
@@ -55,7 +60,12 @@ def row_bands(height: int, rows: int) -> np.ndarray:
 
 
 def tile_counts(height: int, width: int, grid: tuple[int, int]) -> Tensor:
-    """The pixels in each tile :math:`(R C,)` float64."""
+    """The pixels in each tile :math:`(R C,)` float64.
+
+    Raises:
+        ValueError: when the grid does not fit the image (:func:`check_grid`).
+    """
+    check_grid(grid, height, width)
     rows, cols = (np.diff(tile_edges(size, parts)) for size, parts in zip((height, width), grid))
     return torch.from_numpy(np.outer(rows, cols).reshape(-1).astype(np.float64))
 

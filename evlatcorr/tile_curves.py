@@ -34,11 +34,27 @@ __all__ = ["TileCurves", "candidate_tile_curves", "tile_curve_inputs", "tile_gra
 TileCurves = tuple[Tensor, Tensor, Tensor, Tensor]  # whole (F, K), tiles (T, F, K), shares (T,), valid (K,)
 
 
+def _check_stacks(grey: Tensor, **stacks: Tensor) -> None:
+    """``grey`` must be :math:`(1, F, H, W)` and each of ``stacks`` (by name) :math:`(K, F, H, W)`, one ``K``."""
+    first = next(iter(stacks.values()))
+    if grey.dim() != 4 or grey.shape[0] != 1 or any(v.dim() != 4 or v.shape[1:] != grey.shape[1:]
+                                                    or v.shape[0] != first.shape[0] for v in stacks.values()):
+        shapes = ", ".join(f"{name} {tuple(v.shape)}" for name, v in stacks.items())
+        raise ValueError(f"grey must be (1, F, H, W) and {' and '.join(stacks)} (K, F, H, W) with the same F, H, W, "
+                         f"got grey {tuple(grey.shape)}, {shapes}")
+
+
 def tile_gradient_sparsity(log: Tensor, half: bool, grid: tuple[int, int] = TILE_GRID) -> Tensor:
     """The gradient sparsity ``‖∇I‖₁ / (‖∇I‖₂ · sqrt(n))`` of each image :math:`(K, 1, H, W)` over the whole image
     and over each tile, at full resolution and (``half``) of its 2x2 means: :math:`(2, K, 1 + T)` float64 (row 1
     zero without ``half``). A CPU takes one compiled pass; elsewhere, or for images asking for a gradient, eager
-    PyTorch (the same values)."""
+    PyTorch (the same values).
+
+    Raises:
+        ValueError: when ``log`` is not :math:`(K, 1, H, W)`, or the grid does not fit it (or its 2x2 means).
+    """
+    if log.dim() != 4 or log.shape[1] != 1:
+        raise ValueError(f"log must be (K, 1, H, W), got {tuple(log.shape)}")
     height, width = log.shape[-2:]
     if (log.device.type == "cpu" and compiled.ENABLED and log.dim() == 4 and log.shape[1] == 1
             and min(height, width) >= 4 and not log.requires_grad):
@@ -75,7 +91,12 @@ def tile_sparsity_scores(grey: Tensor, inverse: Tensor, grid: tuple[int, int] = 
     """The three sparsity scores (:data:`~evlatcorr.config.SPARSITY_SCORES`) of the latents ``grey · inverse``
     over each whole frame and each of its tiles: ``grey`` :math:`(1, F, H, W)`, ``inverse`` :math:`(K, F, H, W)`
     (frame ``f``'s candidates in channel ``f``) → :math:`(3, K, F, 1 + T)` float64. Each log latent takes its
-    frame's mean as its floor, as :func:`evlatcorr.search_candidates._latent_scores` does."""
+    frame's mean as its floor, as :func:`evlatcorr.search_candidates._latent_scores` does.
+
+    Raises:
+        ValueError: when the shapes do not match, or the grid does not fit the frames.
+    """
+    _check_stacks(grey, inverse=inverse)
     k, frames, height, width = inverse.shape
     mean = torch.einsum("kfhw,fhw->kf", inverse, grey[0].to(inverse)).div_(height * width).clamp_min_(1e-12)
     scales: dict[float, set[int]] = {}
@@ -94,7 +115,12 @@ def tile_sparsity_scores(grey: Tensor, inverse: Tensor, grid: tuple[int, int] = 
 def tile_moments(grey: Tensor, inverse: Tensor, log_change: Tensor, grid: tuple[int, int] = TILE_GRID) -> Tensor:
     """:func:`~evlatcorr.ghost.inverse_ratio_moment` over each whole frame and each of its tiles (the correlation of
     the high-passed log latent with the high-passed event change over the tile's pixels): ``grey``
-    :math:`(1, F, H, W)`, ``inverse`` and ``log_change`` :math:`(K, F, H, W)` → :math:`(K, F, 1 + T)` float64."""
+    :math:`(1, F, H, W)`, ``inverse`` and ``log_change`` :math:`(K, F, H, W)` → :math:`(K, F, 1 + T)` float64.
+
+    Raises:
+        ValueError: when the shapes do not match, or the grid does not fit the frames.
+    """
+    _check_stacks(grey, inverse=inverse, log_change=log_change)
     k, frames, height, width = inverse.shape
     flat = (k * frames, 1, height, width)
     a = torch.log(inverse).add_(log_grey(grey, inverse.dtype)).view(flat)
@@ -117,8 +143,16 @@ def tile_overshoots(grey: Tensor, inverse: Tensor, log_peak: Tensor, grid: tuple
     """:func:`~evlatcorr.overshoot.overshoot` over each whole frame and each tile of its sampled pixels (each tile
     against its own brightest pixel): ``grey`` :math:`(1, F, H, W)`, ``inverse`` :math:`(K, F, H, W)`, ``log_peak``
     as :func:`~evlatcorr.overshoot.overshoot` takes it → :math:`(K, F, 1 + T)` float64, clamped to
-    :data:`~evlatcorr.overshoot.OVERSHOOT_RANGE`."""
+    :data:`~evlatcorr.overshoot.OVERSHOOT_RANGE`.
+
+    Raises:
+        ValueError: when the shapes do not match, or the grid does not fit the sampled pixels.
+    """
+    _check_stacks(grey, inverse=inverse)
     stride = overshoot_stride(*grey.shape[-2:])
+    sampled = (*inverse.shape[:2], -(-grey.shape[-2] // stride), -(-grey.shape[-1] // stride))
+    if log_peak.shape != sampled:
+        raise ValueError(f"log_peak must be {sampled} (every {stride}th row and column), got {tuple(log_peak.shape)}")
     grey, inverse = grey[..., ::stride, ::stride], inverse[..., ::stride, ::stride]
     log_frame = log_grey(grey, inverse.dtype)  # (1, F, h, w)
     top = torch.log(inverse).add_(log_frame).add_(log_peak)  # (K, F, h, w)

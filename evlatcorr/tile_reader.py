@@ -37,7 +37,14 @@ _SCALE = 10.0
 def read_tiles(tiles: Tensor, valid: Tensor, reader: torch.nn.Module | None = None) -> Tensor:
     """The curve reader's log-probabilities of each tile's candidates :math:`(N, T, K)` float32 from
     :func:`~evlatcorr.curve_reader.curve_features` of the tiles :math:`(N, T, F, K)` and the valid candidates
-    :math:`(N, K)` (``reader``: the shipped curve reader when None)."""
+    :math:`(N, K)` (``reader``: the shipped curve reader when None).
+
+    Raises:
+        ValueError: when the shapes do not match.
+    """
+    if tiles.dim() != 4 or valid.shape != (tiles.shape[0], tiles.shape[-1]):
+        raise ValueError(f"need tiles (N, T, F, K) and valid (N, K), got {tuple(tiles.shape)} and "
+                         f"{tuple(valid.shape)}")
     n, t = tiles.shape[:2]
     reader = load_curve_reader() if reader is None else reader
     parameter = next(reader.parameters())
@@ -84,7 +91,14 @@ def tile_log_probability(inputs: Tensor, whole_log_p: Tensor, valid: Tensor,
         whole_log_p: the whole frame's reader's log-probability (any normalisation) :math:`(N, K)`.
         valid: :math:`(N, K)` bool, at least one per frame.
         tile_reader: the tile reader (the shipped one when None).
+
+    Raises:
+        ValueError: when the shapes do not match.
     """
+    if (inputs.dim() != 3 or inputs.shape[1] != NUM_TILE_FEATURES or whole_log_p.shape != valid.shape
+            or valid.shape != (inputs.shape[0], inputs.shape[2])):
+        raise ValueError(f"need inputs (N, {NUM_TILE_FEATURES}, K), whole_log_p and valid (N, K), got "
+                         f"{tuple(inputs.shape)}, {tuple(whole_log_p.shape)} and {tuple(valid.shape)}")
     tile_reader = load_tile_reader() if tile_reader is None else tile_reader
     parameter = next(tile_reader.parameters())
     with torch.no_grad():

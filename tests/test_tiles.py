@@ -166,3 +166,26 @@ def test_the_default_search_takes_the_centre_of_the_tile_reader_s_probability():
     _, centre = probability_centre(log_p, candidates.double(), int(valid.sum()))
     assert default.latency.item() == pytest.approx(centre, abs=0.5)
     assert abs(default.latency.item() - case.latency_us) < 500.0 and default.latency.item() != whole.latency.item()
+
+
+def test_tile_functions_refuse_shapes_they_cannot_read():
+    from evlatcorr.tile_reader import read_tiles
+
+    grey, inverse = torch.rand(1, 1, 18, 18), torch.rand(4, 1, 18, 18) + 0.5
+    with pytest.raises(ValueError, match="size and parts must be positive"):
+        tile_edges(10, 0)
+    with pytest.raises(ValueError, match="log must be"):
+        tile_gradient_sparsity(inverse[:, 0], False)
+    with pytest.raises(ValueError, match="grey must be"):
+        tile_sparsity_scores(grey[0], inverse)
+    with pytest.raises(ValueError, match="grey must be"):
+        tile_moments(grey, inverse, torch.rand(3, 1, 18, 18))
+    with pytest.raises(ValueError, match="log_peak must be"):
+        tile_overshoots(grey, inverse, torch.zeros(4, 1, 9, 9))
+    with pytest.raises(ValueError, match="grid must be"):
+        tile_counts(4, 4, (5, 1))
+    with pytest.raises(ValueError, match="need tiles"):
+        read_tiles(torch.zeros(2, 9, 6), torch.ones(2, 6, dtype=torch.bool))
+    with pytest.raises(ValueError, match="need inputs"):
+        valid = torch.ones(2, 7, dtype=torch.bool)
+        tile_log_probability(torch.zeros(2, NUM_TILE_FEATURES - 1, 7), torch.zeros(2, 7), valid)
