@@ -9,6 +9,7 @@ call (on a GPU they share one pass, ``evlatcorr.search_batched``).
     python benchmarks/profile_search.py --device cuda
     python benchmarks/profile_search.py --device cuda --frames 8 --rows 40
     python benchmarks/profile_search.py --device cuda --by-line   # which lines of evlatcorr launch and wait
+    python benchmarks/profile_search.py --reductions              # the tiles' kernels, counted without a GPU
 
 The kernels' time is what a whole-search graph could not go below; the wall time per call less that time is what
 launches, waits and Python cost. Times under the profiler are longer than ``speed.py``'s: use those for figures.
@@ -105,6 +106,48 @@ def operators_by_line(call, calls: int) -> list[tuple[str, float, float]]:
     return [(line, counting.count[line] / calls, counting.on_device[line] / calls) for line in lines]
 
 
+class _Operators(TorchDispatchMode):
+    """Counts the torch operators dispatched inside it that are not views (each a kernel on a GPU)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.count += not func.is_view
+        return func(*args, **(kwargs or {}))
+
+
+def reduction_operators(frames: int, height: int, width: int, candidates: int = 101) -> dict[str, int]:
+    """The torch operators (views left out) of one pass's reductions of ``candidates`` latents per frame, as a GPU
+    takes them (all candidates in one chunk, the GPU's branches), counted on meta tensors: shapes, no data, no
+    device. The whole frame's (its sparsity scores, ghost moments and overshoots) and the same with the 3x3 tiles."""
+    from evlatcorr.config import SearchConfig
+    from evlatcorr.ghost import stacked_inverse_ratio_moment
+    from evlatcorr.overshoot import overshoot, overshoot_stride
+    from evlatcorr.search_batched import _chunk_scores
+    from evlatcorr.tile_curves import tile_moments, tile_overshoots, tile_sparsity_scores
+
+    meta = torch.device("meta")
+    grey = torch.empty(1, frames, height, width, device=meta)
+    inverse, change = (torch.empty(candidates, frames, height, width, device=meta) for _ in range(2))
+    stride = overshoot_stride(height, width)
+    peak = torch.empty(candidates, frames, -(-height // stride), -(-width // stride), device=meta)
+    passes = {"whole frame": lambda: (_chunk_scores(grey, inverse, SearchConfig()),
+                                      stacked_inverse_ratio_moment(grey, inverse, change),
+                                      overshoot(grey, inverse, peak)),
+              "whole frame and tiles": lambda: (tile_sparsity_scores(grey, inverse),
+                                                tile_moments(grey, inverse, change),
+                                                tile_overshoots(grey, inverse, peak))}
+    counts = {}
+    for name, call in passes.items():
+        call()  # cached matrices made
+        with _Operators() as counting:
+            call()
+        counts[name] = counting.count
+    return counts
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -115,9 +158,19 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=346)
     parser.add_argument("--by-line", action="store_true",
                         help="also count the operators, and on a GPU the waits, by the package's line behind them")
+    parser.add_argument("--reductions", action="store_true",
+                        help="only count the kernels of one pass's reductions, the whole frame's and with its tiles, "
+                             "as a GPU takes them (on meta tensors: no GPU needed)")
     args = parser.parse_args()
     if args.frames < 1 or args.calls < 1:
         parser.error("--frames and --calls must be positive")
+    if args.reductions:
+        counts = reduction_operators(args.frames, args.height, args.width)
+        print(f"torch operators (views left out) of one pass's reductions, {args.frames} frame(s) of "
+              f"{args.height}x{args.width}, 101 candidates, as a GPU takes them (counted on meta tensors):")
+        for name, count in counts.items():
+            print(f"  {name}: {count}")
+        return
     try:
         device = parse_cpu_or_cuda(args.device)
     except ValueError as exc:

@@ -10,11 +10,14 @@ a per-pixel tensor on any device.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["TILE_GRID", "check_grid", "row_bands", "tile_counts", "tile_edges", "tile_sums", "tiles_fit"]
+__all__ = ["TILE_GRID", "check_grid", "row_bands", "tile_counts", "tile_edges", "tile_pixels", "tile_sums",
+           "tiles_fit"]
 
 # the tiles the learned search reads beside the whole frame: 3 rows of 3
 TILE_GRID = (3, 3)
@@ -72,7 +75,11 @@ def tile_counts(height: int, width: int, grid: tuple[int, int]) -> Tensor:
 
 def tile_sums(values: Tensor, grid: tuple[int, int], dtype: torch.dtype | None = None) -> Tensor:
     """The sum over each tile of the last two dimensions: :math:`(..., H, W)` → :math:`(..., R C)`, accumulated in
-    ``dtype`` (the values' own by default).
+    ``dtype`` (the values' own by default, float64 for integers).
+
+    A sum over each tile column's pixels, then one matrix product with the tile rows' 0/1 indicator: the values are
+    read once, accumulating in ``dtype`` as they are read (a float32 image summed in float64 makes no float64 copy),
+    in a handful of kernels on a GPU whatever the image's size.
 
     Raises:
         ValueError: when the grid does not fit the image (:func:`check_grid`).
@@ -83,6 +90,44 @@ def tile_sums(values: Tensor, grid: tuple[int, int], dtype: torch.dtype | None =
     """
     height, width = values.shape[-2:]
     check_grid(grid, height, width)
-    rows, cols = tile_edges(height, grid[0]), tile_edges(width, grid[1])
+    if dtype is None:
+        dtype = values.dtype if values.is_floating_point() else torch.float64
+    cols = tile_edges(width, grid[1])
     across = torch.stack([values[..., c0:c1].sum(-1, dtype=dtype) for c0, c1 in zip(cols, cols[1:])], -1)  # (.., H, C)
-    return torch.stack([across[..., r0:r1, :].sum(-2) for r0, r1 in zip(rows, rows[1:])], -2).flatten(-2)
+    return torch.matmul(_tile_indicator(height, grid[0], dtype, values.device), across).flatten(-2)
+
+
+@functools.lru_cache(maxsize=64)
+def _tile_indicator(size: int, parts: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """:math:`(parts, size)`: 1 where a pixel along a side of ``size`` lies in that tile, else 0."""
+    edges = torch.tensor(tile_edges(size, parts))
+    pixel = torch.arange(size)
+    return ((pixel >= edges[:-1, None]) & (pixel < edges[1:, None])).to(device=device, dtype=dtype)
+
+
+def tile_pixels(height: int, width: int, grid: tuple[int, int], device: torch.device | str = "cpu") -> Tensor:
+    """Each tile's pixels as indices into the flattened image, row by row: :math:`(R C, N)` int64, ``N`` the largest
+    tile's pixels; a smaller tile's row ends with ``height · width``, one past the last pixel (point it at a padding
+    value). ``values.flatten(-2)`` padded by one and indexed by it gives every tile's pixels in one gather.
+
+    Raises:
+        ValueError: when the grid does not fit the image (:func:`check_grid`).
+
+    Example:
+        >>> tile_pixels(2, 3, (1, 2)).tolist()
+        [[0, 1, 3, 4], [2, 5, 6, 6]]
+    """
+    check_grid(grid, height, width)
+    return _tile_pixels(height, width, grid, torch.device(device))
+
+
+@functools.lru_cache(maxsize=64)
+def _tile_pixels(height: int, width: int, grid: tuple[int, int], device: torch.device) -> Tensor:
+    rows, cols = tile_edges(height, grid[0]), tile_edges(width, grid[1])
+    pixels = [torch.arange(r0, r1)[:, None] * width + torch.arange(c0, c1) for r0, r1 in zip(rows, rows[1:])
+              for c0, c1 in zip(cols, cols[1:])]
+    size = max(p.numel() for p in pixels)
+    padded = torch.full((len(pixels), size), height * width, dtype=torch.int64)
+    for row, p in zip(padded, pixels):
+        row[:p.numel()] = p.flatten()
+    return padded.to(device)

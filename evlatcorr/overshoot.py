@@ -16,6 +16,7 @@ noise textures, fast rotation; ``docs/estimator.md``), and the learned curve rea
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -94,3 +95,28 @@ def _upper_quantile(values: Tensor, q: float) -> Tensor:
     if n - low < 2:
         return largest[..., -1]
     return largest[..., -1] + (position - low) * (largest[..., -2] - largest[..., -1])
+
+
+def _upper_quantiles(values: Tensor, counts: list[int], q: float) -> Tensor:
+    """:func:`_upper_quantile` of each row of ``values`` :math:`(..., T, N)` over its first ``counts[t]`` entries,
+    the rest padding below every value (``-inf``): one partial sort for all rows, the same values as each row's own."""
+    largest_needed, last, before, fraction = _quantile_points(tuple(counts), q, values.dtype, values.device)
+    largest = torch.topk(values, largest_needed, dim=-1, sorted=True).values  # descending
+    shape = (*largest.shape[:-1], 1)
+    at_last = largest.gather(-1, last.expand(shape)).squeeze(-1)
+    at_before = largest.gather(-1, before.expand(shape)).squeeze(-1)
+    return at_last + fraction * (at_before - at_last)
+
+
+@functools.lru_cache(maxsize=64)
+def _quantile_points(counts: tuple[int, ...], q: float, dtype: torch.dtype, device: torch.device
+                     ) -> tuple[int, Tensor, Tensor, Tensor]:
+    """For rows of ``counts`` values: how many of the largest to sort, where each row's quantile and the value above it
+    lie among them :math:`(T, 1)`, and the fraction between them :math:`(T,)`; made once per shape (no copies to a
+    device per call)."""
+    positions = [q * (n - 1) for n in counts]
+    lows = [math.floor(p) for p in positions]
+    last = [n - low - 1 for n, low in zip(counts, lows)]  # the low-th smallest, counted from the largest
+    index = torch.tensor(last, dtype=torch.int64, device=device)[:, None]
+    fraction = torch.tensor([p - low for p, low in zip(positions, lows)], dtype=dtype, device=device)
+    return max(last) + 1, index, index.sub(1).clamp_min(0), fraction

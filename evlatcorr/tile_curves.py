@@ -23,8 +23,8 @@ from evlatcorr.config import SPARSITY_SCORES, SearchConfig
 from evlatcorr.curve_reader import curve_features
 from evlatcorr.events import Events
 from evlatcorr.ghost import HIGH_PASS_SIGMA, _correlation_of_sums, _gaussian_blur, log_grey
-from evlatcorr.image_tiles import TILE_GRID, check_grid, tile_counts, tile_edges, tile_sums
-from evlatcorr.overshoot import OVERSHOOT_RANGE, QUANTILE, _upper_quantile, overshoot_stride
+from evlatcorr.image_tiles import TILE_GRID, check_grid, tile_counts, tile_edges, tile_pixels, tile_sums
+from evlatcorr.overshoot import OVERSHOOT_RANGE, QUANTILE, _upper_quantile, _upper_quantiles, overshoot_stride
 from evlatcorr.search_candidates import _CandidateReader, _continuous_reader, _score_chunk, _Window
 from evlatcorr.sharpness import _mean_pool, _padded_gradients
 
@@ -63,28 +63,45 @@ def tile_gradient_sparsity(log: Tensor, half: bool, grid: tuple[int, int] = TILE
         return torch.from_numpy(gradient_tile_sparsity(log.flatten(0, 1).contiguous(), half, grid))
     out = torch.zeros((2, log.shape[0], 1 + grid[0] * grid[1]), dtype=torch.float64, device=log.device)
     for level, image in enumerate([log, _mean_pool(log, 2)] if half else [log]):
-        l1, l2 = _gradient_norm_maps(image[:, 0])  # in the image's dtype, summed in float64 (as compiled)
         h, w = image.shape[-2:]
         check_grid(grid, h, w)
+        if h * w < 2:  # a single pixel has no gradient
+            continue
+        gradients = _central_gradients(image)  # (K, 2, H, W) in the image's dtype, summed in float64 (as compiled)
+        l1 = _whole_and_tile_sums(gradients.abs(), grid).sum(1)
+        l2 = _whole_and_tile_sums(gradients.square() if gradients.requires_grad else gradients.square_(), grid).sum(1)
         counts = torch.cat([torch.tensor([float(h * w)]), tile_counts(h, w, grid)]).to(log.device)
-        sums = [_whole_and_tile_sums(m, grid) for m in (l1, l2)]
-        out[level] = sums[0] / (sums[1].sqrt() * (2 * counts).sqrt() + 1e-12)
+        out[level] = l1 / (l2.sqrt() * (2 * counts).sqrt() + 1e-12)
+    return out
+
+
+def _central_gradients(image: Tensor) -> Tensor:
+    """The x and y differences of :func:`evlatcorr.sharpness._padded_gradients` (zero along a side of one pixel) of
+    :math:`(K, 1, H, W)` as one :math:`(K, 2, H, W)` tensor, written in place without padded copies unless the image
+    asks for a gradient."""
+    if image.requires_grad:
+        gradients = list(_padded_gradients(image))
+        if len(gradients) < 2:  # a side of one pixel
+            zero = torch.zeros_like(image)
+            gradients = [zero, *gradients] if image.shape[-1] == 1 else [*gradients, zero]
+        return torch.cat(gradients, 1)
+    out = image.new_empty((image.shape[0], 2, *image.shape[-2:]))
+    for axis, target in ((-1, out[:, :1]), (-2, out[:, 1:])):
+        size = image.shape[axis]
+        if size == 1:
+            target.zero_()
+            continue
+        # (at, ahead, behind, length): central differences inside, one-sided at the first and last pixel
+        for at, ahead, behind, length in ((1, 2, 0, size - 2), (0, 1, 0, 1), (size - 1, size - 1, size - 2, 1)):
+            torch.sub(image.narrow(axis, ahead, length), image.narrow(axis, behind, length),
+                      out=target.narrow(axis, at, length))
     return out
 
 
 def _whole_and_tile_sums(values: Tensor, grid: tuple[int, int]) -> Tensor:
-    """The sum of each image :math:`(K, H, W)` and of each of its tiles, in float64: :math:`(K, 1 + T)`."""
-    return torch.cat([values.sum((-2, -1), dtype=torch.float64)[:, None], tile_sums(values, grid, torch.float64)], 1)
-
-
-def _gradient_norm_maps(image: Tensor) -> tuple[Tensor, Tensor]:
-    """Each pixel's ``|∂x| + |∂y|`` and ``∂x² + ∂y²`` of :math:`(K, H, W)`, the differences
-    :func:`evlatcorr.sharpness._gradient_sparsity` takes."""
-    l1, l2 = torch.zeros_like(image), torch.zeros_like(image)
-    for gradient in _padded_gradients(image[:, None]):
-        l1 += gradient[:, 0].abs()
-        l2 += gradient[:, 0].square()
-    return l1, l2
+    """The sum of each image :math:`(..., H, W)` and of each of its tiles, in float64: :math:`(..., 1 + T)`."""
+    tiles = tile_sums(values, grid, torch.float64)
+    return torch.cat([tiles.sum(-1, keepdim=True), tiles], -1)
 
 
 def tile_sparsity_scores(grey: Tensor, inverse: Tensor, grid: tuple[int, int] = TILE_GRID) -> Tensor:
@@ -131,12 +148,16 @@ def tile_moments(grey: Tensor, inverse: Tensor, log_change: Tensor, grid: tuple[
         taps = kornia.filters.get_gaussian_kernel1d(TAPS, HIGH_PASS_SIGMA, dtype=torch.float64)[0].numpy()
         out = high_pass_tile_correlation(a[:, 0].contiguous(), b[:, 0].contiguous(), taps, grid)
         return torch.from_numpy(out).view(k, frames, -1)
-    a = (a - _gaussian_blur(a, HIGH_PASS_SIGMA))[:, 0]
-    b = (b - _gaussian_blur(b, HIGH_PASS_SIGMA))[:, 0]
     check_grid(grid, height, width)
     n = torch.cat([torch.tensor([float(height * width)]), tile_counts(height, width, grid)]).to(a.device)
-    sums = (_whole_and_tile_sums(m, grid) for m in (a, b, a * b, a * a, b * b))
-    return _correlation_of_sums(*sums, n).view(k, frames, -1)
+    pair = torch.cat([a, b])  # both high-passed by one blur, their sums, then those of a·(a, b) and b·b
+    del a, b
+    low = _gaussian_blur(pair, HIGH_PASS_SIGMA)
+    pair = (pair - low if pair.requires_grad else pair.sub_(low)).view(2, k * frames, height, width)
+    del low
+    (sum_a, sum_b), (sum_aa, sum_ab) = _whole_and_tile_sums(pair, grid), _whole_and_tile_sums(pair * pair[0], grid)
+    sum_bb = _whole_and_tile_sums(pair[1].square(), grid)
+    return _correlation_of_sums(sum_a, sum_b, sum_ab, sum_aa, sum_bb, n).view(k, frames, -1)
 
 
 def tile_overshoots(grey: Tensor, inverse: Tensor, log_peak: Tensor, grid: tuple[int, int] = TILE_GRID) -> Tensor:
@@ -158,12 +179,25 @@ def tile_overshoots(grey: Tensor, inverse: Tensor, log_peak: Tensor, grid: tuple
     top = torch.log(inverse).add_(log_frame).add_(log_peak)  # (K, F, h, w)
     height, width = top.shape[-2:]
     check_grid(grid, height, width)
-    rows, cols = tile_edges(height, grid[0]), tile_edges(width, grid[1])
-    regions = [(slice(None), slice(None))] + [(slice(r0, r1), slice(c0, c1)) for r0, r1 in zip(rows, rows[1:])
-                                              for c0, c1 in zip(cols, cols[1:])]
-    values = [_upper_quantile(top[(..., *region)].flatten(2), QUANTILE)
-              - log_frame[(..., *region)].flatten(2).amax(2) for region in regions]
-    return torch.stack(values, 2).double().clamp_(*OVERSHOOT_RANGE)
+    whole = _upper_quantile(top.flatten(2), QUANTILE) - log_frame.flatten(2).amax(2)
+    tiles = _tile_upper_quantiles(top, grid) - _tile_upper_quantiles(log_frame, grid, 1.0)
+    return torch.cat([whole[..., None], tiles], 2).double().clamp_(*OVERSHOOT_RANGE)
+
+
+def _tile_upper_quantiles(values: Tensor, grid: tuple[int, int], q: float = QUANTILE, gather: bool | None = None
+                          ) -> Tensor:
+    """The upper quantile ``q`` of each tile of the images :math:`(..., H, W)` → :math:`(..., T)`. A CPU takes the
+    tiles one by one (slices are free there, gathers are not); elsewhere (or with ``gather``) every tile's pixels
+    come in one gather, padded with ``-inf``, for one partial sort: a few kernels instead of dozens. The same values
+    either way."""
+    height, width = values.shape[-2:]
+    if not (gather if gather is not None else values.device.type != "cpu"):
+        rows, cols = tile_edges(height, grid[0]), tile_edges(width, grid[1])
+        return torch.stack([_upper_quantile(values[..., r0:r1, c0:c1].flatten(-2), q) for r0, r1 in zip(rows, rows[1:])
+                            for c0, c1 in zip(cols, cols[1:])], -1)
+    pixels = tile_pixels(height, width, grid, values.device)  # (T, N), padded with one past the last pixel
+    padded = torch.nn.functional.pad(values.flatten(-2), (0, 1), value=-math.inf)[..., pixels]  # (..., T, N)
+    return _upper_quantiles(padded, tile_counts(height, width, grid).long().tolist(), q)
 
 
 def tile_reductions(reader: _CandidateReader, grey: Tensor, grid: tuple[int, int] = TILE_GRID

@@ -9,10 +9,16 @@ import evlatcorr.compiled
 from evlatcorr.compiled.gradients import gradient_sparsity, gradient_tile_sparsity
 from evlatcorr.compiled.high_pass import high_pass_correlation, high_pass_tile_correlation
 from evlatcorr.ghost import inverse_ratio_moment
-from evlatcorr.image_tiles import check_grid, tile_counts, tile_edges, tile_sums
+from evlatcorr.image_tiles import check_grid, tile_counts, tile_edges, tile_pixels, tile_sums
 from evlatcorr.overshoot import overshoot
 from evlatcorr.sharpness import _gradient_sparsity
-from evlatcorr.tile_curves import tile_gradient_sparsity, tile_moments, tile_overshoots, tile_sparsity_scores
+from evlatcorr.tile_curves import (
+    _tile_upper_quantiles,
+    tile_gradient_sparsity,
+    tile_moments,
+    tile_overshoots,
+    tile_sparsity_scores,
+)
 from evlatcorr.tile_reader import NUM_TILE_FEATURES, load_tile_reader, tile_inputs, tile_log_probability
 
 
@@ -35,6 +41,38 @@ def test_tiles_partition_the_image():
         tile_sums(values, (2, 0))
 
 
+def test_tile_sums_accumulate_in_the_dtype_asked_and_read_integers():
+    values = torch.full((2, 300, 200), 0.1, dtype=torch.float32)  # 10000 a tile: float32 sums would be off by ~1e-7
+    sums = tile_sums(values, (3, 2), torch.float64)
+    assert sums.dtype == torch.float64 and sums.shape == (2, 6)
+    torch.testing.assert_close(sums, torch.full((2, 6), 10000 * float(values[0, 0, 0]), dtype=torch.float64),
+                               rtol=1e-12, atol=0)
+    assert tile_sums(torch.ones(4, 6, dtype=torch.int64), (2, 3)).tolist() == [4.0] * 6
+
+
+def test_tile_pixels_list_each_tile_s_pixels_padded_past_the_last():
+    pixels = tile_pixels(10, 7, (3, 2))
+    counts = tile_counts(10, 7, (3, 2)).long()
+    assert pixels.shape == (6, int(counts.max()))
+    image = torch.arange(70).view(10, 7)
+    for t, (rows, cols) in enumerate([(r, c) for r in ((0, 3), (3, 7), (7, 10)) for c in ((0, 4), (4, 7))]):
+        own = pixels[t][pixels[t] < 70]
+        assert len(own) == counts[t] and own.tolist() == image[rows[0]:rows[1], cols[0]:cols[1]].flatten().tolist()
+        assert bool((pixels[t, counts[t]:] == 70).all())
+
+
+@pytest.mark.parametrize("q", [0.99, 0.5, 1.0])
+def test_tile_quantiles_from_one_gather_equal_the_tiles_one_by_one(q):
+    # a GPU takes the gather; the CPU's slices are the reference. Tiles of 20-36 pixels and of one.
+    values = torch.randn(3, 2, 17, 19, generator=torch.Generator().manual_seed(0))
+    for grid in ((3, 3), (2, 4), (17, 19)):
+        sliced = _tile_upper_quantiles(values, grid, q, gather=False)
+        gathered = _tile_upper_quantiles(values, grid, q, gather=True)
+        assert sliced.shape == (3, 2, grid[0] * grid[1])
+        torch.testing.assert_close(gathered, sliced, rtol=0, atol=0)
+    torch.testing.assert_close(_tile_upper_quantiles(values, (17, 19), q, gather=True), values.flatten(-2))
+
+
 @pytest.mark.parametrize("size", [(12, 12), (26, 35), (31, 17)])
 def test_compiled_tile_sparsity_equals_eager_and_its_whole_the_shipped_score(monkeypatch, size):
     log = _images(5, *size).log()
@@ -45,10 +83,27 @@ def test_compiled_tile_sparsity_equals_eager_and_its_whole_the_shipped_score(mon
     assert compiled.shape == eager.shape == (2, 5, 10)
     torch.testing.assert_close(compiled, eager, rtol=1e-10, atol=1e-12)
     assert bool((compiled[:, 2] == 0).all()) and bool((compiled[:, [0, 1, 3, 4]] > 0).all())
+    # images asking for a gradient take the functional differences: the same values, and a gradient back
+    asking = log.clone().requires_grad_()
+    graded = tile_gradient_sparsity(asking, True, (3, 3))
+    torch.testing.assert_close(graded.detach(), eager, rtol=1e-12, atol=1e-14)
+    graded[0].sum().backward()
+    assert asking.grad is not None and bool(asking.grad[[0, 1, 3, 4]].isfinite().all())  # a flat image has none
     # the whole image's column is the score the search takes, at full and half resolution
     torch.testing.assert_close(compiled[0, :, 0], _gradient_sparsity(log).double(), rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(compiled[:, :, 0], torch.from_numpy(gradient_sparsity(log[:, 0].contiguous(), True)),
                                rtol=1e-12, atol=0)
+
+
+def test_eager_tile_sparsity_of_float32_images_sums_as_the_compiled_pass_and_reads_one_pixel_sides(monkeypatch):
+    log = _images(4, 40, 52, dtype=torch.float32).log()
+    compiled = tile_gradient_sparsity(log, True, (3, 3))
+    monkeypatch.setattr(evlatcorr.compiled, "ENABLED", False)
+    torch.testing.assert_close(tile_gradient_sparsity(log, True, (3, 3)), compiled, rtol=1e-10, atol=1e-12)
+    column = _images(3, 9, 1).log().transpose(-1, -2).transpose(-1, -2)  # (3, 1, 9, 1): no x differences
+    for image in (column, column.transpose(-1, -2)):
+        out = tile_gradient_sparsity(image, False, (1, 1))
+        torch.testing.assert_close(out[0, :, 0], _gradient_sparsity(image).double(), rtol=1e-10, atol=1e-12)
 
 
 def test_a_tile_s_sparsity_reads_the_differences_at_its_own_pixels():
@@ -73,6 +128,11 @@ def test_compiled_tile_moments_equal_eager_and_the_whole_is_the_shipped_moment(m
     eager = tile_moments(grey, inverse, change, (3, 3))
     assert compiled.shape == eager.shape == (4, 1, 10)
     torch.testing.assert_close(compiled, eager, rtol=1e-4, atol=1e-5)  # float32 images
+    asking = inverse.clone().requires_grad_()  # the functional high-pass: the same values, and a gradient back
+    graded = tile_moments(grey, asking, change, (3, 3))
+    torch.testing.assert_close(graded.detach(), eager)
+    graded.sum().backward()
+    assert asking.grad is not None and bool(asking.grad.isfinite().all())
     torch.testing.assert_close(compiled[:, 0, 0], inverse_ratio_moment(grey, inverse, change).double(), rtol=1e-5,
                                atol=1e-6)
     assert bool((compiled.abs() <= 1).all())
