@@ -133,3 +133,16 @@ def test_profile_lists_the_search_operators_on_a_cpu():
     # on a CPU no operator takes a tensor off the host
     assert all(float(row.split()[0]) > 0 and " 0.0 off host " in row and "evlatcorr/" in row
                for row in by_line), by_line
+
+
+def test_profile_counts_the_reductions_kernels_as_a_gpu_takes_them_without_one():
+    script = ROOT / "benchmarks" / "profile_search.py"
+    run = subprocess.run([sys.executable, str(script), "--reductions", "--height", "36", "--width", "48"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "1 frame(s) of 36x48, 101 candidates" in run.stdout and "meta tensors" in run.stdout
+    counts = {line.split(":")[0].strip(): int(line.split(":")[1]) for line in run.stdout.splitlines()[1:]}
+    # the tiles add their own kernels, fewer than the whole frame's reductions take (334 against 125 before they were
+    # written for a GPU)
+    assert set(counts) == {"whole frame", "whole frame and tiles"}
+    assert 0 < counts["whole frame"] < counts["whole frame and tiles"] < 2 * counts["whole frame"]
