@@ -81,3 +81,24 @@ def test_curve_reader_inputs_and_pick_stay_on_the_device(device):
         reference = _curve_reader_on(torch.device("cpu"))(on_cpu[None], valid[None])[0]
     torch.testing.assert_close(log_p.cpu().float(), reference, rtol=1e-4, atol=1e-4)
     assert int(log_p.argmax()) == int(reference.argmax()) < 80  # never an invalid candidate
+
+
+def test_tile_reductions_match_the_cpu(device):
+    # a GPU takes the eager sums (column sums and a matrix product, one gather for the tiles' quantiles) where a CPU
+    # takes its compiled passes and slices
+    from evlatcorr.overshoot import overshoot_stride
+    from evlatcorr.tile_curves import tile_moments, tile_overshoots, tile_sparsity_scores
+
+    generator = torch.Generator().manual_seed(3)
+    grey = 0.2 + 0.6 * torch.rand(1, 2, 40, 52, generator=generator)
+    inverse = torch.exp(0.3 * torch.randn(6, 2, 40, 52, generator=generator))
+    change = torch.randn(6, 2, 40, 52, generator=generator)
+    stride = overshoot_stride(40, 52)
+    peak = 0.1 * torch.rand(6, 2, -(-40 // stride), -(-52 // stride), generator=generator)
+    on_device = [x.to(device) for x in (grey, inverse, change, peak)]
+    pairs = [(tile_sparsity_scores(grey, inverse), tile_sparsity_scores(*on_device[:2]), 1e-7),
+             (tile_moments(grey, inverse, change), tile_moments(*on_device[:3]), 1e-4),
+             (tile_overshoots(grey, inverse, peak), tile_overshoots(*on_device[:2], on_device[3]), 1e-5)]
+    for reference, out, tolerance in pairs:
+        assert out.device.type == device.type and out.shape == reference.shape and out.shape[-1] == 10
+        torch.testing.assert_close(out.cpu(), reference, rtol=tolerance, atol=tolerance)
