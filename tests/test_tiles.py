@@ -42,7 +42,7 @@ def test_tiles_partition_the_image():
 
 
 def test_tile_sums_accumulate_in_the_dtype_asked_and_read_integers():
-    values = torch.full((2, 300, 200), 0.1, dtype=torch.float32)  # 10000 a tile: float32 sums would be off by ~1e-7
+    values = torch.full((2, 300, 200), 0.1, dtype=torch.float32)  # 10000 values a tile: float32 sums are off by ~1e-7
     sums = tile_sums(values, (3, 2), torch.float64)
     assert sums.dtype == torch.float64 and sums.shape == (2, 6)
     torch.testing.assert_close(sums, torch.full((2, 6), 10000 * float(values[0, 0, 0]), dtype=torch.float64),
@@ -100,7 +100,7 @@ def test_eager_tile_sparsity_of_float32_images_sums_as_the_compiled_pass_and_rea
     compiled = tile_gradient_sparsity(log, True, (3, 3))
     monkeypatch.setattr(evlatcorr.compiled, "ENABLED", False)
     torch.testing.assert_close(tile_gradient_sparsity(log, True, (3, 3)), compiled, rtol=1e-10, atol=1e-12)
-    column = _images(3, 9, 1).log().transpose(-1, -2).transpose(-1, -2)  # (3, 1, 9, 1): no x differences
+    column = _images(3, 9, 1).log()  # (3, 1, 9, 1): no x differences; transposed, no y differences
     for image in (column, column.transpose(-1, -2)):
         out = tile_gradient_sparsity(image, False, (1, 1))
         torch.testing.assert_close(out[0, :, 0], _gradient_sparsity(image).double(), rtol=1e-10, atol=1e-12)
