@@ -229,8 +229,11 @@ def _spread_of(out) -> str:
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
+    """``rows`` as CSV, the columns of every row in the order they first appear (a frame skipped before the first
+    corrected one has fewer), empty where a row has none."""
+    columns = list(dict.fromkeys(key for row in rows for key in row)) or ["frame"]
     with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["frame"])
+        w = csv.DictWriter(fh, fieldnames=columns, restval="")
         w.writeheader()
         w.writerows(rows)
 
@@ -250,3 +253,11 @@ def warning_printer(command: str) -> Callable[..., None]:
             tqdm.write(f"evlatcorr {command}: warning: {text}", file=sys.stderr if file is None else file)
 
     return show
+
+
+def frames_per_call(device: torch.device, mode: str) -> int:
+    """Frames of a recording corrected in one call: on an accelerator the constant search takes several frames in
+    one pass (:mod:`evlatcorr.search_batched`); a CPU searches frame by frame, so it gets them one at a time."""
+    from evlatcorr import search_batched
+
+    return search_batched.MAX_FRAMES if mode == "constant" and device.type != "cpu" else 1

@@ -19,6 +19,7 @@ from evlatcorr.cli.common import (
     EXIT_OK,
     FrameWarnings,
     build_corrector,
+    frames_per_call,
     latency_row,
     open_input,
     parse_device,
@@ -105,7 +106,7 @@ def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: tor
 
     kept = _CorrectedFrames([], [], [], [], [], [math.inf, -math.inf])
     frame_warnings = FrameWarnings()
-    pending: list[Any] = []  # frames with events not yet corrected, searched in one call (_frames_per_call)
+    pending: list[Any] = []  # frames with events not yet corrected, searched in one call (frames_per_call)
 
     def record(batch, out, seconds: float, skipped: str = "") -> None:
         kept.rows.append(latency_row(batch, out, theta, seconds, skipped=skipped))
@@ -134,7 +135,7 @@ def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: tor
                 record(batch, part, seconds)
             pending.clear()
 
-    per_call = _frames_per_call(device, args.mode)
+    per_call = frames_per_call(device, args.mode)
     for batch in progress(rec, len(rec), "correct"):
         batch = batch.to(device)
         if has_events(batch):
@@ -187,14 +188,6 @@ def _write_corrected(args: argparse.Namespace, rec, h5, frames: _CorrectedFrames
     h5["frames/exposure_start"] = np.array(starts)
     h5["frames/exposure_end"] = np.array(ends)
     h5["frames/estimated_latency"] = np.array([float(m.mean()) for m in latencies], dtype=np.float32)
-
-
-def _frames_per_call(device: torch.device, mode: str) -> int:
-    """Frames of a recording corrected in one call: on an accelerator the constant search takes several frames in
-    one pass (:mod:`evlatcorr.search_batched`); a CPU searches frame by frame, so it gets them one at a time."""
-    from evlatcorr import search_batched
-
-    return search_batched.MAX_FRAMES if mode == "constant" and device.type != "cpu" else 1
 
 
 def _fused(rows: list[dict], latencies: list[torch.Tensor], evidence: list[tuple[Any, Any]],

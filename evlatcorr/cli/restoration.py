@@ -15,6 +15,7 @@ from evlatcorr.cli.common import (
     EXIT_OK,
     FrameWarnings,
     build_corrector,
+    frames_per_call,
     latency_row,
     open_input,
     parse_device,
@@ -43,6 +44,7 @@ def cmd_interpolate(args: argparse.Namespace) -> int:
 def _restore(args: argparse.Namespace, task: str) -> int:
     """deblur / interpolate: the model on every frame (or pair), with stamped and with corrected events."""
     from evlatcorr.io.outputs import atomic_dir, check_outputs
+    from evlatcorr.restore import has_events
 
     if args.max_frames is not None and args.max_frames < 1:
         raise ValueError(f"--max-frames must be >= 1, got {args.max_frames}")
@@ -52,31 +54,59 @@ def _restore(args: argparse.Namespace, task: str) -> int:
     device = parse_device(args.device)
     parse_threshold(args.threshold)  # a bad value fails before any reading
     run = _restoration(args, task, device)
-    rows, gif, count = [], [], 0
+    rows, gif = [], []
     frame_warnings = FrameWarnings()
+    # frames with events wait to be corrected together: on an accelerator the constant search takes several frames in
+    # one pass (evlatcorr.search_batched); a CPU takes them one at a time
+    per_call = frames_per_call(device, args.correct) if run.corrector is not None else 1
+    pending: list[tuple[Any, Any]] = []
+
+    def restore(batch, frames, out, seconds: float, skipped: str = "") -> None:
+        t0 = time.perf_counter()
+        with frame_warnings.naming([batch]):
+            plain, corrected = _restored_outputs(run, frames, out)
+        rows.append(latency_row(batch, out, run.theta, seconds + time.perf_counter() - t0, skipped))
+        if out is not None and "frame_latency_us" in out.meta:  # fused: the frame's own estimate too
+            rows[-1]["frame_latency_us"] = f"{float(out.meta['frame_latency_us'][0]):.1f}"
+        _save_restored(tmp, task, args.model, batch.meta["frame"], frames.blurry[0], plain,
+                       corrected if run.corrector is not None else None, gif)
+
+    def restore_pending() -> None:
+        if pending:
+            t0 = time.perf_counter()
+            with frame_warnings.naming([batch for batch, _ in pending]):
+                outs = _corrected_frames(run, [frames for _, frames in pending])
+            share = (time.perf_counter() - t0) / len(pending)  # each frame's share of the call
+            for (batch, frames), out in zip(pending, outs):
+                restore(batch, frames, out, share)
+            pending.clear()
+
     with atomic_dir(args.outdir, overwrite=args.overwrite) as tmp:
         stream, limit = _restore_inputs(run.rec, args.max_frames, run.pairs)
         for batch, frames in progress(stream, limit, task):
-            t0 = time.perf_counter()
             if frames is None:
+                restore_pending()  # the frames before it first: rows and images stay in order
                 skip_warning(batch, f"{args.model} {task} needs the next frame, and this is the last of its segment")
                 rows.append(latency_row(batch, None, run.theta, 0.0, skipped="no next frame"))
                 continue
             frames = _with_targets(frames.to(device), task, args.model, args.num if task == "interpolation" else 0)
-            with frame_warnings.naming([batch]):
-                plain, corrected, out, skipped = _restore_frames(run, frames, batch)
-            rows.append(latency_row(batch, out, run.theta, time.perf_counter() - t0, skipped))
-            if out is not None and "frame_latency_us" in out.meta:  # fused: the frame's own estimate too
-                rows[-1]["frame_latency_us"] = f"{float(out.meta['frame_latency_us'][0]):.1f}"
-            _save_restored(tmp, task, args.model, batch.meta["frame"], frames.blurry[0], plain,
-                           corrected if run.corrector is not None else None, gif)
-            count += 1
+            if run.corrector is not None and has_events(frames):
+                pending.append((batch, frames))
+                if len(pending) >= per_call:
+                    restore_pending()
+                continue
+            restore_pending()
+            if run.corrector is not None:
+                skip_warning(batch, "no events in its exposure and search window: not corrected")
+            restore(batch, frames, None, 0.0, "no events" if run.corrector is not None else "")
+        restore_pending()
         frame_warnings.summarise()
         if not rows:
             raise ValueError(f"{args.input}: no frames")
         write_csv(tmp / "frames.csv", rows)
         if gif:
             gif[0].save(tmp / "side_by_side.gif", save_all=True, append_images=gif[1:], duration=200, loop=0)
+    count = sum(row["skipped"] != "no next frame" for row in rows)  # the frames (or pairs) restored
     panels = "blurry | uncorrected" + (" | corrected" if run.corrector is not None else "")
     print(f"wrote {count} {'frames' if task == 'deblur' else 'pairs'} to {args.outdir} ({args.model}; "
           f"side_by_side.gif: {panels}{f', first {GIF_FRAMES}' if count > GIF_FRAMES else ''}; frames.csv)")
@@ -138,27 +168,27 @@ def _with_targets(frames, task: str, model: str, num: int):
     return frames
 
 
-def _restore_frames(run: _Restoration, frames, batch):
-    """The model's output with the stamped events and with the corrected ones (the same without a corrector
-    or without events to correct), the corrector's output and why correction was skipped."""
-    from evlatcorr.restore import has_events
+def _corrected_frames(run: _Restoration, frames: list) -> list:
+    """The corrector's output for each of ``frames`` (single frames with events, consecutive), from one call."""
+    from evlatcorr.frames import EventFrames
 
+    outs = run.corrector(frames[0] if len(frames) == 1 else EventFrames.cat(frames))
+    outs = outs.split() if len(frames) > 1 else [outs]
+    if run.pairs:  # REFID reads before the exposure: the corrected events start where the stamped ones do
+        outs = [out.replace(corrected=out.corrected.since(one.exposure_start - run.rec.before_us))
+                for one, out in zip(frames, outs)]
+    return outs
+
+
+def _restored_outputs(run: _Restoration, frames, out):
+    """The model's output with the stamped events and with the corrected ones in ``out`` (the stamped ones again
+    where there is no ``out``)."""
     with torch.no_grad():
         plain = run.model(frames).output
-    out, skipped, corrected = None, "", plain
-    if run.corrector is not None:
-        if has_events(frames):
-            out = run.corrector(frames)
-            if run.pairs:  # REFID reads before the exposure: the corrected events start where the stamped ones do
-                out = out.replace(corrected=out.corrected.since(frames.exposure_start - run.rec.before_us))
-            with torch.no_grad():
-                corrected = run.model(out).output
-        else:
-            skipped = "no events"
-            skip_warning(batch, "no events in its exposure and search window: not corrected")
+        corrected = plain if out is None else run.model(out).output
     if run.device.type == "cuda":
         torch.cuda.synchronize(run.device)  # so the row's time is the frame's
-    return plain, corrected, out, skipped
+    return plain, corrected
 
 
 def _save_restored(tmp: Path, task: str, name: str, i: int, blurry, plain, corrected, gif: list) -> None:
