@@ -31,6 +31,7 @@ __all__ = [
     "check_search_range",
     "check_memory",
     "check_has_events",
+    "NoEventsError",
     "check_threshold",
     "resolve_memory_budget",
 ]
@@ -270,10 +271,20 @@ def check_has_events(frames: Any) -> None:
         # times given in other units (EventFrames warned when made) are shown, not rounded to 0, and named
         units = ("" if exposure >= SHORTEST_EXPOSURE_US else
                  f" (the exposure is {exposure:.3g} us long: evlatcorr takes times in microseconds)")
-        raise ValueError(f"sample {i} has no events in its exposure and search window "
-                         f"[{_time_us(float(frames.exposure_start[i]))}, "
-                         f"{_time_us(float(frames.exposure_end[i] + frames.exposure_time[i]))}) us{units}: "
-                         "latency cannot be estimated without events")
+        raise NoEventsError(i, f"sample {i} has no events in its exposure and search window "
+                               f"[{_time_us(float(frames.exposure_start[i]))}, "
+                               f"{_time_us(float(frames.exposure_end[i] + frames.exposure_time[i]))}) us{units}: "
+                               "latency cannot be estimated without events")
+
+
+class NoEventsError(ValueError):
+    """A sample of the batch has no events in its exposure and search window (:func:`check_has_events`): the first
+    such sample's index is ``sample``. A stream (:class:`~evlatcorr.temporal.StreamingLatencyCorrector`) carries the
+    previous frame's latency over such a frame; a batch corrector refuses it."""
+
+    def __init__(self, sample: int, message: str) -> None:
+        super().__init__(message)
+        self.sample = sample
 
 
 def _time_us(value: float) -> str:

@@ -20,8 +20,10 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from evlatcorr.checks import NoEventsError
 from evlatcorr.curve_reader import CENTRE_HALF_WIDTH, probability_centre
 from evlatcorr.frames import EventFrames
+from evlatcorr.sample_warnings import SampleWarning
 
 __all__ = ["fuse_latencies", "frame_evidence", "no_latency_share", "LatencyHistory", "StreamingLatencyCorrector",
            "DEFAULT_FUSED_FRAMES", "DEFAULT_NO_LATENCY_MASS"]
@@ -242,7 +244,10 @@ class StreamingLatencyCorrector(nn.Module):
     with ``after=0``: a stream has no later frames; 0 where that evidence keeps no latency likely), and its events are
     corrected and its latent image made with the fused latency. The frames of a batch are taken as consecutive, in
     batch order, after those of the previous call. :meth:`reset` starts a new recording; a frame that starts before
-    the last one passed starts one too, with a warning. For frames that are not one
+    the last one passed starts one too, with a warning. A frame with no events in its exposure and search window (the
+    scene still) keeps the latency of the frame before it (0 at a recording's start), with a warning, and adds no
+    evidence, as ``evlatcorr correct`` does: its ``meta["latency_source"]`` is ``"no events"`` and its latent image
+    the blurry frame (no events, no change to undo). For frames that are not one
     recording's (a shuffled training batch) use the :class:`~evlatcorr.correction.EventLatencyCorrector` itself.
 
     Args:
@@ -277,6 +282,7 @@ class StreamingLatencyCorrector(nn.Module):
             raise ValueError("StreamingLatencyCorrector takes a constant-mode EventLatencyCorrector")
         self.corrector, self.history = corrector, LatencyHistory(before)
         self._last_start: float | None = None  # the exposure start of the last frame passed, µs
+        self._last_latency: Tensor | None = None  # the last corrected frame's latency, µs (read only when needed)
 
     @property
     def before(self) -> int:
@@ -286,6 +292,7 @@ class StreamingLatencyCorrector(nn.Module):
         """Forget the earlier frames: the next frame starts a new recording."""
         self.history.reset()
         self._last_start = None
+        self._last_latency = None
 
     def extra_repr(self) -> str:
         return f"before={self.before}"
@@ -300,8 +307,40 @@ class StreamingLatencyCorrector(nn.Module):
                           "forgotten; call reset() between recordings", stacklevel=2)
             self.reset()
         self._last_start = last
+        try:
+            return self._correct(frames)
+        except NoEventsError:  # checked before the search: nothing was fused yet
+            if frames.batch_size == 1:
+                return self._carry_over(frames)
+            return EventFrames.cat([self._correct_or_carry_over(frame, i) for i, frame in enumerate(frames.split())])
+
+    def _correct(self, frames: EventFrames) -> EventFrames:
         # the search fuses each frame's evidence with the history's as it decides, and reads the frame's latent image
         # at the fused latency from the frame's own integral
         out = self.corrector(frames.replace(meta={**frames.meta, "latency_history": self.history}))
+        self._last_latency = out.latency[-1, 0, 0, 0]
         meta = {key: value for key, value in out.meta.items() if key != "latency_history"}
         return out.replace(meta=meta)
+
+    def _correct_or_carry_over(self, frame: EventFrames, index: int) -> EventFrames:
+        try:
+            return self._correct(frame)
+        except NoEventsError:
+            return self._carry_over(frame, index)
+
+    def _carry_over(self, frame: EventFrames, index: int = 0) -> EventFrames:
+        """A frame without events (sample ``index`` of the call): the previous frame's latency (0 at the start), its
+        events shifted by it."""
+        latency = 0.0 if self._last_latency is None else float(self._last_latency)
+        warnings.warn(SampleWarning(
+            "no_events", [index], "{which}: no events in its exposure and search window: its events keep the previous "
+            f"frame's latency ({latency:.0f} us)", "no events in the exposure and search window: the previous "
+            "frame's latency"), stacklevel=3)
+        height, width = frame.sensor_size
+        nan = torch.full((1,), math.nan, dtype=torch.float64)
+        meta = {**frame.meta, "latency_source": ["no events"], "latency_fallback": torch.ones(1, dtype=torch.bool),
+                "latency_confidence": torch.zeros(1, dtype=torch.float64), "latency_spread_us": nan,
+                "frame_latency_us": nan.clone()}
+        shift = torch.full((1,), latency, dtype=torch.float64, device=frame.device)
+        return frame.with_outputs(latency=torch.full((1, 1, height, width), latency, device=frame.device),
+                                  corrected=frame.events.shift(shift), latent=frame.blurry.clone(), meta=meta)

@@ -180,6 +180,55 @@ def test_the_streaming_corrector_fuses_each_frame_with_the_frames_before_it():
     torch.testing.assert_close(stream(frames.split()[2]).latency, alone.latency[2:3], rtol=0, atol=1e-3)
 
 
+def test_a_still_frame_in_a_stream_keeps_the_latency_before_it():
+    # a recording that starts still (the shared street recording's first frame has no events) and stills again:
+    # the stream carries the latency over them, as `evlatcorr correct` does, instead of refusing them
+    from evlatcorr.checks import NoEventsError
+    from evlatcorr.correction import EventLatencyCorrector
+    from evlatcorr.frames import EventFrames
+    from evlatcorr.sample_warnings import SampleWarning
+    from evlatcorr.simulate import simulate
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    seq = simulate("camera", num_frames=4, height=32, width=48, latency_us=3000.0, seed=0)
+    parts = seq.frames("delayed").split()
+
+    def still(frame):  # its events moved before its exposure: none to estimate from, some to shift
+        ev = frame.events
+        events = type(ev)(ev.x, ev.y, ev.t - 3 * float(frame.exposure_time[0]), ev.p, sensor_size=ev.sensor_size)
+        return frame.replace(events=events)
+
+    frames = [still(parts[0]), parts[1], still(parts[2]), parts[3]]
+    assert len(frames[0].events) > 0
+    with pytest.raises(NoEventsError, match="sample 0 has no events") as refused:
+        EventLatencyCorrector(threshold=0.2)(frames[0])  # one frame alone has nothing to take a latency from
+    assert isinstance(refused.value, ValueError) and refused.value.sample == 0
+    stream = StreamingLatencyCorrector(threshold=0.2)
+    with pytest.warns(SampleWarning, match="no events in its exposure and search window: its events keep the "
+                                            "previous frame's latency") as caught:
+        outs = [stream(frame) for frame in frames]
+    assert [o.meta["latency_source"] for o in outs] == [["no events"], ["reader"], ["no events"], ["reader"]]
+    assert sum("no events" in str(w.message) for w in caught) == 2
+    latencies = [float(o.latency.mean()) for o in outs]
+    assert latencies[0] == 0.0 and latencies[2] == latencies[1] and abs(latencies[1] - 3000.0) < 1000.0
+    for frame, out, latency in zip(frames, outs, latencies):
+        assert out.latency.shape == (1, 1, 32, 48)
+        torch.testing.assert_close(out.corrected.t, frame.events.t - latency, rtol=0, atol=1e-3)  # float32 maps
+    torch.testing.assert_close(outs[2].latent, frames[2].blurry)  # no events in it: nothing to undo
+    assert bool(outs[2].meta["latency_fallback"][0]) and math.isnan(float(outs[2].meta["frame_latency_us"][0]))
+    # the still frame adds no evidence: frame 3 fuses with frame 1 as if frame 2 were not there
+    stream.reset()
+    stream(frames[1])
+    assert float(stream(frames[3]).latency.mean()) == pytest.approx(latencies[3], abs=1e-3)
+    # the same frames in one call: the same latencies, the still frames named by their place in the batch
+    stream.reset()
+    with pytest.warns(SampleWarning) as caught:
+        batched = stream(EventFrames.cat(frames))
+    torch.testing.assert_close(batched.latency.flatten(1).mean(1), torch.tensor(latencies), rtol=0, atol=1e-3)
+    assert batched.meta["latency_source"] == ["no events", "reader", "no events", "reader"]
+    assert {str(w.message).split(":")[0] for w in caught if "no events" in str(w.message)} == {"sample 0", "sample 2"}
+
+
 def test_the_streaming_corrector_refuses_a_spatial_corrector_or_a_negative_window():
     from evlatcorr.correction import EventLatencyCorrector
     from evlatcorr.temporal import StreamingLatencyCorrector
