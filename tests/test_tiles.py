@@ -59,6 +59,8 @@ def test_tile_pixels_list_each_tile_s_pixels_padded_past_the_last():
         own = pixels[t][pixels[t] < 70]
         assert len(own) == counts[t] and own.tolist() == image[rows[0]:rows[1], cols[0]:cols[1]].flatten().tolist()
         assert bool((pixels[t, counts[t]:] == 70).all())
+    with pytest.raises(ValueError, match="grid must be"):
+        tile_pixels(4, 4, (5, 1))  # more tile rows than pixel rows
 
 
 @pytest.mark.parametrize("q", [0.99, 0.5, 1.0])
