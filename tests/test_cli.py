@@ -50,6 +50,15 @@ def test_info(simulated):
     assert "evlatcorr-h5" in r.stdout and "(48, 64)" in r.stdout and "frames" in r.stdout
 
 
+def test_an_exposure_option_is_refused_unless_positive_and_said_unused_where_frames_carry_their_own(simulated):
+    for bad in ("-5", "0", "nan", "inf"):
+        r = run("info", str(simulated), "--exposure-us", bad, cwd=simulated.parent)
+        assert r.returncode == 2 and "argument --exposure-us: must be a" in r.stderr
+    r = run("info", str(simulated), "--exposure-us", "5000", cwd=simulated.parent)
+    assert r.returncode == 0, r.stderr
+    assert "--exposure-us is not used: evlatcorr-h5 recordings stamp each frame's exposure" in r.stderr
+
+
 def test_correct_writes_events_and_report(simulated):
     out = simulated.parent / "corrected.h5"
     r = run("correct", str(simulated), str(out), "--num-bins", "100", cwd=simulated.parent)

@@ -114,6 +114,15 @@ def test_missing_exposure_timestamps(tmp_path, events):
     assert float(end.frame(1).exposure_end) == pytest.approx(6000.0 + EXPOSURE / 2)
 
 
+def test_an_exposure_given_for_images_that_carry_their_own_is_not_used_and_says_so(tmp_path, events):
+    rec = EventUtilsRecording(make(tmp_path / "exp.h5", events), exposure_us=1000.0)
+    with pytest.warns(UserWarning, match="exp.h5: images with their own exposure_start/exposure_end keep them; "
+                                         "exposure_us=1000 is used only"):
+        batch = rec.frame(1)
+    assert float(batch.exposure_start) == pytest.approx(6000.0)
+    assert float(batch.exposure_time) == pytest.approx(EXPOSURE)
+
+
 def test_colour_bgr_channels_first_and_sharp(tmp_path, events):
     rec = EventUtilsRecording(make(tmp_path / "c.h5", events, colour=True, sharp=True))
     b = rec.frame(0)

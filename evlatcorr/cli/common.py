@@ -43,8 +43,12 @@ def open_input(args: argparse.Namespace):
     from evlatcorr.restore import search_reach_us
 
     rec = open_recording(args.input)
-    if isinstance(rec, EventUtilsRecording) and getattr(args, "exposure_us", None) is not None:
-        rec.exposure_us = args.exposure_us
+    if getattr(args, "exposure_us", None) is not None:
+        if isinstance(rec, EventUtilsRecording):
+            rec.exposure_us = args.exposure_us
+        else:
+            warnings.warn(f"--exposure-us is not used: {rec.format_name} recordings stamp each frame's exposure",
+                          stacklevel=2)
     if getattr(args, "search_us", None):
         rec.after_us = search_reach_us(rec, args.search_us[1])
     return rec

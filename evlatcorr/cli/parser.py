@@ -23,6 +23,14 @@ def _finite_us(text: str) -> float:
     return value
 
 
+def _positive_us(text: str) -> float:
+    """A positive, finite number of µs (an exposure)."""
+    value = _finite_us(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive number of us, got {text!r}")
+    return value
+
+
 def _num_bins(text: str) -> int:
     """EDI's sub-intervals of an exposure: a whole number >= 2, refused before any reading."""
     try:
@@ -81,7 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--image", default="astronaut", help="scikit-image photograph (default: astronaut)")
     s.add_argument("--frames", type=int, default=4)
     s.add_argument("--size", type=int, nargs=2, default=(260, 346), metavar=("H", "W"))
-    s.add_argument("--exposure-us", type=float, default=20000.0)
+    s.add_argument("--exposure-us", type=_positive_us, default=20000.0)
     s.add_argument("--interval-us", type=float, default=25000.0, help="time between exposure starts")
     s.add_argument("--latency-model", choices=("none", "constant", "intensity"), default="constant")
     s.add_argument("--latency-us", type=float, default=4000.0, help="constant latency")
@@ -89,7 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     n = sub.add_parser("info", help="summarise a recording")
     n.add_argument("input", type=Path)
-    n.add_argument("--exposure-us", type=float, help="exposure for files that only stamp frame times")
+    n.add_argument("--exposure-us", type=_positive_us,
+                   help="exposure, us, for files that only stamp frame times (event_utils HDF5 whose images carry "
+                        "a timestamp alone); other recordings keep their own exposures")
     return p
 
 
@@ -123,4 +133,6 @@ def _common_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--search-us", type=_finite_us, nargs=2, metavar=("LOW", "HIGH"),
                    help="the range the latency lies in, us: bounds the estimate, while the learned reader still "
                         "reads 0 to the exposure time as trained (default: 0 to the exposure time)")
-    p.add_argument("--exposure-us", type=float, help="exposure for files that only stamp frame times")
+    p.add_argument("--exposure-us", type=_positive_us,
+                   help="exposure, us, for files that only stamp frame times (event_utils HDF5 whose images carry "
+                        "a timestamp alone); other recordings keep their own exposures")

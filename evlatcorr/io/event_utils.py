@@ -160,6 +160,10 @@ class EventUtilsRecording(IndexedH5Recording):
     def _exposure(self, ds: h5py.Dataset, index: int, name: str) -> tuple[float, float]:
         a = ds.attrs
         if "exposure_start" in a and "exposure_end" in a:
+            if self.exposure_us is not None:  # one message for the file (warnings show each once)
+                warnings.warn(f"{self.path}: images with their own exposure_start/exposure_end keep them; "
+                              f"exposure_us={self.exposure_us:g} is used only for images with a timestamp alone",
+                              stacklevel=3)
             return float(self._us(float(a["exposure_start"]))), float(self._us(float(a["exposure_end"])))
         if "timestamp" in a and self.exposure_us is not None:
             t = float(self._us(float(a["timestamp"])))
