@@ -337,10 +337,12 @@ class StreamingLatencyCorrector(nn.Module):
             f"frame's latency ({latency:.0f} us)", "no events in the exposure and search window: the previous "
             "frame's latency"), stacklevel=3)
         height, width = frame.sensor_size
-        nan = torch.full((1,), math.nan, dtype=torch.float64)
-        meta = {**frame.meta, "latency_source": ["no events"], "latency_fallback": torch.ones(1, dtype=torch.bool),
-                "latency_confidence": torch.zeros(1, dtype=torch.float64), "latency_spread_us": nan,
-                "frame_latency_us": nan.clone()}
+        # on the frame's device, as the corrector's are: a batch's frames are put back together with torch.cat
+        nan = torch.full((1,), math.nan, dtype=torch.float64, device=frame.device)
+        meta = {**frame.meta, "latency_source": ["no events"],
+                "latency_fallback": torch.ones(1, dtype=torch.bool, device=frame.device),
+                "latency_confidence": torch.zeros(1, dtype=torch.float64, device=frame.device),
+                "latency_spread_us": nan, "frame_latency_us": nan.clone()}
         shift = torch.full((1,), latency, dtype=torch.float64, device=frame.device)
         return frame.with_outputs(latency=torch.full((1, 1, height, width), latency, device=frame.device),
                                   corrected=frame.events.shift(shift), latent=frame.blurry.clone(), meta=meta)

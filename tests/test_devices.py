@@ -102,3 +102,29 @@ def test_tile_reductions_match_the_cpu(device):
     for reference, out, tolerance in pairs:
         assert out.device.type == device.type and out.shape == reference.shape and out.shape[-1] == 10
         torch.testing.assert_close(out.cpu(), reference, rtol=tolerance, atol=tolerance)
+
+
+def test_a_stream_batch_with_a_still_frame_stays_on_the_device(device):
+    # the still frame's outputs are made by the stream, the moving one's by the corrector: torch.cat puts them back
+    # together, so both must be on the device
+    import warnings
+
+    from evlatcorr.frames import EventFrames
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    moving = simulate("camera", num_frames=2, height=32, width=48, latency_us=LATENCY_US, seed=0).frames("delayed")
+    first, second = moving.split()
+    ev = first.events  # its events moved before its exposure: still
+    still = first.replace(events=type(ev)(ev.x, ev.y, ev.t - 3 * float(first.exposure_time[0]), ev.p,
+                                          sensor_size=ev.sensor_size))
+    batch = EventFrames.cat([still, second])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        reference = StreamingLatencyCorrector(threshold=0.2)(batch)
+        out = StreamingLatencyCorrector(threshold=0.2)(batch.to(device))
+    assert out.meta["latency_source"] == ["no events", "reader"]
+    for key, value in out.meta.items():
+        if isinstance(value, torch.Tensor):
+            assert value.device.type == device.type, key
+    torch.testing.assert_close(out.latency.flatten(1).mean(1).cpu(), reference.latency.flatten(1).mean(1),
+                               rtol=0, atol=150.0)
