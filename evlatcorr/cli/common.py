@@ -39,16 +39,23 @@ def parse_threshold(text: str) -> float | str:
 def open_input(args: argparse.Namespace):
     """The recording ``args.input``; with ``--search-us``, each frame's events reach as far as the search reads (by
     default: the exposure time past the exposure's end)."""
-    from evlatcorr.io import EventUtilsRecording, open_recording
+    import inspect
+
+    from evlatcorr.io import open_recording, recording_class
     from evlatcorr.restore import search_reach_us
 
-    rec = open_recording(args.input)
-    if getattr(args, "exposure_us", None) is not None:
-        if isinstance(rec, EventUtilsRecording):
-            rec.exposure_us = args.exposure_us
+    reader, kwargs = recording_class(args.input), {}
+    accepted = inspect.signature(reader.__init__).parameters
+    for option, why in (("exposure_us", "stamp each frame's exposure"), ("events_topic", "have no topics"),
+                        ("image_topic", "have no topics")):
+        if getattr(args, option, None) is None:
+            continue
+        if option in accepted:  # exposure_us: event_utils HDF5 and ROS1 bags; topics: ROS1 bags
+            kwargs[option] = getattr(args, option)
         else:
-            warnings.warn(f"--exposure-us is not used: {rec.format_name} recordings stamp each frame's exposure",
+            warnings.warn(f"--{option.replace('_', '-')} is not used: {reader.format_name} recordings {why}",
                           stacklevel=2)
+    rec = open_recording(args.input, **kwargs)
     if getattr(args, "search_us", None):
         rec.after_us = search_reach_us(rec, args.search_us[1])
     return rec

@@ -12,6 +12,10 @@ from evlatcorr.temporal import DEFAULT_FUSED_FRAMES
 __all__ = ["build_parser"]
 
 
+_EXPOSURE_HELP = ("exposure, us, for files that only stamp frame times (event_utils HDF5 whose images carry a "
+                  "timestamp alone, ROS1 bags without the driver's exposure topic); other recordings keep their own")
+
+
 def _finite_us(text: str) -> float:
     """A finite number of µs (argparse's ``float`` takes ``nan`` and ``inf``)."""
     try:
@@ -46,8 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="evlatcorr",
         description="Event-camera latency correction for event-guided deblurring and frame interpolation.",
-        epilog="Formats read: AEDAT4 (DAVIS), evlatcorr HDF5, event_utils HDF5, GEM npz pairs, HighREV video folders. "
-               "Times are microseconds.",
+        epilog="Formats read: AEDAT4 (DAVIS), ROS1 bags (rpg_dvs_ros), evlatcorr HDF5, event_utils HDF5, GEM npz "
+               "pairs, HighREV video folders. Times are microseconds.",
     )
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -98,9 +102,16 @@ def build_parser() -> argparse.ArgumentParser:
     n = sub.add_parser("info", help="summarise a recording")
     n.add_argument("input", type=Path)
     n.add_argument("--exposure-us", type=_positive_us,
-                   help="exposure, us, for files that only stamp frame times (event_utils HDF5 whose images carry "
-                        "a timestamp alone); other recordings keep their own exposures")
+                   help=_EXPOSURE_HELP)
+    _topic_options(n)
     return p
+
+
+def _topic_options(p: argparse.ArgumentParser) -> None:
+    """A ROS bag's topics, for bags with several of a kind (stereo, or raw and colour images)."""
+    p.add_argument("--events-topic", help="ROS bags: the dvs_msgs/EventArray topic (default: the only one)")
+    p.add_argument("--image-topic", help="ROS bags: the sensor_msgs/Image topic (default: the only one, or the "
+                                         "one beside the events)")
 
 
 def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> None:
@@ -134,5 +145,5 @@ def _common_options(p: argparse.ArgumentParser) -> None:
                    help="the range the latency lies in, us: bounds the estimate, while the learned reader still "
                         "reads 0 to the exposure time as trained (default: 0 to the exposure time)")
     p.add_argument("--exposure-us", type=_positive_us,
-                   help="exposure, us, for files that only stamp frame times (event_utils HDF5 whose images carry "
-                        "a timestamp alone); other recordings keep their own exposures")
+                   help=_EXPOSURE_HELP)
+    _topic_options(p)

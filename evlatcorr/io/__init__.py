@@ -10,6 +10,7 @@ polarity ±1, sensor size (H, W), frames (C, H, W) float in [0, 1]):
 | event_utils / EFNet HDF5 | :class:`EventUtilsRecording` | HDF5 with ``/events/xs, ys, ts, ps`` |
 | GEM NPZ pairs | :class:`GemNpzRecording` | ``.npz`` (or a folder of them) with ``blur1``, ``exp_start1``, ... |
 | HighREV | :class:`HighREVRecording` | a folder with ``blur/`` and ``event/`` NPZs |
+| ROS1 bag (``rpg_dvs_ros``) | :class:`RosbagRecording` | magic ``#ROSBAG V2.0`` |
 
 Formats written: our HDF5 (:func:`write_sequence`, :func:`write_dataset`, :func:`write_h5_events`)
 and event_utils HDF5 (:func:`write_event_utils`); :func:`write_events` picks the input's format
@@ -40,6 +41,7 @@ from evlatcorr.io.gem_npz import GemNpzRecording, is_gem_npz
 from evlatcorr.io.h5 import EventWriter, is_evlatcorr_h5, write_dataset, write_h5_events, write_sequence
 from evlatcorr.io.h5_read import H5Recording, is_sequence_file, num_sequences, read_sequence, read_sequences
 from evlatcorr.io.highrev import HighREVRecording, is_highrev
+from evlatcorr.io.rosbag import RosbagRecording
 
 __all__ = [
     "AedatRecording",
@@ -51,11 +53,13 @@ __all__ = [
     "HighREVRecording",
     "Recording",
     "RecordingError",
+    "RosbagRecording",
     "is_sequence_file",
     "num_sequences",
     "open_recording",
     "read_sequence",
     "read_sequences",
+    "recording_class",
     "write_dataset",
     "write_event_utils",
     "write_events",
@@ -80,6 +84,12 @@ def _sniff_file(path: Path) -> type[Recording]:
         head = f.read(16)
     if head.startswith(b"#!AER-DAT4"):
         return AedatRecording
+    if head.startswith(b"#ROSBAG V2"):
+        return RosbagRecording
+    if head.startswith(b"#ROSBAG"):
+        version = head.split(b"\n")[0].decode(errors="replace")
+        raise RecordingError(f"{path}: a ROS bag of an old version ({version}); only version 2.0 is read ('rosbag "
+                             "fix' converts older bags)")
     if head.startswith(b"#!AER-DAT"):
         version = head[len(b"#!AER-DAT"):].split(b"\r")[0].split(b"\n")[0].decode(errors="replace")
         raise RecordingError(f"{path}: AEDAT {version} is not supported (only AEDAT4; convert the file with "
@@ -111,17 +121,20 @@ def _sniff_file(path: Path) -> type[Recording]:
                              "corrupt header)")
     if path.suffix.lower() in (".h5", ".hdf5"):
         raise RecordingError(f"{path}: named like HDF5 but has no HDF5 signature (wrong format or truncated)")
-    raise RecordingError(f"{path}: unknown format (supported: AEDAT4, evlatcorr HDF5, event_utils HDF5, GEM npz, "
-                         "HighREV folder)")
+    if path.suffix.lower() in (".db3", ".mcap"):
+        raise RecordingError(f"{path}: a ROS2 bag; only ROS1 bags (rpg_dvs_ros's dvs_msgs) are read")
+    raise RecordingError(f"{path}: unknown format (supported: AEDAT4, ROS1 bag, evlatcorr HDF5, event_utils HDF5, "
+                         "GEM npz, HighREV folder)")
 
 
 def open_recording(path: str | Path, **kwargs: Any) -> Recording:
     """Open a recording, recognising its format by content (magic bytes, HDF5 layout, folder layout).
 
     Args:
-        path: a file (AEDAT4, HDF5, npz) or a folder (HighREV, folder of GEM npz).
+        path: a file (AEDAT4, ROS1 bag, HDF5, npz) or a folder (HighREV, folder of GEM npz).
         **kwargs: passed to the reader: ``before_us``, ``after_us`` for all, and the reader's own
-            options (e.g. ``exposure_us`` for event_utils, ``sequence`` for our HDF5 and HighREV).
+            options (e.g. ``exposure_us`` for event_utils and bags, ``events_topic`` for bags, ``sequence`` for our
+            HDF5 and HighREV).
 
     Returns:
         A :class:`Recording`.
@@ -135,15 +148,27 @@ def open_recording(path: str | Path, **kwargs: Any) -> Recording:
         >>> rec.format_name, rec.sensor_size, len(rec)  # doctest: +SKIP
         ('aedat4', (260, 346), 13)
     """
+    return _make(recording_class(path), Path(path), kwargs)
+
+
+def recording_class(path: str | Path) -> type[Recording]:
+    """The reader of ``path``'s format (recognised as :func:`open_recording` does), without opening it.
+
+    Example:
+        >>> recording_class("cradle_lowlight.aedat4").__name__  # doctest: +SKIP
+        'AedatRecording'
+    """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or directory")
     if path.is_file():
-        return _make(_sniff_file(path), path, kwargs)
+        return _sniff_file(path)
     if is_highrev(path):
-        return _make(HighREVRecording, path, kwargs)
+        return HighREVRecording
     if is_gem_npz(path):
-        return _make(GemNpzRecording, path, kwargs)
+        return GemNpzRecording
+    if (path / "metadata.yaml").is_file():
+        raise RecordingError(f"{path}: a ROS2 bag; only ROS1 bags (rpg_dvs_ros's dvs_msgs) are read")
     inner = [p.name for p in sorted(path.iterdir()) if p.is_dir() and is_highrev(p)][:5]
     hint = f"; its subfolders {inner} are HighREV folders: open one of them" if inner else ""
     raise RecordingError(f"{path}: unknown format: a folder that is neither HighREV blur/ + event/, or GEM .npz files)"
