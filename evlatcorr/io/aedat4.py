@@ -32,7 +32,7 @@ import numpy as np
 
 from evlatcorr.io.base import Recording
 from evlatcorr.io.conversions import structured_events, to_unit_image
-from evlatcorr.io.records import FrameInfo, RecordingError, SegmentEnd
+from evlatcorr.io.records import FrameInfo, RecordingError, SegmentEnd, starts_with
 
 __all__ = ["AedatRecording", "is_aedat4"]
 
@@ -47,11 +47,7 @@ _END_OF_FILE = "failed to fill whole buffer"
 
 def is_aedat4(path: str | Path) -> bool:
     """Whether ``path`` is a file starting with the AEDAT 4.0 magic ``#!AER-DAT4.0``."""
-    path = Path(path)
-    if not path.is_file():
-        return False
-    with open(path, "rb") as f:
-        return f.read(len(MAGIC)) == MAGIC
+    return starts_with(path, MAGIC)
 
 
 class AedatRecording(Recording):

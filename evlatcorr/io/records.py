@@ -7,11 +7,12 @@ conversion, validation and streaming helpers can all share them.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["EVENT_DTYPE", "FrameInfo", "RecordingError", "SEGMENT_END", "SegmentEnd", "no_events"]
+__all__ = ["EVENT_DTYPE", "FrameInfo", "RecordingError", "SEGMENT_END", "SegmentEnd", "no_events", "starts_with"]
 
 #: Our in-memory layout of an event chunk (t in µs; p ±1).
 EVENT_DTYPE = np.dtype([("x", np.int32), ("y", np.int32), ("t", np.float64), ("p", np.int8)])
@@ -20,6 +21,15 @@ EVENT_DTYPE = np.dtype([("x", np.int32), ("y", np.int32), ("t", np.float64), ("p
 def no_events() -> np.ndarray:
     """An empty chunk in our layout."""
     return np.zeros(0, dtype=EVENT_DTYPE)
+
+
+def starts_with(path: str | Path, magic: bytes) -> bool:
+    """Whether ``path`` is a file whose first bytes are ``magic`` (a format's signature)."""
+    path = Path(path)
+    if not path.is_file():
+        return False
+    with open(path, "rb") as f:
+        return f.read(len(magic)) == magic
 
 
 class RecordingError(ValueError):

@@ -32,7 +32,7 @@ import numpy as np
 
 from evlatcorr.io.base import Recording
 from evlatcorr.io.conversions import structured_events, to_unit_image
-from evlatcorr.io.records import FrameInfo, RecordingError
+from evlatcorr.io.records import FrameInfo, RecordingError, starts_with
 
 __all__ = ["RosbagRecording", "is_rosbag1"]
 
@@ -46,11 +46,7 @@ _PIXELS = {"mono8": (np.uint8, 1), "mono16": (np.uint16, 1), "8UC1": (np.uint8, 
 
 def is_rosbag1(path: str | Path) -> bool:
     """Whether ``path`` is a file starting with the ROS1 bag magic ``#ROSBAG V2.0``."""
-    path = Path(path)
-    if not path.is_file():
-        return False
-    with open(path, "rb") as f:
-        return f.read(len(MAGIC)) == MAGIC
+    return starts_with(path, MAGIC)
 
 
 def _after_header(data: bytes, where: str) -> tuple[float, int]:
