@@ -39,12 +39,13 @@ def _header(store, ns: int):
     return store.types["std_msgs/msg/Header"](seq=0, stamp=_time(store, ns), frame_id="")
 
 
-def write_bag(path, seq, *, ns="/dvs", exposure=True, event_topics=("events",), encoding="mono8", image_size=None):
+def write_bag(path, seq, *, ns="/dvs", exposure=True, event_topics=("events",), encoding="mono8", image_size=None,
+              array_size=None):
     """``seq``'s delayed events, blurry frames (stamped mid-exposure) and exposures, in record-time order."""
     from rosbags.rosbag1 import Writer
 
     store = _typestore()
-    height, width = seq.sensor_size
+    height, width = seq.sensor_size if array_size is None else array_size
     ev = seq.delayed_events
     t_ns = EPOCH_NS + np.round(ev.t.numpy() * 1000).astype(np.int64)
     messages = []  # (record time ns, topic, serialised)
@@ -159,6 +160,11 @@ def test_colour_and_16_bit_images(tmp_path, seq, encoding):
         torch.testing.assert_close(blurry[2] * 255, (grey // 4).float(), rtol=0, atol=1e-4)
     else:
         torch.testing.assert_close(blurry[0] * 255, grey.float(), rtol=0, atol=1e-4)
+
+
+def test_event_arrays_without_a_size_take_the_images(tmp_path, seq):
+    rec = RosbagRecording(write_bag(tmp_path / "nosize.bag", seq, array_size=(0, 0)))
+    assert rec.sensor_size == (24, 32) and len(rec.frame(1).events) > 0
 
 
 def test_images_of_another_size_than_the_events_are_refused(tmp_path, seq):

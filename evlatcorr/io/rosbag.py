@@ -151,9 +151,13 @@ class RosbagRecording(Recording):
             exposure = f"{self.image_topic.rsplit('/', 1)[0]}/exposure"
             self.exposure_topic = exposure if topics.get(exposure) == EXPOSURE_TYPE else None
             first = next(reader.messages([c for c in reader.connections if c.topic == self.events_topic]), None)
-        if first is None:
-            raise RecordingError(f"{self.path}: {self.events_topic} holds no messages")
+            image = next(reader.messages([c for c in reader.connections if c.topic == self.image_topic]), None)
+        if first is None or image is None:
+            raise RecordingError(f"{self.path}: {self.events_topic if first is None else self.image_topic} holds no "
+                                 "messages")
         self.sensor_size = decode_event_array(first[2], f"{self.path}: {self.events_topic}")[1]
+        if 0 in self.sensor_size:  # a driver that leaves the array's size unset: the images tell it
+            self.sensor_size = decode_image(image[2], f"{self.path}: {self.image_topic}")[1].shape[:2]
         if self.exposure_topic is not None and exposure_us is not None:
             warnings.warn(f"{self.path}: each image's exposure is read from {self.exposure_topic}; exposure_us="
                           f"{exposure_us:g} is not used", stacklevel=2)
@@ -263,7 +267,7 @@ class RosbagRecording(Recording):
         where = f"{self.path}: {self.events_topic}"
         for _, data in self._messages(self.events_topic):
             events, size = decode_event_array(data, where)
-            if size != self.sensor_size:
+            if size != self.sensor_size and 0 not in size:
                 raise RecordingError(f"{where}: a message of a {size} sensor among {self.sensor_size} ones")
             if len(events):
                 yield events
