@@ -14,7 +14,7 @@ from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
 from evlatcorr.sample_warnings import SampleWarning
-from evlatcorr.search import ConstantSearchResult, _search_constant_latency
+from evlatcorr.search import MIN_UNCLIPPED_SHARE, ConstantSearchResult, _search_constant_latency
 from evlatcorr.search_candidates import HOT_PIXEL_LOG_RANGE
 from evlatcorr.temporal import LatencyHistory
 
@@ -121,8 +121,18 @@ def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> N
     """What the search did to some samples that their user must hear of: a fallback latency, hot pixels left out, an
     estimate held at the edge of the user's range (:class:`~evlatcorr.sample_warnings.SampleWarning`: the command
     line names the frames)."""
+    clipped = [i for i, source in enumerate(result.source or []) if source == "clipped"]
+    if clipped:
+        warnings.warn(SampleWarning(
+            "clipped", clipped, "{which}: black or saturated in nearly every pixel (fewer than "
+            f"{MIN_UNCLIPPED_SHARE:.1%} inside the sensor's range): nothing for EDI to sharpen; their latency is the "
+            f"fallback {_microseconds(result.latency, clipped)}",
+            "black or saturated in nearly every pixel: the fallback latency"), stacklevel=3)
     if result.fallback is not None and bool(result.fallback.any()):
-        which = torch.nonzero(result.fallback).flatten().tolist()
+        which = [i for i in torch.nonzero(result.fallback).flatten().tolist() if i not in clipped]
+    else:
+        which = []
+    if which:
         warnings.warn(SampleWarning(
             "fallback", which, "{which}: the sharpness score has no clear minimum inside the latency range the events "
             "cover (too few events or no texture); their latency is the fallback "

@@ -57,6 +57,9 @@ __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_ra
            "sharpness_scores", "candidate_curves", "SCORES", "DEFAULT_SCORE", "SearchConfig"]
 
 _SPARSITY = SPARSITY_SCORES
+#: a frame with fewer of its pixels inside the sensor's range (not black, not saturated) is not searched: its
+#: latency is the fallback (the suite's darkest frames keep 12 % or more of theirs; a lens cap or a flash none)
+MIN_UNCLIPPED_SHARE = 0.005
 
 
 @dataclass
@@ -77,7 +80,8 @@ class ConstantSearchResult:
             where fewer than three candidates could be scored.
         source: per sample, what set ``latency``: ``"reader"`` (``score="learned"``, the default: the curve
             reader's estimate), ``"sharpness"`` (the other scores: their minimum), ``"ghost"`` (the score curve
-            was nearly flat and :mod:`evlatcorr.ghost`'s moment crossed zero once) or ``"fallback"``.
+            was nearly flat and :mod:`evlatcorr.ghost`'s moment crossed zero once), ``"fallback"``, or ``"clipped"``
+            (black or saturated nearly everywhere, :data:`MIN_UNCLIPPED_SHARE`: the fallback latency).
         ignored_pixels: per sample, the hot pixels the search read as having no events (their events span more
             than :data:`~evlatcorr.search_candidates.HOT_PIXEL_LOG_RANGE` of log intensity; continuous method only).
         latency_spread: :math:`(B,)` µs, ``score="learned"``: the standard deviation of the curve reader's
@@ -258,10 +262,13 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
     # a candidate's window [start + l, end + l] must not run past the sample's last event: past it
     # the EDI sees "no change" where the events were merely cut off, which looks sharp to any score
     reach = events.last_times() - end
-    # every sample's bounds in one copy to the host (one wait for a GPU, not five per sample)
-    spans = torch.stack([start, end, lows.to(start), highs.to(start), reach]).T.cpu().tolist()
+    # a pixel at the ends of the range (black, or saturated) tells EDI nothing of the scene's mean over the exposure
+    margin = 1 / 512  # half an 8-bit grey level
+    unclipped = ((grey > margin) & (grey < 1 - margin)).flatten(1).to(start.dtype).mean(1).to(start.device)
+    # every sample's bounds in one copy to the host (one wait for a GPU, not six per sample)
+    spans = torch.stack([start, end, lows.to(start), highs.to(start), reach, unclipped]).T.cpu().tolist()
     thetas = theta.cpu().tolist()
-    windows = [_Window(*span) for span in spans]
+    windows = [_Window(*span[:5], clipped=span[5] < MIN_UNCLIPPED_SHARE) for span in spans]
     if config.score == "learned" and rng is not None:  # the reader reads the range it was trained on
         windows = _reader_windows(windows)
     from evlatcorr import search_batched  # it builds on this module
@@ -386,10 +393,13 @@ def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float
                           outside_range_us=math.nan if outside is None else outside)
 
     fallback = low if prev is None else min(max(float(prev), low), high)
+    nan = torch.full((len(coarse),), math.nan, dtype=torch.float64)
     if reader.top < reader.floor:  # no candidate window holds events: nothing to score
         read_latent = None  # and no latent image to read
-        nan = torch.full((len(coarse),), math.nan, dtype=torch.float64)
         return result(fallback, to_us(coarse).cpu(), nan, to_us(coarse).cpu(), nan, 0.0, True, source="fallback")
+    if span.clipped:  # every candidate's latent is as flat (black) or as made up (saturated) as any other
+        return result(fallback, to_us(coarse).cpu(), nan, to_us(coarse).cpu(), nan, 0.0, True,
+                      reader.final_ratio(fallback), "clipped")
 
     # the learned reader reads the curves as it was trained (no temporal prior) and takes the prior afterwards
     coarse_prev = None if config.score == "learned" else prev

@@ -320,3 +320,40 @@ def test_auto_threshold_warns_on_single_frames_and_not_on_pairs():
         warnings.filterwarnings("error", message=".*single frames")
         pairs = EventLatencyCorrector(threshold="auto")(seq.pairs("delayed"))
     assert float(torch.as_tensor(pairs.meta["threshold"]).reshape(-1)[0]) == pytest.approx(0.4, rel=0.3)
+
+
+def test_a_black_or_saturated_frame_is_not_searched_and_is_named(monkeypatch):
+    # a lens cap, or a flash: EDI's latents are as flat (black) or as made up from the events (saturated) at every
+    # candidate; the reader used to pick any latency there (16.6 ms on a black 32x40 frame of 3 ms latency, no warning)
+    import evlatcorr.search_batched
+    from evlatcorr.sample_warnings import SampleWarning
+    from evlatcorr.search import MIN_UNCLIPPED_SHARE
+
+    frames = simulate("camera", num_frames=4, height=32, width=40, latency_us=3000.0, seed=0).frames("delayed")
+    lit = frames.blurry[2:3].clone().fill_(0.0)
+    lit[..., :2, :2] = 0.5  # 4 pixels of 1280 inside the range (0.3 %)
+    assert 4 / 1280 < MIN_UNCLIPPED_SHARE < 8 / 1280
+    lit_more = lit.clone()
+    lit_more[..., 2:4, :2] = 0.5  # 8 pixels (0.6 %): searched
+    blurry = torch.cat([torch.zeros_like(frames.blurry[:1]), torch.ones_like(frames.blurry[:1]), lit, lit_more])
+    corrector = EventLatencyCorrector(threshold=0.2)
+    reference = None
+    for together in (False, True):  # frame by frame, and the frames sharing one pass as a GPU runs them
+        monkeypatch.setattr(evlatcorr.search_batched, "ON_CPU", together)
+        with pytest.warns(SampleWarning, match=r"samples \[0, 1, 2\]: black or saturated in nearly every pixel "
+                                               r"\(fewer than 0.5% inside the sensor's range\): nothing for EDI"):
+            out = corrector(frames.replace(blurry=blurry))
+        assert out.meta["latency_source"][:3] == ["clipped"] * 3 and out.meta["latency_source"][3] != "clipped"
+        latency = out.latency.flatten(1).mean(1)
+        assert latency[:3].tolist() == [0.0, 0.0, 0.0] and bool(out.meta["latency_fallback"][:3].all())
+        reference = latency if reference is None else reference
+        torch.testing.assert_close(latency, reference, rtol=0, atol=1e-3)
+    # a stream keeps the latency before such a frame
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    stream = StreamingLatencyCorrector(threshold=0.2)
+    parts = frames.split()
+    with pytest.warns(SampleWarning, match="black or saturated"):
+        outs = [stream(parts[0]), stream(parts[1].replace(blurry=torch.zeros_like(parts[1].blurry)))]
+    assert outs[1].meta["latency_source"] == ["clipped"]
+    assert float(outs[1].latency.mean()) == pytest.approx(float(outs[0].latency.mean()), abs=1e-3)
