@@ -271,10 +271,16 @@ def check_has_events(frames: Any) -> None:
         # times given in other units (EventFrames warned when made) are shown, not rounded to 0, and named
         units = ("" if exposure >= SHORTEST_EXPOSURE_US else
                  f" (the exposure is {exposure:.3g} us long: evlatcorr takes times in microseconds)")
+        lo, hi = bounds[i], bounds[i + 1]
+        # events far from the window are more often a clock or unit mix-up than a still scene: say where they are
+        count = f"{hi - lo} events lie" if hi - lo > 1 else "1 event lies"
+        elsewhere = ("" if hi == lo else
+                     f"; its {count} in [{_time_us(float(ev.t[lo]))}, {_time_us(float(ev.t[hi - 1]))}] us (events "
+                     "and frames must share one clock, in microseconds)")
         raise NoEventsError(i, f"sample {i} has no events in its exposure and search window "
                                f"[{_time_us(float(frames.exposure_start[i]))}, "
                                f"{_time_us(float(frames.exposure_end[i] + frames.exposure_time[i]))}) us{units}: "
-                               "latency cannot be estimated without events")
+                               f"latency cannot be estimated without events{elsewhere}")
 
 
 class NoEventsError(ValueError):

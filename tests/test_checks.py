@@ -181,8 +181,14 @@ def test_check_has_events_names_the_empty_sample_and_its_window():
     ev = Events(torch.zeros(3), torch.zeros(3), t, torch.ones(3), torch.tensor([0, 0, 1]), sensor_size=(2, 2))
     frames = EventFrames(torch.rand(2, 1, 2, 2), ev, torch.tensor([0.0, 1000.0]), torch.tensor([100.0, 1100.0]))
     with pytest.raises(ValueError, match=re.escape("sample 1 has no events in its exposure and search window "
-                                                   "[1000, 1200) us: latency cannot be estimated without events")):
+                                                   "[1000, 1200) us: latency cannot be estimated without events; "
+                                                   "its 1 event lies in [1250, 1250] us (events and frames must "
+                                                   "share one clock, in microseconds)")):
         check_has_events(frames)
+    empty = frames.replace(events=Events(ev.x[:2], ev.y[:2], t[:2], ev.p[:2], ev.batch[:2], sensor_size=(2, 2),
+                                         batch_size=2))
+    with pytest.raises(ValueError, match=r"without events$"):  # none at all: nothing more to say
+        check_has_events(empty)
     check_has_events(frames.replace(events=Events(ev.x, ev.y, torch.tensor([50.0, 150.0, 1199.0]), ev.p, ev.batch,
                                                   sensor_size=(2, 2))))
 
