@@ -54,7 +54,8 @@ from evlatcorr.sharpness import sharpness_score, sharpness_scores
 from evlatcorr.temporal import LatencyHistory
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score",
-           "sharpness_scores", "candidate_curves", "SCORES", "DEFAULT_SCORE", "SearchConfig"]
+           "sharpness_scores", "candidate_curves", "SCORES", "DEFAULT_SCORE", "SearchConfig", "MIN_UNCLIPPED_SHARE",
+           "unclipped_share"]
 
 _SPARSITY = SPARSITY_SCORES
 #: a frame with fewer of its pixels inside the sensor's range (not black, not saturated) is not searched: its
@@ -237,6 +238,23 @@ def search_constant_latency(
     return _search_constant_latency(blurry, events, start, end, theta, config, prev, integral, method, budget)
 
 
+def unclipped_share(images: Tensor) -> Tensor:
+    """The share of each image's pixels inside the sensor's range :math:`(B,)`, of images :math:`(B, C, H, W)` in
+    [0, 1] (grey when they have three channels): a pixel black or saturated (within half an 8-bit grey level of 0 or
+    1) tells EDI nothing of the scene's mean over the exposure. Below :data:`MIN_UNCLIPPED_SHARE` a frame is not
+    searched.
+
+    Example:
+        >>> frame = torch.zeros(1, 1, 10, 10)
+        >>> frame[..., 0, :5] = 0.5
+        >>> unclipped_share(frame).tolist()
+        [0.05000000074505806]
+    """
+    grey = kornia.color.rgb_to_grayscale(images) if images.shape[1] == 3 else images
+    margin = 1 / 512
+    return ((grey > margin) & (grey < 1 - margin)).flatten(1).float().mean(1)
+
+
 def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Tensor, exposure_end: Tensor,
                              threshold: Tensor, config: SearchConfig, previous_latency: Tensor | None = None,
                              integral: str = "step", method: str = "continuous",
@@ -262,9 +280,7 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
     # a candidate's window [start + l, end + l] must not run past the sample's last event: past it
     # the EDI sees "no change" where the events were merely cut off, which looks sharp to any score
     reach = events.last_times() - end
-    # a pixel at the ends of the range (black, or saturated) tells EDI nothing of the scene's mean over the exposure
-    margin = 1 / 512  # half an 8-bit grey level
-    unclipped = ((grey > margin) & (grey < 1 - margin)).flatten(1).to(start.dtype).mean(1).to(start.device)
+    unclipped = unclipped_share(grey).to(start)
     # every sample's bounds in one copy to the host (one wait for a GPU, not six per sample)
     spans = torch.stack([start, end, lows.to(start), highs.to(start), reach, unclipped]).T.cpu().tolist()
     thetas = theta.cpu().tolist()

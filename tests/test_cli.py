@@ -647,3 +647,19 @@ def test_correct_an_event_utils_recording_streams_its_events_and_keeps_numbers(e
         moved = np.sort(after.t.numpy())
         assert bool((moved >= lo[0] - 1e-3).all() and (moved <= hi[-1] + 1e-3).all())
         assert abs(float(np.mean(before.t.numpy() - after.t.numpy())) - float(np.mean(kept))) < float(high.max())
+
+
+def test_a_black_frame_neither_gets_a_latency_of_its_own_nor_sets_the_threshold(tmp_path):
+    # the recording's θ used to come from the pair holding the black frame too: 1.497 for a true 0.2, and hot pixels
+    # named on every frame
+    seq = simulate("astronaut", num_frames=4, height=48, width=64, exposure_us=10_000.0, frame_interval_us=12_000.0,
+                   latency_us=2500.0, seed=1)
+    seq.blurry[1] = 0.0
+    write_sequence(tmp_path / "black.h5", seq)
+    r = run("correct", str(tmp_path / "black.h5"), str(tmp_path / "out.h5"), "--num-bins", "100", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    theta = float(re.search(r"contrast threshold: ([0-9.]+)", r.stderr).group(1))
+    assert 0.15 < theta < 0.3
+    assert "frame 1: black or saturated in nearly every pixel" in r.stderr and "hot pixels" not in r.stderr
+    rows = list(csv.DictReader(open(tmp_path / "out.csv")))
+    assert [row["source"] for row in rows] == ["reader", "clipped", "reader", "reader"]
