@@ -30,6 +30,7 @@ correction then beats constant correction on 5/8 test scenes instead of 7/8.)
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -45,7 +46,8 @@ from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf
 from evlatcorr.event_grid import EventGrid, _event_grid, _event_grid_bytes
 from evlatcorr.frames import EventFrames
 from evlatcorr.latency_table import LatencyTable
-from evlatcorr.search import _search_constant_latency
+from evlatcorr.sample_warnings import SampleWarning
+from evlatcorr.search import MIN_UNCLIPPED_SHARE, _search_constant_latency, unclipped_share
 
 __all__ = ["PolynomialLatency", "LossWeights", "spatial_objective", "fit_spatial_latency",
            "SpatialLatencyCorrector", "save_curve", "load_curve"]
@@ -413,26 +415,49 @@ class SpatialLatencyCorrector(nn.Module):
         check_has_events(frames)  # as the constant mode: no latency without events
         # the frames were checked when made, the settings in __init__: the work below checks nothing again
         theta = torch.full((frames.batch_size,), self.threshold, dtype=torch.float64)
+        clipped = _clipped_frames(frames)
         if self.model is not None:
             model = self.model.to(frames.device)
+        elif all(clipped):  # nothing to fit: every map is the fallback below
+            model = PolynomialLatency(self.order).to(frames.device)
         else:
+            fitted = frames if not any(clipped) else EventFrames.cat(
+                [frame for frame, skip in zip(frames.split(), clipped) if not skip])
             # fitting needs autograd even when called under no_grad or inference mode (e.g. a test loop)
             with torch.inference_mode(False), torch.enable_grad():
-                if any(t.is_inference() for t in (frames.blurry, frames.events.t)):
-                    frames = _clone_frames(frames)
-                model, _ = _fit_spatial_latency(frames, PolynomialLatency(self.order), self.steps, self.lr, theta,
-                                                self.config.replace(num_bins=self.train_bins), self.weights,
-                                                self.progress, True, "table")
+                if any(t.is_inference() for t in (fitted.blurry, fitted.events.t)):
+                    fitted = _clone_frames(fitted)
+                config = self.config.replace(num_bins=self.train_bins)
+                model, _ = _fit_spatial_latency(fitted, PolynomialLatency(self.order), self.steps, self.lr,
+                                                theta[:fitted.batch_size], config, self.weights, self.progress, True,
+                                                "table")
         with torch.no_grad():  # the map inside the search range, as a constant estimate is
             low, high = (bound.to(frames.blurry).view(-1, 1, 1, 1)
                          for bound in _latency_bounds(frames, self.config.search_range))
             latency = torch.minimum(torch.maximum(model(frames.blurry), low), high)
+            if any(clipped):  # as the constant search: no shift beyond the range's low end
+                skip = torch.tensor(clipped, device=latency.device).view(-1, 1, 1, 1)
+                latency = torch.where(skip, low.expand_as(latency), latency)
             corrected = frames.events.shift(latency.double())
             latent = _edi_deblur(frames.blurry, corrected, frames.exposure_start, frames.exposure_end,
                                  _mid_exposure(frames), theta, None, self.config.num_bins)
         meta = dict(frames.meta)
         meta["latency_curve"] = model.coefficients.detach().cpu()
         return frames.with_outputs(latency=latency.float().contiguous(), corrected=corrected, latent=latent, meta=meta)
+
+
+def _clipped_frames(frames: EventFrames) -> list[bool]:
+    """Which frames are black or saturated nearly everywhere (:data:`evlatcorr.search.MIN_UNCLIPPED_SHARE`): they
+    take no part in the fit and keep the fallback latency, with a warning, as the constant search does."""
+    clipped = (unclipped_share(frames.blurry) < MIN_UNCLIPPED_SHARE).tolist()
+    if any(clipped):
+        which = [i for i, skip in enumerate(clipped) if skip]
+        warnings.warn(SampleWarning(
+            "clipped", which, "{which}: black or saturated in nearly every pixel (fewer than "
+            f"{MIN_UNCLIPPED_SHARE:.1%} inside the sensor's range): nothing for EDI to sharpen; left out of the fit, "
+            "their latency is the low end of the search range",
+            "black or saturated in nearly every pixel: the fallback latency"), stacklevel=3)
+    return clipped
 
 
 def _clone_frames(frames: EventFrames) -> EventFrames:

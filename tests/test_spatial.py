@@ -180,3 +180,21 @@ def test_fit_over_the_memory_budget_reads_strips(frames, monkeypatch):
     small, small_history = fit_spatial_latency(frames, PolynomialLatency(order=3), **kw)
     torch.testing.assert_close(small.coefficients, model.coefficients, rtol=0.02, atol=2e-3)
     torch.testing.assert_close(torch.tensor(small_history), torch.tensor(history), rtol=1e-3, atol=0.0)
+
+
+def test_a_black_frame_is_left_out_of_the_fit_and_keeps_the_fallback():
+    # as in constant mode: a black frame used to get a map from the fit (984 us here) with no warning
+    from evlatcorr.sample_warnings import SampleWarning
+
+    frames = simulate("camera", num_frames=2, height=32, width=40, latency_us=3000.0, seed=0).frames("delayed")
+    blurry = frames.blurry.clone()
+    blurry[0] = 0.0
+    corrector = EventLatencyCorrector(mode="spatial", threshold=0.2, steps=10)
+    with pytest.warns(SampleWarning, match="sample 0: black or saturated in nearly every pixel"):
+        out = corrector(frames.replace(blurry=blurry))
+    alone = corrector(frames.split()[1])  # the fit sees the other frame alone
+    assert float(out.latency[0].abs().max()) == 0.0
+    torch.testing.assert_close(out.latency[1], alone.latency[0])
+    with pytest.warns(SampleWarning, match=r"samples \[0, 1\]"):
+        none = corrector(frames.replace(blurry=torch.ones_like(blurry)))  # saturated: nothing to fit
+    assert float(none.latency.abs().max()) == 0.0
