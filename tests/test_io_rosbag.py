@@ -4,6 +4,7 @@ from a simulated recording, read back by :class:`~evlatcorr.io.RosbagRecording`.
 from __future__ import annotations
 
 import csv
+import re
 import subprocess
 import sys
 import warnings
@@ -192,6 +193,7 @@ def test_the_command_line_corrects_a_bag(tmp_path, bag):
     info = subprocess.run([sys.executable, "-m", "evlatcorr", "info", str(bag)], capture_output=True, text=True,
                           timeout=120, cwd=tmp_path)
     assert info.returncode == 0 and "rosbag1" in info.stdout
+    assert re.search(r"events_topic +/dvs/events\n", info.stdout) and "exposure_topic" in info.stdout
 
 
 def test_the_command_line_s_exposure_reaches_a_bag_without_the_exposure_topic(tmp_path, seq):

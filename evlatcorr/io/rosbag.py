@@ -263,6 +263,14 @@ class RosbagRecording(Recording):
                                      f"{self.sensor_size} (H, W): frames and events must be pixel-aligned")
             yield FrameInfo(index, start, end, to_unit_image(pixels, where), meta={"topic": self.image_topic})
 
+    def info(self) -> dict[str, Any]:
+        """The summary of :meth:`Recording.info`, with the topics read."""
+        topics = {"events_topic": self.events_topic, "image_topic": self.image_topic,
+                  "exposure_topic": self.exposure_topic or f"none (exposure_us={self.exposure_us:g})"}
+        summary = super().info()
+        return {**{k: summary[k] for k in ("file", "format")}, **topics,
+                **{k: v for k, v in summary.items() if k not in ("file", "format")}}
+
     def _segmented_chunks(self) -> Iterator[np.ndarray]:
         where = f"{self.path}: {self.events_topic}"
         for _, data in self._messages(self.events_topic):
