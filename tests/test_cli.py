@@ -661,5 +661,7 @@ def test_a_black_frame_neither_gets_a_latency_of_its_own_nor_sets_the_threshold(
     theta = float(re.search(r"contrast threshold: ([0-9.]+)", r.stderr).group(1))
     assert 0.15 < theta < 0.3
     assert "frame 1: black or saturated in nearly every pixel" in r.stderr and "hot pixels" not in r.stderr
+    # its own latency is the fallback, the one written its neighbours' fused: the warning says both
+    assert "the fallback 0 us; the latency written is fused with the frames either side (--fuse-frames" in r.stderr
     rows = list(csv.DictReader(open(tmp_path / "out.csv")))
     assert [row["source"] for row in rows] == ["reader", "clipped", "reader", "reader"]

@@ -156,8 +156,10 @@ class FrameWarnings:
     """The library's warnings about samples of a call, said of the frames they are (``frame 12``, not ``sample 0``):
     the first of each kind in full as it happens, and at the end one line for the other frames it happened to."""
 
-    def __init__(self) -> None:
+    def __init__(self, notes: dict[str, str] | None = None) -> None:
         self.later: dict[str, tuple[str, list[int]]] = {}
+        #: what the command adds to a kind's warning (e.g. that the latency it names is fused afterwards)
+        self.notes = notes or {}
 
     def naming(self, batches: list):
         """A context in which the warnings of one call on ``batches`` (in the call's sample order) are reworded."""
@@ -166,9 +168,10 @@ class FrameWarnings:
         def reword(message: Warning) -> str | None:
             if not isinstance(message, SampleWarning):
                 return str(message)
+            note = self.notes.get(message.kind, "")
             if message.kind not in self.later:
-                self.later[message.kind] = (message.summary, [])
-                return _option_names(message.naming([f"frame {n}" for n in numbers]))
+                self.later[message.kind] = (message.summary + note, [])
+                return _option_names(message.naming([f"frame {n}" for n in numbers]) + note)
             self.later[message.kind][1].extend(numbers[i] for i in message.samples)
             return None
 
