@@ -14,7 +14,7 @@ from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
 from evlatcorr.sample_warnings import SampleWarning
-from evlatcorr.search import MIN_UNCLIPPED_SHARE, ConstantSearchResult, _search_constant_latency, unclipped_share
+from evlatcorr.search import MIN_UNCLIPPED_SHARE, ConstantSearchResult, _search_constant_latency, clipped_pairs
 from evlatcorr.search_candidates import HOT_PIXEL_LOG_RANGE
 from evlatcorr.temporal import LatencyHistory
 
@@ -198,8 +198,7 @@ def _auto_threshold(frames: EventFrames, config: SearchConfig, previous: Tensor 
 
         # a black or saturated frame agrees with its neighbour at no θ: its pair is left out (all left out: the
         # frames are not searched anyway)
-        shares = unclipped_share(torch.cat([frames.blurry, frames.blurry_next])).view(2, -1)
-        kept = torch.nonzero((shares >= MIN_UNCLIPPED_SHARE).all(0)).flatten().tolist()
+        kept = torch.nonzero(~clipped_pairs(frames.blurry, frames.blurry_next)).flatten().tolist()
         if not kept:
             return 0.2
         if len(kept) < frames.batch_size:

@@ -157,14 +157,6 @@ def pair_lead_us(rec) -> float:
     return _longest_exposure_us(rec)
 
 
-def _clipped(pair: EventFrames) -> bool:
-    """Whether either frame of a pair is black or saturated nearly everywhere."""
-    from evlatcorr.search import MIN_UNCLIPPED_SHARE, unclipped_share
-
-    shares = unclipped_share(torch.cat([pair.blurry, pair.blurry_next]))
-    return bool((shares < MIN_UNCLIPPED_SHARE).any())
-
-
 def recording_threshold(rec, search_range: tuple[float, float] | None = None, num_bins: int = 200,
                         device: torch.device | str = "cpu", max_pairs: int = 3, scan_frames: int = 12) -> float | None:
     """One contrast threshold θ for a recording, from its first frames (two-frame consistency).
@@ -186,6 +178,7 @@ def recording_threshold(rec, search_range: tuple[float, float] | None = None, nu
     """
     from evlatcorr.consistency import estimate_recording_threshold
     from evlatcorr.correction import EventLatencyCorrector
+    from evlatcorr.search import clipped_pairs
 
     saved = rec.after_us
     rec.after_us = pair_reach_us(rec, None if search_range is None else search_range[1])
@@ -193,7 +186,7 @@ def recording_threshold(rec, search_range: tuple[float, float] | None = None, nu
         candidates = []
         for _, pair in itertools.islice(pair_frames(itertools.islice(rec, scan_frames + 1)), scan_frames):
             # a black or saturated frame agrees with its neighbour at no θ (the search skips it too)
-            if pair is not None and has_events(pair) and not _clipped(pair):
+            if pair is not None and has_events(pair) and not bool(clipped_pairs(pair.blurry, pair.blurry_next)[0]):
                 inside = pair.events.window(pair.exposure_start, pair.exposure_end)
                 candidates.append((len(inside), pair))
     finally:

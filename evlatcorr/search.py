@@ -55,7 +55,7 @@ from evlatcorr.temporal import LatencyHistory
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score",
            "sharpness_scores", "candidate_curves", "SCORES", "DEFAULT_SCORE", "SearchConfig", "MIN_UNCLIPPED_SHARE",
-           "unclipped_share"]
+           "unclipped_share", "clipped_pairs"]
 
 _SPARSITY = SPARSITY_SCORES
 #: a frame with fewer of its pixels inside the sensor's range (not black, not saturated) is not searched: its
@@ -250,9 +250,24 @@ def unclipped_share(images: Tensor) -> Tensor:
         >>> unclipped_share(frame).tolist()
         [0.05000000074505806]
     """
+    if not isinstance(images, Tensor) or images.ndim != 4:
+        raise ValueError(f"images must be a (B, C, H, W) tensor, got {getattr(images, 'shape', type(images))}")
     grey = kornia.color.rgb_to_grayscale(images) if images.shape[1] == 3 else images
     margin = 1 / 512
     return ((grey > margin) & (grey < 1 - margin)).flatten(1).float().mean(1)
+
+
+def clipped_pairs(blurry: Tensor, blurry_next: Tensor) -> Tensor:
+    """Which frame pairs :math:`(B,)` hold a frame black or saturated nearly everywhere (below
+    :data:`MIN_UNCLIPPED_SHARE`): such a frame agrees with its neighbour at no contrast threshold, so the
+    two-frame estimates of θ leave its pair out.
+
+    Example:
+        >>> clipped_pairs(torch.full((2, 1, 4, 4), 0.5), torch.stack([torch.zeros(1, 4, 4), torch.rand(1, 4, 4)]))
+        tensor([ True, False])
+    """
+    shares = unclipped_share(torch.cat([blurry, blurry_next]))
+    return (shares < MIN_UNCLIPPED_SHARE).view(2, -1).any(0)
 
 
 def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Tensor, exposure_end: Tensor,

@@ -375,3 +375,16 @@ def test_auto_threshold_on_pairs_leaves_out_a_pair_with_a_black_frame():
         alone = corrector(pairs.split()[2]).meta["threshold"]  # the one pair without it
     assert float(theta) == pytest.approx(float(alone), rel=1e-6)
     assert 0.4 < float(theta) < 0.6
+
+
+def test_unclipped_share_counts_the_pixels_inside_the_range_and_refuses_other_shapes():
+    from evlatcorr.search import clipped_pairs, unclipped_share
+
+    frame = torch.zeros(2, 3, 10, 10)
+    frame[0, :, :2] = 0.5  # 20 of 100 pixels of grey inside the range
+    frame[1] = 1.0  # saturated
+    torch.testing.assert_close(unclipped_share(frame), torch.tensor([0.2, 0.0]))
+    assert clipped_pairs(frame[:1], frame[1:]).tolist() == [True]
+    assert clipped_pairs(frame[:1], frame[:1]).tolist() == [False]
+    with pytest.raises(ValueError, match=r"images must be a \(B, C, H, W\) tensor"):
+        unclipped_share(torch.zeros(10, 10))
