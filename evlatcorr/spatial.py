@@ -198,12 +198,14 @@ def constant_reference(frames: EventFrames, threshold: float, num_bins: int, sea
 
 
 def _constant_reference(frames: EventFrames, theta: Tensor, config: SearchConfig, grid: EventGrid | None,
-                        table: LatencyTable | None) -> tuple[Tensor, Tensor]:
-    """:func:`constant_reference` of checked inputs (a positive threshold :math:`(B,)`)."""
+                        table: LatencyTable | None, l_const: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """:func:`constant_reference` of checked inputs (a positive threshold :math:`(B,)`); ``l_const`` :math:`(B,)`,
+    where the caller has searched already, is taken as it is."""
     num_bins, epsilon, window, sigma_us = config.num_bins, config.epsilon, config.window, config.sigma_us
-    res = _search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                                   theta, config)
-    l_const = res.latency.to(frames.device)
+    if l_const is None:
+        l_const = _search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                                           theta, config).latency
+    l_const = l_const.to(frames.device)
     with torch.no_grad():
         if table is not None:
             latent = frames.blurry * torch.exp(-table.read(l_const.to(frames.blurry).view(-1, 1, 1, 1)))
@@ -265,9 +267,11 @@ def fit_spatial_latency(
 
 def _fit_spatial_latency(frames: EventFrames, model: PolynomialLatency | None, steps: int, lr: float,
                          theta: Tensor, config: SearchConfig, weights: LossWeights | None, progress: bool,
-                         start_from_constant: bool, objective_edi: str) -> tuple[PolynomialLatency, list[float]]:
+                         start_from_constant: bool, objective_edi: str,
+                         l_const: Tensor | None = None) -> tuple[PolynomialLatency, list[float]]:
     """:func:`fit_spatial_latency` of checked inputs (a positive threshold :math:`(B,)`); ``config`` holds the
-    fit's EDI bins (``num_bins``), the latency range and the constant search's settings."""
+    fit's EDI bins (``num_bins``), the latency range and the constant search's settings; ``l_const`` :math:`(B,)`,
+    the frames' constant latencies where the caller has searched them already."""
     num_bins, search_range = config.num_bins, config.search_range
     model = model if model is not None else PolynomialLatency()
     model = model.to(frames.device)
@@ -280,7 +284,7 @@ def _fit_spatial_latency(frames: EventFrames, model: PolynomialLatency | None, s
                                    float(l_max.max()), num_bins + 1)
     else:
         grid = _linear_grid_within_budget(frames, l_min, l_max, num_bins)
-    l_const, etf_const = _constant_reference(frames, theta, config, grid, table)
+    l_const, etf_const = _constant_reference(frames, theta, config, grid, table, l_const)
     if start_from_constant:
         with torch.no_grad():  # ψ ≡ mean l_const: the fit only has to learn the variation around it
             model.coefficients.zero_()
@@ -368,7 +372,11 @@ class SpatialLatencyCorrector(nn.Module):
     With ``curve``, the trained polynomial gives the map directly; without, a polynomial is fitted
     on the batch it is given (``steps`` Adam steps of the self-supervised objective). Like the
     constant mode, a batch with a frame that has no events in ``[exposure_start, exposure_end +
-    exposure time)`` is refused with a :class:`ValueError` naming the sample.
+    exposure time)`` is refused with a :class:`ValueError` naming the sample. A frame black or saturated nearly
+    everywhere, or one whose constant search finds no latency (its ``l_const`` would anchor the fit), takes no part
+    in the fit and gets the search range's low end, with a warning. ``meta["latency_source"]`` says per frame what
+    set its map (``"curve"``, ``"fit"``, ``"clipped"`` or ``"fallback"``), ``meta["latency_fallback"]`` :math:`(B,)`
+    which frames got the fallback.
 
     Args:
         curve: path of a saved curve or Lightning checkpoint, or None.
@@ -416,34 +424,74 @@ class SpatialLatencyCorrector(nn.Module):
         # the frames were checked when made, the settings in __init__: the work below checks nothing again
         theta = torch.full((frames.batch_size,), self.threshold, dtype=torch.float64)
         clipped = _clipped_frames(frames)
+        fell_back = [False] * frames.batch_size
         if self.model is not None:
             model = self.model.to(frames.device)
-        elif all(clipped):  # nothing to fit: every map is the fallback below
-            model = PolynomialLatency(self.order).to(frames.device)
         else:
-            fitted = frames if not any(clipped) else EventFrames.cat(
-                [frame for frame, skip in zip(frames.split(), clipped) if not skip])
-            # fitting needs autograd even when called under no_grad or inference mode (e.g. a test loop)
-            with torch.inference_mode(False), torch.enable_grad():
-                if any(t.is_inference() for t in (fitted.blurry, fitted.events.t)):
-                    fitted = _clone_frames(fitted)
-                config = self.config.replace(num_bins=self.train_bins)
-                model, _ = _fit_spatial_latency(fitted, PolynomialLatency(self.order), self.steps, self.lr,
-                                                theta[:fitted.batch_size], config, self.weights, self.progress, True,
-                                                "table")
+            model, fell_back = self._fit(frames, theta, clipped)
+        skipped = [c or f for c, f in zip(clipped, fell_back)]
         with torch.no_grad():  # the map inside the search range, as a constant estimate is
             low, high = (bound.to(frames.blurry).view(-1, 1, 1, 1)
                          for bound in _latency_bounds(frames, self.config.search_range))
             latency = torch.minimum(torch.maximum(model(frames.blurry), low), high)
-            if any(clipped):  # as the constant search: no shift beyond the range's low end
-                skip = torch.tensor(clipped, device=latency.device).view(-1, 1, 1, 1)
+            if any(skipped):  # as the constant search: no shift beyond the range's low end
+                skip = torch.tensor(skipped, device=latency.device).view(-1, 1, 1, 1)
                 latency = torch.where(skip, low.expand_as(latency), latency)
             corrected = frames.events.shift(latency.double())
             latent = _edi_deblur(frames.blurry, corrected, frames.exposure_start, frames.exposure_end,
                                  _mid_exposure(frames), theta, None, self.config.num_bins)
         meta = dict(frames.meta)
         meta["latency_curve"] = model.coefficients.detach().cpu()
+        meta["latency_fallback"] = torch.tensor(skipped, dtype=torch.bool, device=frames.device)
+        meta["latency_source"] = ["clipped" if c else "fallback" if f else "fit" if self.model is None else "curve"
+                                  for c, f in zip(clipped, fell_back)]
         return frames.with_outputs(latency=latency.float().contiguous(), corrected=corrected, latent=latent, meta=meta)
+
+    def _fit(self, frames: EventFrames, theta: Tensor, clipped: list[bool]) -> tuple[PolynomialLatency, list[bool]]:
+        """The polynomial fitted on the frames that are not ``clipped`` and whose constant search finds a latency,
+        and which frames it did not (the fit anchors each frame's map at that latency, so a frame with none would
+        be pulled to the fallback's no shift: it is left out, and warned of, as in constant mode)."""
+        fell_back = [False] * frames.batch_size
+        kept = [i for i, skip in enumerate(clipped) if not skip]
+        if not kept:  # nothing to fit: every map is the fallback
+            return PolynomialLatency(self.order).to(frames.device), fell_back
+        config = self.config.replace(num_bins=self.train_bins)
+        fitted = _select(frames, kept)
+        reference = _search_constant_latency(fitted.blurry, fitted.events, fitted.exposure_start,
+                                             fitted.exposure_end, theta[:len(kept)], config)
+        none_found = reference.fallback.tolist()
+        for i, fell in zip(kept, none_found):
+            fell_back[i] = fell
+        if any(none_found):
+            which = [i for i, fell in enumerate(fell_back) if fell]
+            warnings.warn(SampleWarning(
+                "fallback", which, "{which}: the sharpness score has no clear minimum inside the latency range the "
+                "events cover (too few events or no texture); left out of the fit, their latency is the low end of "
+                "the search range", "no clear sharpness minimum inside the latency range the events cover: the "
+                "fallback latency"), stacklevel=4)
+            found = [j for j, fell in enumerate(none_found) if not fell]
+            if not found:
+                return PolynomialLatency(self.order).to(frames.device), fell_back
+            fitted = _select(fitted, found)
+            l_const = reference.latency[found]
+        else:
+            l_const = reference.latency
+        # fitting needs autograd even when called under no_grad or inference mode (e.g. a test loop)
+        with torch.inference_mode(False), torch.enable_grad():
+            if any(t.is_inference() for t in (fitted.blurry, fitted.events.t)):
+                fitted = _clone_frames(fitted)
+            model, _ = _fit_spatial_latency(fitted, PolynomialLatency(self.order), self.steps, self.lr,
+                                            theta[:fitted.batch_size], config, self.weights, self.progress, True,
+                                            "table", l_const.clone())
+        return model, fell_back
+
+
+def _select(frames: EventFrames, which: list[int]) -> EventFrames:
+    """The frames of a batch at the indices ``which``, in order (the batch itself where it is all of them)."""
+    if len(which) == frames.batch_size:
+        return frames
+    parts = frames.split()
+    return EventFrames.cat([parts[i] for i in which])
 
 
 def _clipped_frames(frames: EventFrames) -> list[bool]:

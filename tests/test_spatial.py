@@ -153,6 +153,7 @@ def test_corrector_spatial_mode(frames, tmp_path):
     expected = psi(frames.blurry).clamp(0, 5000)
     torch.testing.assert_close(out.latency, expected)
     assert out.latency.std() > 0 and out.latent.shape == frames.blurry.shape
+    assert out.meta["latency_source"] == ["curve"] and not out.meta["latency_fallback"].any()
     fitted = EventLatencyCorrector(mode="spatial", num_bins=50, steps=3, train_bins=30)(frames)
     assert fitted.latency.shape == (1, 1, 24, 32)
     # a search range bounds the map at both ends
@@ -198,3 +199,28 @@ def test_a_black_frame_is_left_out_of_the_fit_and_keeps_the_fallback():
     with pytest.warns(SampleWarning, match=r"samples \[0, 1\]"):
         none = corrector(frames.replace(blurry=torch.ones_like(blurry)))  # saturated: nothing to fit
     assert float(none.latency.abs().max()) == 0.0
+
+
+def test_a_frame_without_a_latency_minimum_is_left_out_of_the_fit_with_a_warning():
+    # events that stop at the exposure's end (a recording's last frame) leave the constant search nothing to score:
+    # the fit used to anchor that frame's map at the search's fallback, silently (the CSV said nothing)
+    from evlatcorr.frames import EventFrames
+    from evlatcorr.sample_warnings import SampleWarning
+
+    first, second = simulate("camera", num_frames=2, height=32, width=40, latency_us=3000.0,
+                             seed=0).frames("delayed").split()
+    ev = first.events
+    kept = ev.t < float(first.exposure_end[0])
+    cut = first.replace(events=Events(ev.x[kept], ev.y[kept], ev.t[kept], ev.p[kept], sensor_size=ev.sensor_size))
+    corrector = EventLatencyCorrector(mode="spatial", threshold=0.2, steps=10)
+    with pytest.warns(SampleWarning, match="sample 0: the sharpness score has no clear minimum"):
+        out = corrector(EventFrames.cat([cut, second]))
+    assert out.meta["latency_source"] == ["fallback", "fit"]
+    assert out.meta["latency_fallback"].tolist() == [True, False]
+    assert float(out.latency[0].abs().max()) == 0.0
+    alone = corrector(second)  # the fit sees the other frame alone
+    torch.testing.assert_close(out.latency[1], alone.latency[0])
+    assert alone.meta["latency_source"] == ["fit"] and 1000.0 < float(alone.latency.mean()) < 5000.0
+    with pytest.warns(SampleWarning, match="sample 0: the sharpness score"):
+        none = corrector(cut)  # nothing left to fit
+    assert float(none.latency.abs().max()) == 0.0 and none.meta["latency_source"] == ["fallback"]
