@@ -41,18 +41,23 @@ consistency) unless given.
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from evlatcorr.simulate import PHOTOGRAPHS_TRAIN
 
-    p.add_argument("--scenes", nargs="+", default=list(PHOTOGRAPHS_TRAIN))
-    p.add_argument("--size", type=int, nargs=2, default=(96, 128), metavar=("H", "W"))
-    p.add_argument("--epochs", type=int, default=5)
-    p.add_argument("--constant-epochs", type=int, default=2)
-    p.add_argument("--order", type=int, default=5)
-    p.add_argument("--lr", type=float, default=0.02)
-    p.add_argument("--num-bins", type=int, default=100)
-    p.add_argument("--accelerator", default="auto")
-    p.add_argument("--devices", default="1")
-    p.add_argument("--strategy", default="auto")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=Path("runs/latency_curve"))
+    p.add_argument("--scenes", nargs="+", default=list(PHOTOGRAPHS_TRAIN),
+                   help="simulated training photographs (default: the training split, disjoint from the benchmark's)")
+    p.add_argument("--size", type=int, nargs=2, default=(96, 128), metavar=("H", "W"),
+                   help="simulated frames' size (default: 96 128)")
+    p.add_argument("--epochs", type=int, default=5, help="training epochs (default: 5)")
+    p.add_argument("--constant-epochs", type=int, default=2,
+                   help="epochs at the full learning rate before it decays linearly towards 0 (default: 2)")
+    p.add_argument("--order", type=int, default=5, help="order K of the latency polynomial (default: 5)")
+    p.add_argument("--lr", type=float, default=0.02, help="Adam learning rate (default: 0.02)")
+    p.add_argument("--num-bins", type=int, default=100, help="EDI sub-intervals per exposure (default: 100)")
+    p.add_argument("--accelerator", default="auto", help="Lightning's accelerator: cpu, gpu or auto (default)")
+    p.add_argument("--devices", default="1", help="devices (processes) to train on (default: 1)")
+    p.add_argument("--strategy", default="auto", help="Lightning's strategy, e.g. ddp with --devices N (default: "
+                                                     "auto)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated scenes and the training (default: 0)")
+    p.add_argument("--out", type=Path, default=Path("runs/latency_curve"),
+                   help="folder for last.ckpt and curve.pt (default: runs/latency_curve)")
     p.add_argument("--data", type=Path, help="train on this recording (any format evlatcorr.io reads) instead of "
                                              "simulated scenes")
     p.add_argument("--crop", type=int, nargs=2, metavar=("H", "W"), help="--data: tiles of this size (default: "
