@@ -89,7 +89,9 @@ def test_correct_writes_events_and_report(simulated):
     np.testing.assert_allclose(corrected_t, expected, atol=0.2)
     assert len(list(H5Recording(out).frames())) == 2
     assert not list(simulated.parent.glob(".*.tmp"))
-    for written in (out, out.with_suffix(".csv")):  # the umask's mode, not mkstemp's 0600
+    assert Image.open(out.with_suffix(".png")).format == "PNG"  # the latencies drawn
+    assert f"and {out.with_suffix('.png')}" in r.stdout
+    for written in (out, out.with_suffix(".csv"), out.with_suffix(".png")):  # the umask's mode, not mkstemp's 0600
         assert os.stat(written).st_mode & 0o777 == 0o666 & ~_umask()
 
 
@@ -124,6 +126,7 @@ def _check_restored(outdir: Path, model: str, frames: int, size: tuple[int, int]
     assert gif.size == ((size[1] * (3 if corrected else 2) + (4 if corrected else 2)), size[0])
     if corrected:
         assert all(float(r["latency_us"]) >= 0 and r["threshold"] and int(r["events_in_window"]) > 0 for r in done)
+    assert (outdir / "latency.png").exists() == corrected  # the latencies drawn where there are some
     return rows
 
 
@@ -628,7 +631,7 @@ def test_correct_an_event_utils_recording_streams_its_events_and_keeps_numbers(e
     assert len(kept) == 2 and all(latency.dim() == 0 for latency in kept)
     # the scratch maps lie beside the output (not in a temp folder that may be in memory), and are gone after
     assert scratch_dirs == ([out.parent] if mode == "spatial" else [])
-    assert sorted(p.name for p in out.parent.iterdir()) == ["corrected.csv", "corrected.h5"]
+    assert sorted(p.name for p in out.parent.iterdir()) == ["corrected.csv", "corrected.h5", "corrected.png"]
     assert len(given) == 1 and not isinstance(given[0], (Events, np.ndarray, list))  # chunks as they come
     source, corrected = EventUtilsRecording(event_utils_recording), EventUtilsRecording(out)
     before, after = source.events_between(-1e18, 1e18), corrected.events_between(-1e18, 1e18)
@@ -665,3 +668,34 @@ def test_a_black_frame_neither_gets_a_latency_of_its_own_nor_sets_the_threshold(
     assert "the fallback 0 us; the latency written is fused with the frames either side (--fuse-frames" in r.stderr
     rows = list(csv.DictReader(open(tmp_path / "out.csv")))
     assert [row["source"] for row in rows] == ["reader", "clipped", "reader", "reader"]
+
+
+def test_correct_draws_the_latencies_where_told_or_not_at_all(simulated, tmp_path):
+    figure = tmp_path / "plots" / "latency.png"
+    r = run("correct", str(simulated), str(tmp_path / "a.h5"), "--num-bins", "100", "--figure", str(figure),
+            cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert Image.open(figure).format == "PNG" and not (tmp_path / "a.png").exists()
+    r = run("correct", str(simulated), str(tmp_path / "b.h5"), "--num-bins", "100", "--no-figure", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "b.csv").exists() and not (tmp_path / "b.png").exists()
+    r = run("correct", str(simulated), str(tmp_path / "c.h5"), "--figure", str(tmp_path / "c.csv"), cwd=tmp_path)
+    assert r.returncode == 2 and "two outputs have the same name" in r.stderr  # the figure would replace the report
+    assert not (tmp_path / "c.h5").exists()
+
+
+def test_a_figure_that_cannot_be_written_costs_a_warning_not_the_corrected_recording(simulated, tmp_path,
+                                                                                      monkeypatch, capsys):
+    from evlatcorr import cli
+    from evlatcorr.cli import latency_figure
+
+    def failing(rows, path, title=""):
+        raise OSError("No space left on device")
+
+    monkeypatch.setattr(latency_figure, "write_latency_figure", failing)
+    out = tmp_path / "out.h5"
+    assert cli.main(["correct", str(simulated), str(out), "--num-bins", "100", "--threshold", "0.2"]) == 0
+    printed = capsys.readouterr()
+    assert "warning: the latency figure" in printed.err and "No space left on device" in printed.err
+    assert out.exists() and out.with_suffix(".csv").exists() and not out.with_suffix(".png").exists()
+    assert "out.png" not in printed.out

@@ -1,5 +1,5 @@
 """``evlatcorr correct``: every frame's latency, then the recording's events corrected by it and written, with a
-per-frame CSV report."""
+per-frame CSV report and a figure of the latencies over time."""
 
 from __future__ import annotations
 
@@ -29,6 +29,7 @@ from evlatcorr.cli.common import (
     threshold_of_recording,
     write_csv,
 )
+from evlatcorr.cli.latency_figure import write_figure_or_warn
 from evlatcorr.temporal import frame_evidence
 
 __all__ = ["cmd_correct"]
@@ -46,9 +47,10 @@ def cmd_correct(args: argparse.Namespace) -> int:
     if report.resolve() == args.output.resolve():
         raise ValueError(f"the report {report} would replace the corrected recording {args.output}: name the "
                          "output .h5 or pass --report")
+    figure = None if args.no_figure else args.figure if args.figure is not None else report.with_suffix(".png")
     if args.fuse_frames < 0:
         raise ValueError(f"--fuse-frames must be 0 or more, got {args.fuse_frames}")
-    check_outputs([args.input], files=[args.output, report])
+    check_outputs([args.input], files=[args.output, report, *([figure] if figure is not None else [])])
     device = parse_device(args.device)
     parse_threshold(args.threshold)  # a bad value fails before any reading
     rec = open_input(args)
@@ -75,8 +77,10 @@ def cmd_correct(args: argparse.Namespace) -> int:
         _write_corrected(args, rec, h5, frames, latencies, maps)
         write_csv(report_tmp, frames.rows)
     rows = frames.rows
+    # the figure last: the corrected recording and its report are written whatever becomes of it
+    drawn = None if figure is None else write_figure_or_warn(rows, figure, args.input.name)
     skipped = sum(bool(r["skipped"]) for r in rows)
-    print(f"wrote {args.output} and {report} ({len(rows)} frames, median latency "
+    print(f"wrote {args.output}, {report}{f' and {drawn}' if drawn else ''} ({len(rows)} frames, median latency "
           f"{np.median([float(r['latency_us']) for r in rows]):.0f} us"
           + (f", {skipped} without events kept the previous latency" if skipped else "") + ")")
     return EXIT_OK

@@ -58,10 +58,13 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("correct", help="estimate latency per frame and write corrected events + a CSV report",
                        description="Estimate the latency of every frame, remove it from the events and write them "
                                    "(event_utils input stays event_utils, anything else becomes evlatcorr HDF5), "
-                                   "with a per-frame CSV report next to OUT.")
+                                   "with a per-frame CSV report and a figure of the latencies next to OUT.")
     c.add_argument("input", type=Path, help="recording to correct")
     c.add_argument("output", type=Path, help="corrected recording to write (.h5)")
     c.add_argument("--report", type=Path, help="per-frame CSV report (default: OUT with the suffix .csv)")
+    c.add_argument("--figure", type=Path, help="every frame's latency and events drawn over time, a PNG (default: "
+                                               "the report with the suffix .png)")
+    c.add_argument("--no-figure", action="store_true", help="write no figure")
     c.add_argument("--mode", choices=("constant", "spatial"), default="constant")
     c.add_argument("--curve", type=Path, help="trained latency curve checkpoint (mode spatial)")
     _fuse_frames_option(c, "constant mode", "N frames either side too (a recording's latency changes slowly",
@@ -73,7 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "the model's output with the stamped events and, with --correct, with the "
                                    "corrected events), side_by_side.gif (blurry | uncorrected | corrected) and "
                                    "frames.csv (latency, threshold, confidence, the learned reader's spread, "
-                                   "events, time per frame). OUTDIR is "
+                                   "events, time per frame) and, with --correct, latency.png (every frame's latency "
+                                   "drawn over time). OUTDIR is "
                                    "written under a temporary name and appears only when every frame is done.")
     d.add_argument("input", type=Path)
     d.add_argument("outdir", type=Path)
@@ -82,7 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     i = sub.add_parser("interpolate", help="frames between exposures with EDI or REFID; PNGs, a GIF, a CSV",
                        description="Interpolate --num frames evenly between each pair of consecutive exposures "
                                    "and write them into OUTDIR as PNGs (with the stamped and, with --correct, the "
-                                   "corrected events), side_by_side.gif and frames.csv (one row per pair).")
+                                   "corrected events), side_by_side.gif, frames.csv (one row per pair) and, with "
+                                   "--correct, latency.png.")
     i.add_argument("input", type=Path)
     i.add_argument("outdir", type=Path)
     i.add_argument("--num", type=int, default=1, help="frames between two exposures (default: 1)")

@@ -1,5 +1,6 @@
 """``evlatcorr deblur`` and ``evlatcorr interpolate``: a model on every frame (or pair of frames), with the stamped
-events and, with ``--correct``, the corrected ones; PNGs, a side-by-side GIF and a per-frame CSV."""
+events and, with ``--correct``, the corrected ones; PNGs, a side-by-side GIF, a per-frame CSV and, with ``--correct``,
+a figure of the latencies over time."""
 
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ from evlatcorr.cli.common import (
     threshold_of_recording,
     write_csv,
 )
+from evlatcorr.cli.latency_figure import write_figure_or_warn
 
 __all__ = ["cmd_deblur", "cmd_interpolate"]
 
@@ -104,12 +106,14 @@ def _restore(args: argparse.Namespace, task: str) -> int:
         if not rows:
             raise ValueError(f"{args.input}: no frames")
         write_csv(tmp / "frames.csv", rows)
+        drawn = None if run.corrector is None else write_figure_or_warn(rows, tmp / "latency.png", args.input.name)
         if gif:
             gif[0].save(tmp / "side_by_side.gif", save_all=True, append_images=gif[1:], duration=200, loop=0)
     count = sum(row["skipped"] != "no next frame" for row in rows)  # the frames (or pairs) restored
     panels = "blurry | uncorrected" + (" | corrected" if run.corrector is not None else "")
     print(f"wrote {count} {'frames' if task == 'deblur' else 'pairs'} to {args.outdir} ({args.model}; "
-          f"side_by_side.gif: {panels}{f', first {GIF_FRAMES}' if count > GIF_FRAMES else ''}; frames.csv)")
+          f"side_by_side.gif: {panels}{f', first {GIF_FRAMES}' if count > GIF_FRAMES else ''}; frames.csv"
+          f"{'; latency.png' if drawn else ''})")
     return EXIT_OK
 
 
