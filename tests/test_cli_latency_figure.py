@@ -35,6 +35,7 @@ def test_the_written_latency_is_drawn_in_ms_against_the_exposures_middle_in_s():
     assert top.get_title() == "rec.aedat4: 6 frames, median latency 3.30 ms"
     assert list(bottom.get_lines()[0].get_ydata()) == pytest.approx([1000.0 * (i + 1) for i in range(6)])
     assert [t.get_text() for t in top.get_legend().get_texts()] == ["± the reader's spread", "written"]
+    assert bottom.get_yscale() == "log"
 
 
 def test_fused_rows_show_each_frames_own_estimate_and_marked_sources():

@@ -73,7 +73,7 @@ def latency_figure(rows: Sequence[Mapping[str, Any]], title: str = ""):
         top.plot(time_s, [v / 1e3 for v in own], "o", color="C1", markerfacecolor="none", label="each frame alone",
                  **style)
     top.plot(time_s, [v / 1e3 for v in written], "-o", color="C0",
-             label="written (fused with its neighbours)" if fused else "written", **style)
+             label="written (fused with nearby frames)" if fused else "written", **style)
     for kind, (marker, colour, label) in _MARKED.items():
         picked = [(t, v) for t, v, r in zip(time_s, written, rows)
                   if kind in (str(r.get("source", "")), str(r.get("skipped", "")))]
@@ -89,8 +89,11 @@ def latency_figure(rows: Sequence[Mapping[str, Any]], title: str = ""):
 
     events = _column(rows, "events_in_window")
     bottom.plot(time_s, events, "-", color="0.3", linewidth=1)
-    bottom.set_yscale("symlog", linthresh=1.0)  # logarithmic, and a frame without events still at 0
-    bottom.set_ylim(bottom=0.0)
+    if any(v == 0 for v in events):  # logarithmic, with a frame without events still drawn, at 0
+        bottom.set_yscale("symlog", linthresh=1.0)
+        bottom.set_ylim(bottom=0.0)
+    elif any(v > 0 for v in events):
+        bottom.set_yscale("log")
     bottom.set_ylabel("events in window")
     bottom.set_xlabel("time of the exposure's middle, from the first frame's (s)")
     bottom.grid(alpha=0.3)
