@@ -125,7 +125,7 @@ def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> N
     if clipped:
         warnings.warn(SampleWarning(
             "clipped", clipped, "{which}: black or saturated in nearly every pixel (fewer than "
-            f"{MIN_UNCLIPPED_SHARE:.1%} inside the sensor's range): nothing for EDI to sharpen; their latency is the "
+            f"{MIN_UNCLIPPED_SHARE:.1%} inside the sensor's range): nothing for EDI to sharpen; {{its}} latency is the "
             f"fallback {_microseconds(result.latency, clipped)}",
             "black or saturated in nearly every pixel: the fallback latency"), stacklevel=3)
     if result.fallback is not None and bool(result.fallback.any()):
@@ -135,7 +135,7 @@ def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> N
     if which:
         warnings.warn(SampleWarning(
             "fallback", which, "{which}: the sharpness score has no clear minimum inside the latency range the events "
-            "cover (too few events or no texture); their latency is the fallback "
+            "cover (too few events or no texture); {its} latency is the fallback "
             f"{_microseconds(result.latency, which)}",
             "no clear sharpness minimum inside the latency range the events cover: the fallback latency"), stacklevel=3)
     if result.ignored_pixels and any(result.ignored_pixels):

@@ -18,7 +18,7 @@ class SampleWarning(UserWarning):
     Args:
         kind: what happened, one short name per message template (a caller may group warnings by it).
         samples: the batch indices the message is about.
-        text: the message, with ``{which}`` where the samples are named.
+        text: the message, with ``{which}`` where the samples are named (and ``{its}`` for "its" or "their").
         summary: what happened without any sample's figures, e.g. to say it of several frames at once.
 
     ``str()`` names the samples by their indices; :meth:`naming` by names the caller gives.
@@ -32,6 +32,8 @@ class SampleWarning(UserWarning):
         'samples [0, 2]: no clear minimum'
         >>> w.naming(["frame 7", "frame 8", "frame 9"])
         'frames 7, 9: no clear minimum'
+        >>> str(SampleWarning("fallback", [1], "{which}: {its} latency is 0 us", "the fallback"))
+        'sample 1: its latency is 0 us'
     """
 
     def __init__(self, kind: str, samples: Sequence[int], text: str, summary: str) -> None:
@@ -45,7 +47,7 @@ class SampleWarning(UserWarning):
     def __str__(self) -> str:
         which = (f"sample {self.samples[0]}" if len(self.samples) == 1
                  else f"samples {list(self.samples)}")
-        return self.text.format(which=which)
+        return self._text(which)
 
     def naming(self, names: Sequence[str]) -> str:
         """The message with sample ``i`` called ``names[i]`` (names such as ``"frame 12"``: several are joined as
@@ -59,4 +61,7 @@ class SampleWarning(UserWarning):
             which = f"{noun}s " + ", ".join(name.split(" ", 1)[1] for name in chosen)
         else:
             which = ", ".join(chosen)
-        return self.text.format(which=which)
+        return self._text(which)
+
+    def _text(self, which: str) -> str:
+        return self.text.format(which=which, its="its" if len(self.samples) == 1 else "their")

@@ -466,7 +466,7 @@ class SpatialLatencyCorrector(nn.Module):
             which = [i for i, fell in enumerate(fell_back) if fell]
             warnings.warn(SampleWarning(
                 "fallback", which, "{which}: the sharpness score has no clear minimum inside the latency range the "
-                "events cover (too few events or no texture); left out of the fit, their latency is the low end of "
+                "events cover (too few events or no texture); left out of the fit, {its} latency is the low end of "
                 "the search range", "no clear sharpness minimum inside the latency range the events cover: the "
                 "fallback latency"), stacklevel=4)
             found = [j for j, fell in enumerate(none_found) if not fell]
@@ -503,7 +503,7 @@ def _clipped_frames(frames: EventFrames) -> list[bool]:
         warnings.warn(SampleWarning(
             "clipped", which, "{which}: black or saturated in nearly every pixel (fewer than "
             f"{MIN_UNCLIPPED_SHARE:.1%} inside the sensor's range): nothing for EDI to sharpen; left out of the fit, "
-            "their latency is the low end of the search range",
+            "{its} latency is the low end of the search range",
             "black or saturated in nearly every pixel: the fallback latency"), stacklevel=3)
     return clipped
 
