@@ -21,7 +21,7 @@ from evlatcorr.edi import event_grid, grid_reads, latent_from_grid_reads
 from evlatcorr.frames import EventFrames
 from evlatcorr.integral import grid_bytes_per_point
 
-__all__ = ["pair_disagreement", "estimate_recording_threshold"]
+__all__ = ["THRESHOLD_BOUNDS", "pair_disagreement", "estimate_recording_threshold"]
 
 # log(I + c): c keeps the dark pixels' noise from dominating (images in [0, 1])
 _FLOOR = 0.02
@@ -114,8 +114,12 @@ def pair_disagreement(pairs: EventFrames, threshold: float | Tensor = 0.2, laten
     return _disagreement(_gap_reads(pairs, latency, num_bins), threshold, num_bins)
 
 
+#: the interval :func:`estimate_recording_threshold` searches θ in by default
+THRESHOLD_BOUNDS = (0.05, 1.5)
+
+
 def estimate_recording_threshold(pairs: EventFrames, latency: Tensor | float | None = None,
-                                 bounds: tuple[float, float] = (0.05, 1.5), iterations: int = 14,
+                                 bounds: tuple[float, float] = THRESHOLD_BOUNDS, iterations: int = 14,
                                  num_bins: int = 200) -> float:
     """The contrast threshold θ that makes consecutive frames most consistent (one θ for all the pairs).
 

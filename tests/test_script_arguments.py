@@ -17,6 +17,8 @@ ROOT = Path(__file__).resolve().parents[1]
     ("demo.py", ["--latency-us", "-3"], "latency_us must be in [0, 1000000]"),
     ("real_data.py", ["--threshold", "-1"], "--threshold must be a positive number, got -1.0"),
     ("profile_search.py", ["--device", "tpu"], "--device must be cpu or cuda, got 'tpu'"),
+    ("threshold.py", ["--frames", "1"], "--frames must be at least 2 (θ is estimated from pairs of frames), got 1"),
+    ("threshold.py", ["--num", "0"], "--num must be at least 1, got 0"),
 ])
 def test_bad_arguments_exit_2_with_one_line(script, args, message, tmp_path):
     run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args], capture_output=True, text=True,

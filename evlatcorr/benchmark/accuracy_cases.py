@@ -282,7 +282,7 @@ def _object_specs(case: Case) -> list[ObjectSpec]:
     return specs
 
 
-def simulate_case(case: Case, num_frames: int = 1, before_us: float = 0.0
+def simulate_case(case: Case, num_frames: int = 1, before_us: float = 0.0, frame_interval_us: float | None = None
                   ) -> tuple[EventFrames, EventFrames, SimulatedSequence]:
     """Simulate a case.
 
@@ -293,6 +293,8 @@ def simulate_case(case: Case, num_frames: int = 1, before_us: float = 0.0
             one-frame case's: the simulator draws noise and random motion over the whole sequence.
         before_us: the frames also keep the events of this long before each exposure (as a recording's stream
             has them; the simulation is the same), at most ``case.after_us``.
+        frame_interval_us: time from one exposure's start to the next (default: the exposure time, back to back;
+            a camera's frames have a gap between them).
 
     Returns:
         ``(delayed, ideal, seq)``: :class:`EventFrames` of ``num_frames`` samples of the delayed and the ideal
@@ -305,9 +307,13 @@ def simulate_case(case: Case, num_frames: int = 1, before_us: float = 0.0
         raise ValueError(f"num_frames must be a whole number >= 1, got {num_frames!r}")
     if not (math.isfinite(before_us) and 0.0 <= before_us <= case.after_us):
         raise ValueError(f"before_us must be between 0 and the simulated margin {case.after_us} us, got {before_us}")
+    interval = case.exposure_us if frame_interval_us is None else float(frame_interval_us)
+    if not (math.isfinite(interval) and interval >= case.exposure_us):
+        raise ValueError(f"frame_interval_us must be at least the exposure time {case.exposure_us} us, got "
+                         f"{frame_interval_us}")
     kwargs: dict[str, Any] = dict(
         num_frames=num_frames, height=case.size[0], width=case.size[1], exposure_us=case.exposure_us,
-        frame_interval_us=case.exposure_us, latency=case.latency_model, latency_us=case.latency_us,
+        frame_interval_us=interval, latency=case.latency_model, latency_us=case.latency_us,
         latency_range_us=tuple(case.latency_range_us), threshold=case.threshold,
         threshold_sigma=case.threshold_sigma, noise_rate_hz=case.noise_rate_hz, leak_rate_hz=case.leak_rate_hz,
         refractory_us=case.refractory_us, brightness=case.brightness, margin_us=case.after_us, seed=case.seed)
