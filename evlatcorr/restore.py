@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import warnings
 from collections.abc import Iterable, Iterator
 
 import numpy as np
@@ -174,9 +175,12 @@ def recording_threshold(rec, search_range: tuple[float, float] | None = None, nu
         scan_frames: frames looked at.
 
     Returns:
-        θ, or None when the recording has no pair of frames with events (use a per-frame estimate).
+        θ, or None when the recording has no pair of frames with events (use a per-frame estimate). A θ at either
+        end of :data:`~evlatcorr.consistency.THRESHOLD_BOUNDS` comes with a warning: at the low end the pairs agree
+        best with hardly any deblurring (few events beside noise, or a latency the search missed), and EDI with it
+        leaves the frames about as blurred as they are.
     """
-    from evlatcorr.consistency import estimate_recording_threshold
+    from evlatcorr.consistency import THRESHOLD_BOUNDS, estimate_recording_threshold
     from evlatcorr.correction import EventLatencyCorrector
     from evlatcorr.search import clipped_pairs
 
@@ -200,7 +204,17 @@ def recording_threshold(rec, search_range: tuple[float, float] | None = None, nu
         thetas.append(estimate_recording_threshold(pair, latency=latency, num_bins=num_bins))
     if not thetas:
         return None
-    return sorted(thetas)[len(thetas) // 2]
+    theta = sorted(thetas)[len(thetas) // 2]
+    low, high = THRESHOLD_BOUNDS
+    if not low * 1.02 < theta < high / 1.02:  # the golden-section search ends within a hair of a bound it ran into
+        edge = "low" if theta <= low * 1.02 else "high"
+        effect = ("EDI with it leaves the frames about as blurred as they are (the first frames' pairs agree best "
+                  "with hardly any deblurring: few events beside noise, or a latency the search missed)"
+                  if edge == "low" else "EDI with it may overshoot every change")
+        warnings.warn(f"the recording's contrast threshold estimate {theta:.3f} lies at the {edge} end of its search "
+                      f"range {low:g}-{high:g}: {effect}; give the camera's threshold if you know it (--threshold, "
+                      "threshold=)", stacklevel=2)
+    return theta
 
 
 def to_uint8(image: Tensor) -> np.ndarray:

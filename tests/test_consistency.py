@@ -60,3 +60,28 @@ def test_short_exposures_far_apart_fit_the_memory_budget(monkeypatch):
     monkeypatch.setattr(evlatcorr.checks, "MEMORY_BUDGET_BYTES", 40 * 2**20)
     theta = estimate_recording_threshold(pairs, latency=1000.0)
     assert 0.3 < theta < 0.8
+
+
+@pytest.mark.parametrize("found, edge", [(0.0501, "low"), (1.49, "high"), (0.3, None)])
+def test_a_recordings_threshold_at_the_end_of_its_range_is_said(monkeypatch, tmp_path, found, edge):
+    # a threshold at the search's low end (5 of the 48 test recordings of benchmarks/threshold.py) leaves the blur
+    # in: the user should hear of it, not find it in the output
+    import warnings
+
+    import evlatcorr.consistency
+    from evlatcorr.io import H5Recording, write_sequence
+    from evlatcorr.restore import recording_threshold
+    from evlatcorr.simulate import simulate
+
+    write_sequence(tmp_path / "r.h5", simulate("camera", num_frames=3, height=32, width=40, exposure_us=10_000.0,
+                                               frame_interval_us=12_000.0, latency_us=2000.0, seed=0))
+    monkeypatch.setattr(evlatcorr.consistency, "estimate_recording_threshold", lambda *a, **k: found)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert recording_threshold(H5Recording(tmp_path / "r.h5")) == found
+    said = [str(w.message) for w in caught if "contrast threshold estimate" in str(w.message)]
+    if edge is None:
+        assert not said
+    else:
+        assert len(said) == 1 and f"lies at the {edge} end of its search range 0.05-1.5" in said[0]
+        assert "give the camera's threshold if you know it" in said[0]
