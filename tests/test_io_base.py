@@ -204,6 +204,18 @@ def test_info():
     assert info["frames"] == 2 and info["events"] == 10 and info["exposure_us (min, max)"] == (1.0, 3.0)
     assert info["event_time_us (first, last)"] == (0.0, 9.0) and info["sensor_size (H, W)"] == SIZE
     assert 0 <= info["on_fraction"] <= 1
+    # events inside each exposure [start, end): 2, 3, 4 and 6; chunks of 3 split the windows
+    assert info["events in each exposure (min, median, max)"] == (1, 2, 3)
+    assert info["frames without events in their exposure"] == "0 of 2"
+
+
+def test_info_counts_each_segments_events_in_its_own_frames():
+    # two segments with their own time bases: a frame of one must not count the other's events at the same times
+    a = make_events(np.arange(0.0, 50.0))
+    b = make_events(np.arange(0.0, 50.0) + 0.5, seed=3)
+    info = MemoryRecording([([(10.0, 20.0), (30.0, 40.0), (60.0, 70.0)], a), ([(5.0, 8.0)], b)], chunk=6).info()
+    assert info["events in each exposure (min, median, max)"] == (0, 6, 10)  # 10, 10, 0 and 3: median 6.5
+    assert info["frames without events in their exposure"] == "1 of 4"
 
 
 # bad input: clear errors and warnings that name the file and the frame ----------------------

@@ -43,8 +43,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_info(args: argparse.Namespace) -> int:
     rec = open_input(args)
-    for key, value in rec.info().items():
-        print(f"{key:40s} {value}")
+    info = rec.info()
+    width = max(map(len, info)) + 1
+    for key, value in info.items():
+        print(f"{key:{width}s}{value}")
     return EXIT_OK
 
 

@@ -237,9 +237,10 @@ class Recording:
     # summary --------------------------------------------------------------------------------
     def info(self) -> dict[str, Any]:
         """A summary (format, sensor size, frames, exposures, events and their span), reading no images."""
-        frames = frame_summary(self.frame_times())
+        times = self.frame_times()
         return {"file": str(self.path), "format": self.format_name, "sensor_size (H, W)": self.sensor_size,
-                "segments": self.num_segments, **frames, **event_summary(self.iter_event_chunks())}
+                "segments": self.num_segments, **frame_summary(times),
+                **event_summary(self._segmented_chunks(), times)}
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({str(self.path)!r}, sensor_size={self.sensor_size})"

@@ -10,16 +10,47 @@ import numpy as np
 __all__ = ["event_summary", "frame_summary"]
 
 
-def event_summary(chunks: Iterable[np.ndarray]) -> dict[str, Any]:
-    """Count, ON fraction and time span (µs) of the events of ``chunks``, one chunk in memory at a time."""
+def event_summary(chunks: Iterable[Any], times: list[tuple[float, float, int]] | None = None) -> dict[str, Any]:
+    """Count, ON fraction and time span (µs) of the events of ``chunks``, one chunk in memory at a time.
+
+    With ``times`` (each frame's exposure start, end and segment, as ``Recording.frame_times``), also the events
+    inside each frame's exposure (lowest, median, highest) and the frames with none: where a scene is still or dark,
+    latency has little to go on. The chunks then come in time order within each segment, with any other object (a
+    segment's end marker) between segments.
+
+    Example:
+        >>> chunk = np.array([(0, 0, 5.0, 1), (0, 0, 15.0, -1), (0, 0, 16.0, 1)],
+        ...                  dtype=[("x", "u2"), ("y", "u2"), ("t", "f8"), ("p", "i1")])
+        >>> summary = event_summary([chunk], [(0.0, 10.0, 0), (10.0, 20.0, 0), (20.0, 30.0, 0)])
+        >>> summary["events in each exposure (min, median, max)"], summary["frames without events in their exposure"]
+        ((0, 1, 2), '1 of 3')
+    """
     count, first, last, on = 0, None, None, 0
+    segments = np.array([segment for _, _, segment in times or []], dtype=np.int64)
+    starts = np.array([start for start, _, _ in times or []], dtype=np.float64)
+    ends = np.array([end for _, end, _ in times or []], dtype=np.float64)
+    inside = np.zeros(len(segments), dtype=np.int64)
+    segment = 0
     for chunk in chunks:
+        if not isinstance(chunk, np.ndarray):  # the end of a segment: the next chunks are the next segment's
+            segment += 1
+            continue
         if len(chunk):
             count += len(chunk)
             on += int((chunk["p"] > 0).sum())
             first = float(chunk["t"][0]) if first is None else min(first, float(chunk["t"][0]))
             last = float(chunk["t"][-1]) if last is None else max(last, float(chunk["t"][-1]))
-    return {"events": count, "on_fraction": on / count if count else None, "event_time_us (first, last)": (first, last)}
+            if len(inside):  # each frame's share of this chunk, from its sorted times: one pass over the events
+                mine = segments == segment
+                t = chunk["t"]
+                inside[mine] += np.searchsorted(t, ends[mine]) - np.searchsorted(t, starts[mine])
+    summary = {"events": count, "on_fraction": on / count if count else None,
+               "event_time_us (first, last)": (first, last)}
+    if len(inside):
+        summary["events in each exposure (min, median, max)"] = (int(inside.min()), int(np.median(inside)),
+                                                                 int(inside.max()))
+        summary["frames without events in their exposure"] = f"{int((inside == 0).sum())} of {len(inside)}"
+    return summary
 
 
 def frame_summary(times: list[tuple[float, float, int]]) -> dict[str, Any]:
