@@ -12,12 +12,13 @@ and a way to estimate a recording's θ (:func:`estimate_recording_threshold`).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from evlatcorr.checks import resolve_memory_budget
-from evlatcorr.edi import event_grid, grid_reads, latent_from_grid_reads
+from evlatcorr.checks import check_threshold, resolve_memory_budget
+from evlatcorr.edi import _log_ratio_of_differences, event_grid, grid_reads
 from evlatcorr.frames import EventFrames
 from evlatcorr.integral import grid_bytes_per_point
 
@@ -53,23 +54,56 @@ def _gap_middle(pairs: EventFrames) -> Tensor:
     return (pairs.exposure_end + pairs.exposure_start_next) / 2
 
 
-def _gap_reads(pairs: EventFrames, latency: Tensor, num_bins: int) -> list[tuple[Tensor, list[Tensor]]]:
-    """Each frame of the pairs with what its EDI at the middle of the gap reads of its events, whatever θ
-    (:func:`~evlatcorr.edi.grid_reads`): a search over θ reads the events once."""
+class _GapReads(NamedTuple):
+    """What the two frames' EDI at the middle of the gap reads of the events, whatever θ, kept only at the pixels
+    where either frame's events change it: elsewhere each latent is its blurry frame at every θ, so their part of
+    the disagreement is summed once. A low-light recording has events at a few tenths of its pixels, and a search
+    over θ then costs that share of the whole image's."""
+
+    batch: Tensor  # (P,) the sample of each pixel kept
+    frames: list[tuple[Tensor, list[Tensor]]]  # each frame's blurry values (C, P) and reads (n, P), chunk by chunk
+    still: Tensor  # (B,) the other pixels' sum of |log(B_i + c) − log(B_{i+1} + c)| over pixels and channels
+    size: int  # C·H·W: what the sums are divided by
+
+
+def _gap_reads(pairs: EventFrames, latency: Tensor, num_bins: int) -> _GapReads:
+    """What each frame's EDI at the middle of the gap reads of its events, whatever θ
+    (:func:`~evlatcorr.edi.grid_reads`), at the pixels it changes: a search over θ reads the events once."""
     t = _gap_middle(pairs)
     frames = ((pairs.blurry, pairs.exposure_start, pairs.exposure_end),
               (pairs.blurry_next, pairs.exposure_start_next, pairs.exposure_end_next))
-    reads = []
+    full = []
     for blurry, start, end in frames:
         grid = event_grid(pairs.events, start, end, num_bins, (latency, latency), time=t)
-        reads.append((blurry, grid_reads(blurry, pairs.events, start, end, grid, latency, num_bins, t)))
-    return reads
+        full.append((blurry, grid_reads(blurry, pairs.events, start, end, grid, latency, num_bins, t)))
+    b, _, h, w = pairs.blurry.shape
+    moving = torch.zeros(b, h, w, dtype=torch.bool, device=pairs.blurry.device)
+    for _, reads in full:
+        for chunk in reads:
+            moving |= (chunk != 0).any(1)
+    index = moving.flatten().nonzero().squeeze(1)
+
+    def kept(x: Tensor) -> Tensor:  # (B, K, H, W) -> (K, P): the kept pixels of each of the K planes
+        return x.transpose(0, 1).reshape(x.shape[1], -1)[:, index]
+
+    (first, _), (second, _) = full
+    still = (torch.log(first.clamp_min(0) + _FLOOR) - torch.log(second.clamp_min(0) + _FLOOR)).abs()
+    still = still.masked_fill(moving[:, None], 0.0).sum(dim=(1, 2, 3))
+    return _GapReads(index // (h * w), [(kept(blurry), [kept(chunk) for chunk in reads]) for blurry, reads in full],
+                     still, first[0].numel())
 
 
-def _disagreement(reads: list[tuple[Tensor, list[Tensor]]], theta: Tensor | float, num_bins: int) -> Tensor:
-    i0, i1 = (latent_from_grid_reads(blurry, frame_reads, theta, num_bins) for blurry, frame_reads in reads)
-    diff = torch.log(i0.clamp_min(0) + _FLOOR) - torch.log(i1.clamp_min(0) + _FLOOR)
-    return diff.abs().mean(dim=(1, 2, 3))
+def _disagreement(reads: _GapReads, theta: Tensor | float, num_bins: int) -> Tensor:
+    """The mean over pixels of ``|log(I_i(t) + c) − log(I_{i+1}(t) + c)|`` at θ, per pair :math:`(B,)`."""
+    first = reads.frames[0][1][0]
+    theta = check_threshold(theta, len(reads.still)).to(first.device, first.dtype)[reads.batch]
+    logs = []
+    for blurry, chunks in reads.frames:  # as edi.latent_from_grid_reads, on a (1, n, 1, P) layout
+        log_ratio = _log_ratio_of_differences([c[None, :, None] for c in chunks], theta.view(1, 1, 1, -1), num_bins)
+        latent = blurry * torch.exp(-log_ratio.view(1, -1)).to(blurry.dtype)
+        logs.append(torch.log(latent.clamp_min(0) + _FLOOR))
+    moving = (logs[0] - logs[1]).abs().sum(0).to(reads.still.dtype)
+    return (reads.still.index_add(0, reads.batch, moving)) / reads.size
 
 
 def _latency_vector(latency: Tensor | float | None, pairs: EventFrames) -> Tensor:

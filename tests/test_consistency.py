@@ -85,3 +85,31 @@ def test_a_recordings_threshold_at_the_end_of_its_range_is_said(monkeypatch, tmp
     else:
         assert len(said) == 1 and f"lies at the {edge} end of its search range 0.05-1.5" in said[0]
         assert "give the camera's threshold if you know it" in said[0]
+
+
+def test_the_disagreement_at_the_pixels_events_change_equals_the_whole_images():
+    # the search over θ works only where either frame's events change its EDI: elsewhere each latent is its blurry
+    # frame at every θ. The whole images' EDI (edi.latent_from_grid_reads) must give the same disagreement
+    import torch
+
+    from evlatcorr.consistency import _FLOOR, _gap_middle, _gap_reads, _latency_vector, pair_disagreement
+    from evlatcorr.edi import edi_deblur
+    from evlatcorr.events import Events
+    from evlatcorr.simulate import simulate
+
+    seq = simulate("astronaut", num_frames=3, height=32, width=40, latency_us=2000.0, brightness=0.1, seed=1)
+    pairs = seq.pairs("delayed", after_us=8000.0)
+    ev = pairs.events
+    left = ev.x < 25  # the right of the image still: its pixels keep their blurry frames at every θ
+    pairs = pairs.replace(events=Events.from_canonical(ev.x[left], ev.y[left], ev.t[left], ev.p[left], ev.batch[left],
+                                                       ev.sensor_size, ev.batch_size))
+    reads = _gap_reads(pairs, _latency_vector(2000.0, pairs), 100)
+    assert 0 < len(reads.batch) <= 2 * 32 * 25  # the pixels with events, no others
+    t = _gap_middle(pairs)
+    for theta in (0.05, 0.2, torch.tensor([0.3, 0.7])):
+        whole = [edi_deblur(blurry, pairs.events, start, end, theta, 2000.0, num_bins=100, time=t)
+                 for blurry, start, end in ((pairs.blurry, pairs.exposure_start, pairs.exposure_end),
+                                            (pairs.blurry_next, pairs.exposure_start_next, pairs.exposure_end_next))]
+        expected = (torch.log(whole[0].clamp_min(0) + _FLOOR) - torch.log(whole[1].clamp_min(0) + _FLOOR)).abs()
+        got = pair_disagreement(pairs, theta, 2000.0, num_bins=100)
+        torch.testing.assert_close(got, expected.mean(dim=(1, 2, 3)).to(got.dtype), rtol=1e-4, atol=1e-6)
