@@ -80,7 +80,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
     # the figure last: the corrected recording and its report are written whatever becomes of it
     drawn = None if figure is None else write_figure_or_warn(rows, figure, args.input.name)
     skipped = sum(bool(r["skipped"]) for r in rows)
-    print(f"wrote {args.output}, {report}{f' and {drawn}' if drawn else ''} ({len(rows)} frames, median latency "
+    written = [str(p) for p in (args.output, report, drawn) if p is not None]
+    print(f"wrote {', '.join(written[:-1])} and {written[-1]} ({len(rows)} frames, median latency "
           f"{np.median([float(r['latency_us']) for r in rows]):.0f} us"
           + (f", {skipped} without events kept the previous latency" if skipped else "") + ")")
     return EXIT_OK
