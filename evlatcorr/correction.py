@@ -14,7 +14,7 @@ from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
 from evlatcorr.sample_warnings import SampleWarning
-from evlatcorr.search import MIN_UNCLIPPED_SHARE, ConstantSearchResult, _search_constant_latency, clipped_pairs
+from evlatcorr.search import ConstantSearchResult, _search_constant_latency, clipped_pairs, fallback_warning
 from evlatcorr.search_candidates import HOT_PIXEL_LOG_RANGE
 from evlatcorr.temporal import LatencyHistory
 
@@ -123,21 +123,15 @@ def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> N
     line names the frames)."""
     clipped = [i for i, source in enumerate(result.source or []) if source == "clipped"]
     if clipped:
-        warnings.warn(SampleWarning(
-            "clipped", clipped, "{which}: black or saturated in nearly every pixel (fewer than "
-            f"{MIN_UNCLIPPED_SHARE:.1%} inside the sensor's range): nothing for EDI to sharpen; {{its}} latency is the "
-            f"fallback {_microseconds(result.latency, clipped)}",
-            "black or saturated in nearly every pixel: the fallback latency"), stacklevel=3)
+        warnings.warn(fallback_warning("clipped", clipped, "{its} latency is the fallback "
+                                       f"{_microseconds(result.latency, clipped)}"), stacklevel=3)
     if result.fallback is not None and bool(result.fallback.any()):
         which = [i for i in torch.nonzero(result.fallback).flatten().tolist() if i not in clipped]
     else:
         which = []
     if which:
-        warnings.warn(SampleWarning(
-            "fallback", which, "{which}: the sharpness score has no clear minimum inside the latency range the events "
-            "cover (too few events or no texture); {its} latency is the fallback "
-            f"{_microseconds(result.latency, which)}",
-            "no clear sharpness minimum inside the latency range the events cover: the fallback latency"), stacklevel=3)
+        warnings.warn(fallback_warning("fallback", which, "{its} latency is the fallback "
+                                       f"{_microseconds(result.latency, which)}"), stacklevel=3)
     if result.ignored_pixels and any(result.ignored_pixels):
         which = [i for i, n in enumerate(result.ignored_pixels) if n]
         counts = [result.ignored_pixels[i] for i in which]

@@ -34,6 +34,7 @@ from evlatcorr.config import DEFAULT_SCORE, SCORES, SPARSITY_SCORES, SearchConfi
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.events import Events
 from evlatcorr.image_tiles import tiles_fit
+from evlatcorr.sample_warnings import SampleWarning
 from evlatcorr.search_binned import _binned_reader
 from evlatcorr.search_candidates import (
     _CandidateReader,
@@ -55,7 +56,7 @@ from evlatcorr.temporal import LatencyHistory
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score",
            "sharpness_scores", "candidate_curves", "SCORES", "DEFAULT_SCORE", "SearchConfig", "MIN_UNCLIPPED_SHARE",
-           "unclipped_share", "clipped_pairs"]
+           "unclipped_share", "clipped_pairs", "fallback_warning"]
 
 _SPARSITY = SPARSITY_SCORES
 #: a frame with fewer of its pixels inside the sensor's range (not black, not saturated) is not searched: its
@@ -255,6 +256,33 @@ def unclipped_share(images: Tensor) -> Tensor:
     grey = kornia.color.rgb_to_grayscale(images) if images.shape[1] == 3 else images
     margin = 1 / 512
     return ((grey > margin) & (grey < 1 - margin)).flatten(1).float().mean(1)
+
+
+def fallback_warning(kind: str, samples: list[int], outcome: str) -> SampleWarning:
+    """The warning of samples given a fallback latency, in the constant and the spatial mode alike: ``kind``
+    ``"clipped"`` (black or saturated nearly everywhere) or ``"fallback"`` (no clear sharpness minimum);
+    ``outcome`` says what their latency is, with ``{its}`` for "its" / "their".
+
+    Raises:
+        ValueError: for another ``kind``.
+
+    Example:
+        >>> str(fallback_warning("fallback", [2], "{its} latency is the fallback 0 us"))[:58]
+        'sample 2: the sharpness score has no clear minimum inside '
+        >>> str(fallback_warning("clipped", [0, 1], "{its} latency is 0 us")).endswith("; their latency is 0 us")
+        True
+    """
+    if kind == "clipped":
+        why = (f"black or saturated in nearly every pixel (fewer than {MIN_UNCLIPPED_SHARE:.1%} inside the sensor's "
+               "range): nothing for EDI to sharpen")
+        summary = "black or saturated in nearly every pixel: the fallback latency"
+    elif kind == "fallback":
+        why = ("the sharpness score has no clear minimum inside the latency range the events cover (too few events "
+               "or no texture)")
+        summary = "no clear sharpness minimum inside the latency range the events cover: the fallback latency"
+    else:
+        raise ValueError(f"kind must be 'clipped' or 'fallback', got {kind!r}")
+    return SampleWarning(kind, samples, f"{{which}}: {why}; {outcome}", summary)
 
 
 def clipped_pairs(blurry: Tensor, blurry_next: Tensor) -> Tensor:

@@ -46,8 +46,7 @@ from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf
 from evlatcorr.event_grid import EventGrid, _event_grid, _event_grid_bytes
 from evlatcorr.frames import EventFrames
 from evlatcorr.latency_table import LatencyTable
-from evlatcorr.sample_warnings import SampleWarning
-from evlatcorr.search import MIN_UNCLIPPED_SHARE, _search_constant_latency, unclipped_share
+from evlatcorr.search import MIN_UNCLIPPED_SHARE, _search_constant_latency, fallback_warning, unclipped_share
 
 __all__ = ["PolynomialLatency", "LossWeights", "spatial_objective", "fit_spatial_latency",
            "SpatialLatencyCorrector", "save_curve", "load_curve"]
@@ -464,11 +463,7 @@ class SpatialLatencyCorrector(nn.Module):
             fell_back[i] = fell
         if any(none_found):
             which = [i for i, fell in enumerate(fell_back) if fell]
-            warnings.warn(SampleWarning(
-                "fallback", which, "{which}: the sharpness score has no clear minimum inside the latency range the "
-                "events cover (too few events or no texture); left out of the fit, {its} latency is the low end of "
-                "the search range", "no clear sharpness minimum inside the latency range the events cover: the "
-                "fallback latency"), stacklevel=4)
+            warnings.warn(fallback_warning("fallback", which, _LEFT_OUT), stacklevel=4)
             found = [j for j, fell in enumerate(none_found) if not fell]
             if not found:
                 return PolynomialLatency(self.order).to(frames.device), fell_back
@@ -494,17 +489,17 @@ def _select(frames: EventFrames, which: list[int]) -> EventFrames:
     return EventFrames.cat([parts[i] for i in which])
 
 
+#: what a frame left out of the spatial fit gets (the outcome of :func:`evlatcorr.search.fallback_warning`)
+_LEFT_OUT = "left out of the fit, {its} latency is the low end of the search range"
+
+
 def _clipped_frames(frames: EventFrames) -> list[bool]:
     """Which frames are black or saturated nearly everywhere (:data:`evlatcorr.search.MIN_UNCLIPPED_SHARE`): they
     take no part in the fit and keep the fallback latency, with a warning, as the constant search does."""
     clipped = (unclipped_share(frames.blurry) < MIN_UNCLIPPED_SHARE).tolist()
     if any(clipped):
         which = [i for i, skip in enumerate(clipped) if skip]
-        warnings.warn(SampleWarning(
-            "clipped", which, "{which}: black or saturated in nearly every pixel (fewer than "
-            f"{MIN_UNCLIPPED_SHARE:.1%} inside the sensor's range): nothing for EDI to sharpen; left out of the fit, "
-            "{its} latency is the low end of the search range",
-            "black or saturated in nearly every pixel: the fallback latency"), stacklevel=3)
+        warnings.warn(fallback_warning("clipped", which, _LEFT_OUT), stacklevel=3)
     return clipped
 
 

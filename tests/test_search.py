@@ -274,3 +274,14 @@ def test_mean_pool_equals_avg_pool2d(shape):
 def test_mean_pool_of_one_row_fails_as_avg_pool2d_does():
     with pytest.raises(RuntimeError, match="too small"):
         evlatcorr.sharpness._mean_pool(torch.randn(1, 1, 1, 5), 2)
+
+
+def test_the_fallback_warning_of_both_modes_names_its_kind_and_refuses_another():
+    from evlatcorr.search import fallback_warning
+
+    warning = fallback_warning("clipped", [3], "{its} latency is the fallback 0 us")
+    assert warning.kind == "clipped" and warning.samples == (3,)
+    assert str(warning) == ("sample 3: black or saturated in nearly every pixel (fewer than 0.5% inside the sensor's "
+                            "range): nothing for EDI to sharpen; its latency is the fallback 0 us")
+    with pytest.raises(ValueError, match="kind must be 'clipped' or 'fallback', got 'hot_pixels'"):
+        fallback_warning("hot_pixels", [0], "")
