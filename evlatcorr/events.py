@@ -321,6 +321,38 @@ class Events:
             raise ValueError("window end must not be before its start")
         return self.select((self.t >= start[self.batch]) & (self.t < end[self.batch]))
 
+    def windows(self, start: Tensor, end: Tensor) -> Events:
+        """Cut one time-ordered stream (a single sample) into windows: sample ``i`` holds the events with
+        ``start[i] <= t < end[i]`` (µs, :math:`(B,)`). Windows may overlap; an event in several is copied into each.
+
+        One binary search per window bound and one gather, with no loop over windows or events (on a GPU, one
+        host read: the total count, to size the output).
+
+        Example:
+            >>> ev = Events(torch.zeros(4), torch.zeros(4), torch.tensor([0.0, 5.0, 10.0, 15.0]),
+            ...             torch.ones(4), sensor_size=(1, 1))
+            >>> cut = ev.windows(torch.tensor([0.0, 5.0]), torch.tensor([10.0, 20.0]))
+            >>> cut.batch.tolist(), cut.t.tolist()
+            ([0, 0, 1, 1, 1], [0.0, 5.0, 5.0, 10.0, 15.0])
+        """
+        if self.batch_size != 1:
+            raise ValueError(f"windows cuts one stream (batch_size 1), got batch_size {self.batch_size}")
+        start = torch.as_tensor(start, dtype=torch.float64, device=self.device)
+        end = torch.as_tensor(end, dtype=torch.float64, device=self.device)
+        if start.dim() != 1 or start.shape != end.shape:
+            raise ValueError(f"start and end must be 1-D of the same length, got {tuple(start.shape)} and "
+                             f"{tuple(end.shape)}")
+        if bool((end < start).any()):
+            raise ValueError("window end must not be before its start")
+        first = torch.searchsorted(self.t, start)
+        counts = torch.searchsorted(self.t, end) - first
+        batch = torch.repeat_interleave(torch.arange(start.shape[0], device=self.device), counts)
+        # event k of the output is event first[b] + (k - offset[b]) of the stream, offset[b] = where window b begins
+        offset = torch.cumsum(counts, 0) - counts
+        index = torch.arange(batch.shape[0], device=self.device) - offset[batch] + first[batch]
+        return Events.from_canonical(self.x[index], self.y[index], self.t[index], self.p[index], batch,
+                                     self.sensor_size, int(start.shape[0]))
+
     def latency_at_events(self, latency: Tensor | float) -> Tensor:
         """The latency (µs) that applies to each event, from a scalar, a :math:`(B,)` vector or a
         :math:`(B, 1, H, W)` map, as a float64 tensor :math:`(N,)`."""

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -83,7 +85,9 @@ class EventFrames:
             raise ValueError(f"events must be evlatcorr.Events, got {type(self.events).__name__}")
         b, _, h, w = self.blurry.shape
         if self.events.batch_size != b:
-            raise ValueError(f"events have batch_size {self.events.batch_size} but blurry has {b} frames")
+            hint = ("; to cut one recording's events into each frame's window, use EventFrames.from_stream"
+                    if self.events.batch_size == 1 else "")
+            raise ValueError(f"events have batch_size {self.events.batch_size} but blurry has {b} frames{hint}")
         if self.events.sensor_size != (h, w):
             raise ValueError(f"events sensor_size {self.events.sensor_size} does not match blurry (H, W)={(h, w)}")
         self.exposure_start, self.exposure_end = self._checked_exposure(self.exposure_start, self.exposure_end)
@@ -106,6 +110,48 @@ class EventFrames:
             self.target_times = tt
             if self.target_frames is not None:
                 check_shape(self.target_frames, [b, tt.shape[1], "C", h, w], "target_frames")
+
+    @classmethod
+    def from_stream(cls, blurry: Tensor, events: Events, exposure_start: Any, exposure_end: Any,
+                    before_us: float = 0.0, after_us: float | None = None, **fields: Any) -> EventFrames:
+        """Frames of one recording with the events of one time-ordered stream, each frame given its own window.
+
+        Frame ``i`` gets the events of ``[exposure_start[i] - before_us, exposure_end[i] + after_us)``, as
+        :meth:`evlatcorr.io.Recording.frame` cuts them from a file. The default ``after_us`` (None) is each frame's
+        exposure time: the corrector's default search reaches that far past the exposure end. Consecutive
+        windows may overlap; their common events go to both frames.
+
+        Args:
+            blurry: blurry frames :math:`(B, C, H, W)` in [0, 1].
+            events: the recording's events, one sample sorted by time (µs).
+            exposure_start: exposure start of each frame :math:`(B,)` in µs.
+            exposure_end: exposure end of each frame :math:`(B,)` in µs.
+            before_us: how far before each exposure start the window begins.
+            after_us: how far past each exposure end the window reaches (None: the exposure time).
+            **fields: other fields of :class:`EventFrames` (``sharp``, ``meta``, ...).
+
+        Example:
+            >>> ev = Events(torch.zeros(4), torch.zeros(4), torch.tensor([0.0, 15.0, 25.0, 45.0]),
+            ...             torch.ones(4), sensor_size=(1, 1))
+            >>> batch = EventFrames.from_stream(torch.rand(2, 1, 1, 1), ev, [0.0, 20.0], [10.0, 30.0])
+            >>> batch.events.batch.tolist(), batch.events.t.tolist()
+            ([0, 0, 1], [0.0, 15.0, 25.0])
+        """
+        if not isinstance(events, Events):
+            raise ValueError(f"events must be evlatcorr.Events, got {type(events).__name__}")
+        if not math.isfinite(before_us) or before_us < 0:
+            raise ValueError(f"before_us must be a finite number >= 0, got {before_us}")
+        if after_us is not None and (not math.isfinite(after_us) or after_us < 0):
+            raise ValueError(f"after_us must be None or a finite number >= 0, got {after_us}")
+        check_shape(blurry, ["B", "C", "H", "W"], "blurry")
+        start = check_batch_vector(exposure_start, blurry.shape[0], "exposure_start").to(events.device, torch.float64)
+        end = check_batch_vector(exposure_end, blurry.shape[0], "exposure_end").to(events.device, torch.float64)
+        with warnings.catch_warnings():  # the constructor below warns of short exposures, once
+            warnings.simplefilter("ignore")
+            check_exposure(start, end)
+        after = end - start if after_us is None else torch.full_like(end, after_us)
+        windows = events.windows(start - before_us, end + after)
+        return cls(blurry, windows.to(blurry.device), start, end, **fields)
 
     def _checked_exposure(self, start: Any, end: Any, suffix: str = "") -> tuple[Tensor, Tensor]:
         """``exposure_start{suffix}``, ``exposure_end{suffix}`` as float64 :math:`(B,)` on the frames' device."""

@@ -86,6 +86,29 @@ class TestEvents:
         out = ev.window(torch.tensor([0.0, 10.0]), torch.tensor([10.0, 30.0]))
         assert out.t.tolist() == [0.0, 20.0] and out.batch.tolist() == [0, 1]
 
+    def test_windows_equal_one_mask_per_window(self):
+        ev = random_events(500, (3, 4), (0.0, 100.0), seed=1)
+        start = torch.tensor([0.0, 20.0, 35.0, 50.0, 99.0, 150.0])
+        end = torch.tensor([40.0, 60.0, 35.0, 90.0, 120.0, 160.0])  # overlapping, empty and past the last event
+        out = ev.windows(start, end)
+        assert out.batch_size == 6 and out.sensor_size == (3, 4)
+        for i in range(6):
+            inside = (ev.t >= start[i]) & (ev.t < end[i])
+            mine = out.batch == i
+            for name in ("x", "y", "t", "p"):
+                assert torch.equal(getattr(out, name)[mine], getattr(ev, name)[inside])
+        assert out.counts().tolist()[2] == 0 and out.counts().tolist()[5] == 0
+
+    def test_windows_refuse_a_batch_and_reversed_bounds(self):
+        two = random_events(10, (2, 2), (0.0, 10.0), batch_size=2)
+        with pytest.raises(ValueError, match="one stream"):
+            two.windows(torch.tensor([0.0]), torch.tensor([5.0]))
+        one = random_events(10, (2, 2), (0.0, 10.0))
+        with pytest.raises(ValueError, match="end must not be before its start"):
+            one.windows(torch.tensor([5.0]), torch.tensor([0.0]))
+        with pytest.raises(ValueError, match="same length"):
+            one.windows(torch.tensor([0.0, 1.0]), torch.tensor([5.0]))
+
     def test_since_per_sample(self):
         ev = Events(torch.zeros(4), torch.zeros(4), torch.tensor([0.0, 10.0, 5.0, 20.0]), torch.ones(4),
                     batch=torch.tensor([0, 0, 1, 1]), sensor_size=(1, 1))

@@ -80,7 +80,9 @@ class TestBadInput:
         (dict(blurry=torch.full((2, 1, 2, 3), 1.5)),
          "blurry must hold linear intensities in [0, 1], got values in [1.5, 1.5]"),
         (dict(events=torch.zeros(4, 4)), "events must be evlatcorr.Events, got Tensor"),
-        (dict(events=_events(1)), "events have batch_size 1 but blurry has 2 frames"),
+        (dict(events=_events(1)), "events have batch_size 1 but blurry has 2 frames; to cut one recording's events "
+                                  "into each frame's window, use EventFrames.from_stream"),
+        (dict(events=_events(3)), "events have batch_size 3 but blurry has 2 frames"),
         (dict(events=_events(2, sensor_size=(3, 3))),
          "events sensor_size (3, 3) does not match blurry (H, W)=(2, 3)"),
         (dict(exposure_start=torch.zeros(3)),
@@ -102,6 +104,48 @@ class TestBadInput:
     def test_message(self, kwargs, message):
         with pytest.raises(ValueError, match=re.escape(message)):
             _frames(**kwargs)
+
+
+class TestFromStream:
+    def test_each_frame_gets_its_window_as_a_recording_reader_cuts_it(self, tmp_path):
+        from evlatcorr.io import open_recording, write_sequence
+        from evlatcorr.simulate import simulate
+
+        seq = simulate("camera", num_frames=3, height=12, width=16, exposure_us=20000.0, frame_interval_us=25000.0,
+                       latency="constant", latency_us=3000.0)
+        path = tmp_path / "rec.h5"
+        write_sequence(path, seq)
+        stream = seq.delayed_events
+        batch = EventFrames.from_stream(seq.blurry, stream, seq.exposure_start, seq.exposure_end)
+        read = EventFrames.cat(list(open_recording(path)))
+        for name in ("x", "y", "t", "p", "batch"):
+            assert torch.equal(getattr(batch.events, name), getattr(read.events, name))
+
+    def test_window_bounds_and_fields(self):
+        ev = Events(torch.zeros(5), torch.zeros(5), torch.tensor([0.0, 8.0, 15.0, 25.0, 45.0]), torch.ones(5),
+                    sensor_size=(1, 1))
+        blurry = torch.rand(2, 1, 1, 1)
+        default = EventFrames.from_stream(blurry, ev, [10.0, 20.0], [20.0, 30.0], meta={"frame": [0, 1]})
+        assert default.events.t.tolist() == [15.0, 25.0, 25.0] and default.events.batch.tolist() == [0, 0, 1]
+        assert default.meta == {"frame": [0, 1]}
+        wider = EventFrames.from_stream(blurry, ev, [10.0, 20.0], [20.0, 30.0], before_us=5.0, after_us=20.0)
+        assert wider.events.t.tolist() == [8.0, 15.0, 25.0, 15.0, 25.0, 45.0]
+
+    @pytest.mark.parametrize("kwargs, message", [
+        (dict(before_us=-1.0), "before_us must be a finite number >= 0, got -1.0"),
+        (dict(after_us=float("nan")), "after_us must be None or a finite number >= 0, got nan"),
+        (dict(exposure_end=[20.0, 15.0]), "sample 1 has start 20.0 us and end 15.0 us"),
+        (dict(exposure_start=[0.0]), "exposure_start must have shape (2,) (one value per sample), got (1,)"),
+        (dict(blurry=torch.rand(1, 1, 1)), "blurry must have shape ('B', 'C', 'H', 'W') (4 dims), got (1, 1, 1)"),
+        (dict(events=torch.zeros(3)), "events must be evlatcorr.Events, got Tensor"),
+    ])
+    def test_bad_input(self, kwargs, message):
+        fields = dict(blurry=torch.rand(2, 1, 1, 1), exposure_start=[0.0, 20.0], exposure_end=[10.0, 30.0],
+                      events=Events(torch.zeros(1), torch.zeros(1), torch.tensor([1.0]), torch.ones(1),
+                                    sensor_size=(1, 1)))
+        fields.update(kwargs)
+        with pytest.raises(ValueError, match=re.escape(message)):
+            EventFrames.from_stream(**fields)
 
 
 class TestReplace:
