@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import argparse
 import csv
 import os
 import re
@@ -42,6 +43,18 @@ def test_help_reads_well():
     assert r.returncode == 0
     for command in ("correct", "deblur", "simulate", "info"):
         assert command in r.stdout
+
+
+def test_every_command_and_argument_says_what_it_is():
+    from evlatcorr.cli.parser import build_parser
+
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, sub in commands.choices.items():
+        assert sub.description, name
+        for action in sub._actions:
+            if not isinstance(action, argparse._HelpAction):
+                assert action.help, f"{name} {action.dest}"
 
 
 def test_info(simulated):

@@ -65,7 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--figure", type=Path, help="every frame's latency and events drawn over time, a PNG (default: "
                                                "the report with the suffix .png)")
     c.add_argument("--no-figure", action="store_true", help="write no figure")
-    c.add_argument("--mode", choices=("constant", "spatial"), default="constant")
+    c.add_argument("--mode", choices=("constant", "spatial"), default="constant",
+                   help="one latency per frame (default), or a per-pixel map from a polynomial of intensity")
     c.add_argument("--curve", type=Path, help="trained latency curve checkpoint (mode spatial)")
     _fuse_frames_option(c, "constant mode", "N frames either side too (a recording's latency changes slowly",
                         "the report")
@@ -79,8 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "events, time per frame) and, with --correct, latency.png (every frame's latency "
                                    "drawn over time). OUTDIR is "
                                    "written under a temporary name and appears only when every frame is done.")
-    d.add_argument("input", type=Path)
-    d.add_argument("outdir", type=Path)
+    d.add_argument("input", type=Path, help="recording to deblur")
+    d.add_argument("outdir", type=Path, help="folder to write")
     _restore_options(d, MODELS)
 
     i = sub.add_parser("interpolate", help="frames between exposures with EDI or REFID; PNGs, a GIF, a CSV",
@@ -88,24 +89,34 @@ def build_parser() -> argparse.ArgumentParser:
                                    "and write them into OUTDIR as PNGs (with the stamped and, with --correct, the "
                                    "corrected events), side_by_side.gif, frames.csv (one row per pair) and, with "
                                    "--correct, latency.png.")
-    i.add_argument("input", type=Path)
-    i.add_argument("outdir", type=Path)
+    i.add_argument("input", type=Path, help="recording to interpolate")
+    i.add_argument("outdir", type=Path, help="folder to write")
     i.add_argument("--num", type=int, default=1, help="frames between two exposures (default: 1)")
     _restore_options(i, INTERPOLATION_MODELS)
 
-    s = sub.add_parser("simulate", help="write a simulated recording with known latency (evlatcorr HDF5)")
-    s.add_argument("output", type=Path)
+    s = sub.add_parser("simulate", help="write a simulated recording with known latency (evlatcorr HDF5)",
+                       description="Simulate a camera moving over a photograph: blurry and sharp frames, ideal "
+                                   "events and events stamped late by a known latency, written as evlatcorr HDF5 "
+                                   "(the input of every other command).")
+    s.add_argument("output", type=Path, help="file to write (.h5)")
     s.add_argument("--image", default="astronaut", help="scikit-image photograph (default: astronaut)")
-    s.add_argument("--frames", type=int, default=4)
-    s.add_argument("--size", type=int, nargs=2, default=(260, 346), metavar=("H", "W"))
-    s.add_argument("--exposure-us", type=_positive_us, default=20000.0)
-    s.add_argument("--interval-us", type=float, default=25000.0, help="time between exposure starts")
-    s.add_argument("--latency-model", choices=("none", "constant", "intensity"), default="constant")
-    s.add_argument("--latency-us", type=float, default=4000.0, help="constant latency")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--frames", type=int, default=4, help="blurry frames (default: 4)")
+    s.add_argument("--size", type=int, nargs=2, default=(260, 346), metavar=("H", "W"),
+                   help="sensor size (default: 260 346, a DAVIS346)")
+    s.add_argument("--exposure-us", type=_positive_us, default=20000.0, help="exposure, us (default: 20000)")
+    s.add_argument("--interval-us", type=float, default=25000.0,
+                   help="time between exposure starts, us (default: 25000)")
+    s.add_argument("--latency-model", choices=("none", "constant", "intensity"), default="constant",
+                   help="none (ideal events), constant (every event --latency-us late; the default) or intensity "
+                        "(a photoreceptor low-pass whose lag grows as the pixel dims)")
+    s.add_argument("--latency-us", type=float, default=4000.0, help="the constant latency, us (default: 4000)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the motion (default: 0)")
 
-    n = sub.add_parser("info", help="summarise a recording")
-    n.add_argument("input", type=Path)
+    n = sub.add_parser("info", help="summarise a recording",
+                       description="Summarise a recording: format, sensor size, frames and exposures, events, their "
+                                   "time span and how many fall inside each exposure. Reads the events once and "
+                                   "no images.")
+    n.add_argument("input", type=Path, help="recording to summarise")
     n.add_argument("--exposure-us", type=_positive_us,
                    help=_EXPOSURE_HELP)
     _topic_options(n)
