@@ -85,11 +85,14 @@ def correct_constant_latency(
     check_has_events(frames)
     _warn_if_short(frames, config)
     theta: float | Tensor = threshold
-    if theta_vector is None:
-        theta = _auto_threshold(frames, config, previous)
-        theta_vector = _threshold_vector(theta, b)
-    result = _search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
-                                      theta_vector, config, previous, history=history)
+    # θ and the latency are picked by searches, which no gradient flows through: no graph over their candidates
+    # (the latent below stays differentiable in the blurry frames)
+    with torch.no_grad():
+        if theta_vector is None:
+            theta = _auto_threshold(frames, config, previous)
+            theta_vector = _threshold_vector(theta, b)
+        result = _search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
+                                          theta_vector, config, previous, history=history)
     _warn_about_samples(result, config)
     height, width = frames.sensor_size
     latency = result.latency.to(frames.device, torch.float32).view(-1, 1, 1, 1).expand(-1, 1, height, width)

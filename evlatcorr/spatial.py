@@ -455,9 +455,11 @@ class SpatialLatencyCorrector(nn.Module):
         if not kept:  # nothing to fit: every map is the fallback
             return PolynomialLatency(self.order).to(frames.device), fell_back
         config = self.config.replace(num_bins=self.train_bins)
-        fitted = _select(frames, kept)
-        reference = _search_constant_latency(fitted.blurry, fitted.events, fitted.exposure_start,
-                                             fitted.exposure_end, theta[:len(kept)], config)
+        # the fit trains the polynomial alone: the caller's frames stay out of its graph (their .grad untouched)
+        fitted = _select(frames, kept).replace(blurry=frames.blurry[kept].detach())
+        with torch.no_grad():
+            reference = _search_constant_latency(fitted.blurry, fitted.events, fitted.exposure_start,
+                                                 fitted.exposure_end, theta[:len(kept)], config)
         none_found = reference.fallback.tolist()
         for i, fell in zip(kept, none_found):
             fell_back[i] = fell

@@ -126,6 +126,21 @@ def test_edi_from_ideal_events_reproduces_sharp_frame():
     assert edi_psnr > blurry_psnr + 4.0  # measured: 22.9 dB -> 27.9 dB
 
 
+def test_frames_that_require_grad_get_the_same_latency_and_a_differentiable_latent():
+    # the search is no graph (no memory for one, no warning of a scalar read of one); the latent keeps the blurry
+    # frames' gradient, for a module in front of it in training
+    frames = simulate("coffee", num_frames=2, latency="constant", latency_us=3000.0, seed=1, height=32,
+                      width=40).frames("delayed")
+    blurry = frames.blurry.clone().requires_grad_()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        out = EventLatencyCorrector()(frames.replace(blurry=blurry))
+    assert blurry.grad is None
+    torch.testing.assert_close(out.latency, EventLatencyCorrector()(frames).latency)
+    out.latent.sum().backward()
+    assert blurry.grad is not None and bool(blurry.grad.abs().sum() > 0)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("latency_us", [1000.0, 4000.0, 8000.0])
 def test_corrector_recovers_injected_constant_latency(latency_us):

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -160,6 +161,17 @@ def test_corrector_spatial_mode(frames, tmp_path):
     bounded = EventLatencyCorrector(mode="spatial", curve=str(tmp_path / "c.pt"), num_bins=50,
                                     search_range=(800.0, 1200.0))(frames)
     torch.testing.assert_close(bounded.latency, psi(frames.blurry).clamp(800.0, 1200.0))
+
+
+def test_the_fit_leaves_the_callers_frames_out_of_its_graph(frames):
+    # a blurry input that requires grad (an upstream module in training) gets no gradient from the fit's steps
+    blurry = frames.blurry.clone().requires_grad_()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)  # nor torch's warning of a scalar read of a graph
+        out = EventLatencyCorrector(mode="spatial", num_bins=50, steps=3, train_bins=30)(frames.replace(blurry=blurry))
+    assert blurry.grad is None
+    plain = EventLatencyCorrector(mode="spatial", num_bins=50, steps=3, train_bins=30)(frames)
+    torch.testing.assert_close(out.latency, plain.latency)
 
 
 def test_fit_without_events_is_refused(frames):
