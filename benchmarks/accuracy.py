@@ -40,6 +40,7 @@ import torch  # noqa: E402
 
 from evlatcorr.benchmark.accuracy import (  # noqa: E402
     Case,
+    at_exposure,
     corrector_estimator,
     load_estimator,
     make_cases,
@@ -72,6 +73,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--before-us", type=float, default=0.0, metavar="US",
                    help="each frame also keeps this long of events before its exposure, as a recording's stream does "
                         "(default 0: from the exposure start)")
+    p.add_argument("--exposure-us", type=float, default=None, metavar="US",
+                   help="every case at this exposure instead of 20 ms, its latencies and the events' run-on scaled "
+                        "with it, its motion kept (evlatcorr.benchmark.accuracy.at_exposure)")
     p.add_argument("--cases", nargs="+", default=None, metavar="NAME", help="case names or glob patterns")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     p.add_argument("--out", type=Path, default=Path("outputs/accuracy"))
@@ -87,6 +91,10 @@ def main(argv: list[str] | None = None) -> None:
         cases = [c for c in cases if any(fnmatch.fnmatchcase(c.name, pat) for pat in args.cases)]
         if not cases:
             p.error(f"no case of split {args.split} matches {args.cases}")
+    if args.exposure_us is not None:
+        if not args.exposure_us > 0:
+            p.error(f"--exposure-us must be positive, got {args.exposure_us}")
+        cases = [at_exposure(c, args.exposure_us) for c in cases]
 
     threshold_of = (lambda case: "auto") if args.auto_threshold else (lambda case: case.threshold)
     options = {} if args.search_range is None else {"search_range": tuple(args.search_range)}
@@ -126,11 +134,13 @@ def main(argv: list[str] | None = None) -> None:
     warned = sum(bool(r["warnings"]) for r in results)
     kinds = warning_kinds(results)
     before = f" and from {args.before_us:.0f} us before its start" if args.before_us else ""
+    scaled = "" if args.exposure_us is None else " (the suite's latencies scaled from its 20 ms exposure)"
     header = "\n".join([
         "# Latency estimator accuracy (simulated suite)", "",
         f"`{shlex.join(['python', 'benchmarks/accuracy.py', *(sys.argv[1:] if argv is None else argv)])}`", "",
-        f"- {len(cases)} cases ({', '.join(splits)}) at {args.size[1]}x{args.size[0]} px, one 20 ms exposure each, "
-        f"events up to 15 ms after its end{before}; EDI with 500 bins and the true threshold.",
+        f"- {len(cases)} cases ({', '.join(splits)}) at {args.size[1]}x{args.size[0]} px, one "
+        f"{cases[0].exposure_us / 1000:g} ms exposure each, events up to {cases[0].after_us / 1000:g} ms after its "
+        f"end{before}{scaled}; EDI with 500 bins and the true threshold.",
         f"- estimators: {', '.join(estimators)}; threshold given to the built-in correctors: "
         f"{'auto' if args.auto_threshold else 'the true one'}; search range: "
         f"{'default (0 to the exposure time)' if args.search_range is None else args.search_range} µs.",

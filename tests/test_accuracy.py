@@ -11,6 +11,7 @@ from evlatcorr.benchmark.accuracy import (
     LATENCY_MODELS,
     MOTION_KINDS,
     Case,
+    at_exposure,
     case_reference,
     corrector_estimator,
     evaluate_case,
@@ -113,6 +114,20 @@ def test_simulate_case(tiny):
     # the oracle scans 4000 µs too, so it is at least as close to the sharp frame as the true latency's EDI
     assert ref["best_shift_us"] / 62.5 == round(ref["best_shift_us"] / 62.5)
     assert ref["psnr_best_shift"] >= edi_psnr(delayed, case.threshold, 4000.0) - 1e-3
+
+
+def test_a_case_at_another_exposure_scales_its_latencies_and_the_oracles_reach():
+    case = tiny_case(latency_model="intensity")
+    longer = at_exposure(case, 20_000.0)
+    assert longer.name == "tiny-e20ms" and longer.exposure_us == 20_000.0 and longer.after_us == 16_000.0
+    assert longer.latency_us == 8000.0 and longer.latency_range_us == (1000.0, 12_000.0)
+    assert (longer.scene, longer.speed_px_per_ms, longer.seed) == (case.scene, case.speed_px_per_ms, case.seed)
+    with pytest.raises(ValueError, match="exposure_us must be a positive"):
+        at_exposure(case, 0.0)
+    # the oracle's scan ends where the case's events do: 4000 µs at a 5 ms exposure, on the 62.5 µs grid scaled
+    short = at_exposure(tiny_case(), 5000.0)
+    ref = case_reference(short, simulate_case(short))
+    assert 0.0 <= ref["best_shift_us"] <= 4000.0 and abs(ref["best_shift_us"] - 2000.0) <= 500.0
 
 
 @pytest.mark.parametrize("motion", ["objects", "rotation", "zoom", "random"])

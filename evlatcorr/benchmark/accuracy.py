@@ -57,6 +57,7 @@ from evlatcorr.benchmark.accuracy_cases import (  # the suite's cases, here too:
     SPLITS,
     TRAIN_SPLITS,
     Case,
+    at_exposure,
     make_cases,
     simulate_case,
 )
@@ -74,6 +75,7 @@ __all__ = [
     "DELAY_TRAIN_SPLIT",
     "TRAIN_SPLITS",
     "Case",
+    "at_exposure",
     "make_cases",
     "simulate_case",
     "case_reference",
@@ -116,26 +118,28 @@ def case_reference(case: Case, simulated: tuple[EventFrames, EventFrames, Simula
         psnr_ideal=edi_psnr(ideal, case.threshold), psnr_uncorrected=edi_psnr(delayed, case.threshold),
         true_latency_us=float(true.mean()), true_latency_min_us=float(true.min()),
         true_latency_max_us=float(true.max()), num_events=len(delayed.events))
-    ref.update(_best_shift(delayed, case.threshold))
+    ref.update(_best_shift(delayed, case.threshold, case.after_us))
     return ref
 
 
-def _best_shift(delayed: EventFrames, threshold: float) -> dict[str, float]:
+def _best_shift(delayed: EventFrames, threshold: float, reach_us: float = BEST_SHIFTS_US[-1]) -> dict[str, float]:
     """The oracle: the constant latency whose EDI is closest to the sharp frame in PSNR.
 
-    A scan of :data:`BEST_SHIFTS_US`, then two halvings of the step around the best (±125, ±62.5 µs).
+    A scan of :data:`BEST_SHIFTS_US` (scaled to end at ``reach_us``, where the events stop: a case at another
+    exposure), then two halvings of the step around the best (±125, ±62.5 µs at the suite's 20 ms).
     """
-    grid = event_grid(delayed.events, delayed.exposure_start, delayed.exposure_end, 500, (0.0, max(BEST_SHIFTS_US)))
+    shifts = [s * reach_us / BEST_SHIFTS_US[-1] for s in BEST_SHIFTS_US]
+    grid = event_grid(delayed.events, delayed.exposure_start, delayed.exposure_end, 500, (0.0, shifts[-1]))
 
     def psnr_at(shift: float) -> float:
         return psnr(edi_deblur(delayed.blurry, delayed.events, delayed.exposure_start, delayed.exposure_end,
                                 threshold=threshold, latency=shift, grid=grid), delayed.sharp)
 
-    best = max((psnr_at(shift), shift) for shift in BEST_SHIFTS_US)
-    step = BEST_SHIFTS_US[1] - BEST_SHIFTS_US[0]
+    best = max((psnr_at(shift), shift) for shift in shifts)
+    step = shifts[1] - shifts[0]
     for _ in range(2):
         step /= 2
-        around = [s for s in (best[1] - step, best[1] + step) if BEST_SHIFTS_US[0] <= s <= BEST_SHIFTS_US[-1]]
+        around = [s for s in (best[1] - step, best[1] + step) if shifts[0] <= s <= shifts[-1]]
         best = max([best, *((psnr_at(s), s) for s in around)])
     return {"psnr_best_shift": best[0], "best_shift_us": best[1]}
 
@@ -153,7 +157,7 @@ def training_target(case: Case, delayed: EventFrames, *, delay_best_shift: bool 
     if case.latency_model == "constant":
         return case.latency_us
     if case.latency_model == "intensity" or (case.latency_model == "intensity_delay" and delay_best_shift):
-        return _best_shift(delayed, case.threshold)["best_shift_us"]
+        return _best_shift(delayed, case.threshold, case.after_us)["best_shift_us"]
     raise ValueError(f"no training target for the {case.latency_model!r} latency model")
 
 

@@ -29,7 +29,7 @@ from evlatcorr.scenes import PROCEDURAL_SCENES, procedural_scene
 from evlatcorr.simulate import PHOTOGRAPHS_TEST, PHOTOGRAPHS_TRAIN, ObjectSpec, SimulatedSequence, simulate
 
 __all__ = ["SPLITS", "LATENCY_MODELS", "MOTION_KINDS", "DEFAULT_SIZE", "TRAIN_SPLITS", "DELAY_TRAIN_SPLIT", "Case",
-           "make_cases", "simulate_case"]
+           "at_exposure", "make_cases", "simulate_case"]
 
 
 SPLITS = ("dev", "dev_wide", "test")
@@ -280,6 +280,27 @@ def _object_specs(case: Case) -> list[ObjectSpec]:
                                 (speed * math.cos(angle), speed * math.sin(angle)),
                                 shape="disc" if j % 2 == 0 else "rect", time_us=t_mid))
     return specs
+
+
+def at_exposure(case: Case, exposure_us: float) -> Case:
+    """The case at another exposure time, its latencies and the events' run-on after the exposure scaled with it
+    (dimmer light: longer exposures and later events), its scene, motion (px/ms) and noise kept.
+
+    The suite draws every case at a 20 ms exposure, the learned readers' training too: this asks whether the
+    estimate holds at others. The case's name gets the exposure in ms.
+
+    Example:
+        >>> case = at_exposure(make_cases("test", num=1)[0], 10_000.0)
+        >>> case.name.endswith("-e10ms"), case.exposure_us, case.after_us
+        (True, 10000.0, 7500.0)
+    """
+    if not (math.isfinite(exposure_us) and exposure_us > 0):
+        raise ValueError(f"exposure_us must be a positive number of µs, got {exposure_us}")
+    scale = exposure_us / case.exposure_us
+    return dataclasses.replace(
+        case, name=f"{case.name}-e{exposure_us / 1000:g}ms", exposure_us=float(exposure_us),
+        latency_us=case.latency_us * scale, latency_range_us=tuple(v * scale for v in case.latency_range_us),
+        after_us=case.after_us * scale)
 
 
 def simulate_case(case: Case, num_frames: int = 1, before_us: float = 0.0, frame_interval_us: float | None = None
