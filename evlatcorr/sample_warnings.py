@@ -1,15 +1,18 @@
-"""Warnings about some samples of a batch, which a caller can reword with its own names for them.
+"""Warnings about some samples of a batch, which a caller can reword with its own names for them, and about one frame
+of a recording, which a caller can group by kind.
 
 A library call sees a batch and its sample indices; the command line sees a recording and its frame numbers.
 :class:`SampleWarning` keeps which samples a message is about apart from its wording, so
-``evlatcorr correct`` says "frame 12" where the search said "sample 0".
+``evlatcorr correct`` says "frame 12" where the search said "sample 0". :class:`FrameWarning` keeps what happened
+(its kind) apart from the frame's figures, so a recording whose frames all lack events gets one line of it and a count,
+not one line a frame.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
-__all__ = ["SampleWarning"]
+__all__ = ["FrameWarning", "SampleWarning"]
 
 
 class SampleWarning(UserWarning):
@@ -65,3 +68,30 @@ class SampleWarning(UserWarning):
 
     def _text(self, which: str) -> str:
         return self.text.format(which=which, its="its" if len(self.samples) == 1 else "their")
+
+
+class FrameWarning(UserWarning):
+    """A warning about one frame of a recording, of a kind a caller may group (e.g. one line for many frames).
+
+    Args:
+        kind: what happened, one short name per message template.
+        frame: the frame's number in its recording.
+        text: the whole message, the frame's figures included.
+        summary: what happened without the frame's figures, said of one frame or several ("no events in the exposure").
+
+    ``str()`` is ``text``.
+
+    Example:
+        >>> w = FrameWarning("no_events", 7, "rec.h5: frame 7 has no events inside its exposure [0, 20000) us",
+        ...                  "no events inside the exposure")
+        >>> str(w), w.kind, w.frame
+        ('rec.h5: frame 7 has no events inside its exposure [0, 20000) us', 'no_events', 7)
+    """
+
+    def __init__(self, kind: str, frame: int, text: str, summary: str) -> None:
+        # the arguments are the exception's args, so it pickles (e.g. across processes) as it was made
+        super().__init__(kind, int(frame), text, summary)
+        self.kind, self.frame, self.text, self.summary = kind, int(frame), text, summary
+
+    def __str__(self) -> str:
+        return self.text

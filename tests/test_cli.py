@@ -517,6 +517,38 @@ def test_command_line_warnings_print_each_message_once_as_one_line(capsys):
                                                     "evlatcorr correct: warning: frame 4: no events"]
 
 
+def test_frame_warnings_are_said_in_full_once_a_kind_and_the_other_frames_in_one_line(capsys):
+    from evlatcorr.cli import common
+    from evlatcorr.sample_warnings import FrameWarning
+
+    show = common.warning_printer("correct")
+    for frame in (2, 3, 4, 7):
+        show(FrameWarning("empty", frame, f"frame {frame}: no events in [{frame}0, {frame}9) us", "no events"),
+             FrameWarning, "/somewhere/reader.py", 10)
+    show(FrameWarning("late", 5, "frame 5: events end early", "the events end early"), FrameWarning, "x.py", 1)
+    show.summarise()
+    assert capsys.readouterr().err.splitlines() == ["evlatcorr correct: warning: frame 2: no events in [20, 29) us",
+                                                    "evlatcorr correct: warning: frame 5: events end early",
+                                                    "evlatcorr correct: warning: 3 more frames (3-4, 7): no events"]
+    show.summarise()  # said once
+    assert capsys.readouterr().err == ""
+
+
+def test_a_recording_without_events_warns_in_a_few_lines_whatever_its_length(tmp_path):
+    seq = simulate("coffee", num_frames=6, height=24, width=32, latency_us=2000.0, seed=1)
+    ev = seq.delayed_events
+    none = torch.zeros(0, dtype=torch.long)
+    seq.delayed_events = type(ev)(none, none, none.double(), none, sensor_size=ev.sensor_size)
+    write_sequence(tmp_path / "still.h5", seq)
+    r = run("correct", str(tmp_path / "still.h5"), str(tmp_path / "out.h5"), "--no-figure", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    warned = [line for line in r.stderr.splitlines() if "warning" in line]
+    assert "evlatcorr correct: warning: 5 more frames (1-5): no events in the exposure and search window; the " \
+           "events keep the previous frame's latency" in warned
+    assert len(warned) <= 8, r.stderr  # one line a kind in full, one a kind for the other frames; not one a frame
+    assert "6 without events kept the previous latency" in r.stdout
+
+
 def test_a_range_that_holds_the_estimate_at_its_edge_is_said_of_the_frames_once(simulated, tmp_path):
     # 3 ms late, searched within 0-1000 us: the first frame's warning in full, by its number, and one line for the rest
     r = run("correct", str(simulated), str(tmp_path / "out.h5"), "--search-us", "0", "1000", "--num-bins", "100",

@@ -74,8 +74,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():  # restores the filters and warnings.showwarning on the way out
             warnings.simplefilter("always")  # every warning reaches the printer, which keeps each message once
-            warnings.showwarning = warning_printer(args.command)
-            return command[args.command](args)
+            printer = warning_printer(args.command)
+            warnings.showwarning = printer
+            try:
+                return command[args.command](args)
+            finally:  # the frames' repeated warnings, one line a kind, before any error's line
+                printer.summarise()
     except (RecordingError, ValueError, OSError) as exc:  # bad input, or an OS error on the user's paths
         print(f"evlatcorr {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

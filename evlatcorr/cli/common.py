@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from evlatcorr.sample_warnings import SampleWarning
+from evlatcorr.sample_warnings import FrameWarning, SampleWarning
 
 EXIT_OK, EXIT_ERROR, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -100,9 +100,7 @@ def threshold_of_recording(args: argparse.Namespace, rec, device: torch.device) 
         return theta
     # what the search says of a frame here, the main pass says again of every frame, by its number; what the reader
     # says of a frame read here (with the wider window of a pair) is said to come from here; of the file, as it is
-    with _reworded(lambda message: None if isinstance(message, SampleWarning)
-                   else f"estimating the contrast threshold from the first frames: {message}"
-                   if re.search(r"\bframe \d+:", str(message)) else str(message)):
+    with _reworded(_said_of_the_threshold_pass):
         found = recording_threshold(rec, tuple(args.search_us) if args.search_us else None, device=device)
     if found is None:
         warnings.warn("no pair of consecutive frames with events: the contrast threshold is estimated per frame",
@@ -110,6 +108,19 @@ def threshold_of_recording(args: argparse.Namespace, rec, device: torch.device) 
         return "auto"
     print(f"contrast threshold: {found:.3f} (auto: two-frame consistency of the first frames)", file=sys.stderr)
     return found
+
+
+def _said_of_the_threshold_pass(message: Warning) -> Warning | str | None:
+    """How a warning of the threshold's pass is said again: the search's of a frame not at all (the main pass says it
+    of every frame, by its number); the reader's of a frame (read with the wider window of a pair) as coming from
+    there; of the file, as it is."""
+    prefix = "estimating the contrast threshold from the first frames: "
+    if isinstance(message, SampleWarning):
+        return None
+    if isinstance(message, FrameWarning):
+        return FrameWarning(f"threshold:{message.kind}", message.frame, prefix + message.text,
+                            prefix + message.summary)
+    return prefix + str(message) if re.search(r"\bframe \d+:", str(message)) else str(message)
 
 
 def build_corrector(args: argparse.Namespace, mode: str = "constant", curve: Path | None = None,
@@ -140,16 +151,18 @@ def progress(iterable, total: int | None, desc: str):
 
 
 @contextlib.contextmanager
-def _reworded(reword: Callable[[Warning], str | None]):
+def _reworded(reword: Callable[[Warning], Warning | str | None]):
     """The warnings raised inside, warned again as ``reword`` words them (each a :class:`Warning`; None: not
-    again)."""
+    again; a Warning: that one)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         yield
     for w in caught:
-        text = reword(w.message)
-        if text is not None:
-            warnings.warn(text, UserWarning if issubclass(w.category, SampleWarning) else w.category, stacklevel=3)
+        said = reword(w.message)
+        if isinstance(said, Warning):
+            warnings.warn(said, stacklevel=3)
+        elif said is not None:
+            warnings.warn(said, UserWarning if issubclass(w.category, SampleWarning) else w.category, stacklevel=3)
 
 
 class FrameWarnings:
@@ -202,8 +215,11 @@ def _number_ranges(numbers: list[int]) -> str:
     return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
-def skip_warning(batch, why: str) -> None:
-    warnings.warn(f"frame {batch.meta['frame']}: {why}", stacklevel=2)
+def skip_warning(batch, kind: str, why: str, summary: str) -> None:
+    """Warn that the command passed over frame ``batch`` (``why``, with its figures; ``summary`` without them, said
+    at the end of several frames at once)."""
+    frame = int(batch.meta["frame"])
+    warnings.warn(FrameWarning(kind, frame, f"frame {frame}: {why}", summary), stacklevel=2)
 
 
 def latency_row(batch, out, theta, seconds: float, skipped: str = "") -> dict:
@@ -252,21 +268,46 @@ def write_csv(path: Path, rows: list[dict]) -> None:
         w.writerows(rows)
 
 
-def warning_printer(command: str) -> Callable[..., None]:
+class WarningPrinter:
     """A ``warnings.showwarning`` for the command line: each distinct message once, as one line ``evlatcorr COMMAND:
     warning: MESSAGE`` on stderr, above the progress bar (a user needs what happened to their data, not the source
-    line of the library that noticed it, nor the same line again from another place that noticed it too)."""
-    from tqdm import tqdm
+    line of the library that noticed it, nor the same line again from another place that noticed it too). Of a
+    :class:`~evlatcorr.sample_warnings.FrameWarning` the first of each kind is said in full as it happens, and
+    :meth:`summarise` says the frames of the others in one line a kind (a recording still for hundreds of frames gets
+    two lines, not hundreds)."""
 
-    seen: set[str] = set()
+    def __init__(self, command: str) -> None:
+        self.command = command
+        self.seen: set[str] = set()
+        self.later: dict[str, tuple[str, list[int]]] = {}
 
-    def show(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ARG001 (the hook's signature)
-        text = str(message)
-        if text not in seen:
-            seen.add(text)
-            tqdm.write(f"evlatcorr {command}: warning: {text}", file=sys.stderr if file is None else file)
+    def __call__(self, message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ARG002 (the hook)
+        if isinstance(message, FrameWarning):
+            if message.kind in self.later:
+                self.later[message.kind][1].append(message.frame)
+                return
+            self.later[message.kind] = (message.summary, [])
+        self._write(str(message), file)
 
-    return show
+    def summarise(self, file=None) -> None:
+        """One line a kind of frame warning for the frames after its first."""
+        for summary, frames in self.later.values():
+            if frames:
+                self._write(f"{len(frames)} more frame{'s' if len(frames) > 1 else ''} ({_number_ranges(frames)}): "
+                            f"{summary}", file)
+        self.later.clear()
+
+    def _write(self, text: str, file=None) -> None:
+        from tqdm import tqdm
+
+        if text not in self.seen:
+            self.seen.add(text)
+            tqdm.write(f"evlatcorr {self.command}: warning: {text}", file=sys.stderr if file is None else file)
+
+
+def warning_printer(command: str) -> WarningPrinter:
+    """The command line's :class:`WarningPrinter` for ``command``."""
+    return WarningPrinter(command)
 
 
 def frames_per_call(device: torch.device, mode: str) -> int:

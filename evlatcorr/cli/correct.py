@@ -152,8 +152,9 @@ def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: tor
             continue
         correct_pending()  # the frames before it first: it takes the latency of the last of them
         previous = float(kept.latencies[-1].mean()) if kept.latencies else 0.0
-        skip_warning(batch, f"no events in its exposure and search window; its events keep the previous "
-                             f"frame's latency ({previous:.0f} us)")
+        skip_warning(batch, "kept_previous_latency", f"no events in its exposure and search window; its events keep "
+                     f"the previous frame's latency ({previous:.0f} us)",
+                     "no events in the exposure and search window; the events keep the previous frame's latency")
         h, w = batch.sensor_size
         record(batch, batch.replace(latency=torch.full((1, 1, h, w), previous, dtype=torch.float64, device=device)),
                0.0, skipped="no events")

@@ -88,7 +88,9 @@ def _restore(args: argparse.Namespace, task: str) -> int:
         for batch, frames in progress(stream, limit, task):
             if frames is None:
                 restore_pending()  # the frames before it first: rows and images stay in order
-                skip_warning(batch, f"{args.model} {task} needs the next frame, and this is the last of its segment")
+                skip_warning(batch, "no_next_frame", f"{args.model} {task} needs the next frame, and this is the last "
+                             "of its segment", f"{args.model} {task} needs the next frame, and this is the last of its "
+                             "segment")
                 rows.append(latency_row(batch, None, run.theta, 0.0, skipped="no next frame"))
                 continue
             frames = _with_targets(frames.to(device), task, args.model, args.num if task == "interpolation" else 0)
@@ -99,7 +101,8 @@ def _restore(args: argparse.Namespace, task: str) -> int:
                 continue
             restore_pending()
             if run.corrector is not None:
-                skip_warning(batch, "no events in its exposure and search window: not corrected")
+                skip_warning(batch, "not_corrected", "no events in its exposure and search window: not corrected",
+                             "no events in the exposure and search window: not corrected")
             restore(batch, frames, None, 0.0, "no events" if run.corrector is not None else "")
         restore_pending()
         frame_warnings.summarise()

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from evlatcorr.io.records import FrameInfo, RecordingError
+from evlatcorr.sample_warnings import FrameWarning
 
 __all__ = ["check_chunk", "check_frame_order", "warn_coverage", "warn_unused_events"]
 
@@ -68,21 +69,26 @@ def warn_coverage(path: Path, info: FrameInfo, lo: float, hi: float, events: np.
         stacklevel: as for :func:`warnings.warn`, counted from this function (to point at the user's loop).
     """
     name = f"{path}: frame {info.index}"
+
+    def warn(kind: str, text: str, summary: str) -> None:
+        warnings.warn(FrameWarning(kind, info.index, text, summary), stacklevel=stacklevel + 1)
+
     if first is None:
-        warnings.warn(f"{name}: no events at all in its segment; its window [{lo:.0f}, {hi:.0f}) us is empty",
-                      stacklevel=stacklevel)
+        warn("segment_without_events", f"{name}: no events at all in its segment; its window [{lo:.0f}, {hi:.0f}) us "
+             "is empty", "no events at all in the segment")
         return
     if first - lo > 0.1 * (hi - lo):  # a short gap is just a quiet scene; a long one, a missing stream
-        warnings.warn(f"{name}: its window starts at {lo:.0f} us, {first - lo:.0f} us before the first event "
-                      f"({first:.0f} us); events before that are missing", stacklevel=stacklevel)
+        warn("window_before_events", f"{name}: its window starts at {lo:.0f} us, {first - lo:.0f} us before the first "
+             f"event ({first:.0f} us); events before that are missing",
+             "the window starts well before the first event; events before that are missing")
     if exhausted and newest < hi:
-        warnings.warn(f"{name}: events end at {newest:.0f} us, before the end of its window {hi:.0f} us "
-                      f"(exposure end + {hi - info.exposure_end:.0f} us); late events are missing",
-                      stacklevel=stacklevel)
+        warn("events_end_early", f"{name}: events end at {newest:.0f} us, before the end of its window {hi:.0f} us "
+             f"(exposure end + {hi - info.exposure_end:.0f} us); late events are missing",
+             "the events end before the end of the window; late events are missing")
     inside = int(((events["t"] >= info.exposure_start) & (events["t"] < info.exposure_end)).sum())
     if inside == 0:
-        warnings.warn(f"{name} has no events inside its exposure [{info.exposure_start:.0f}, "
-                      f"{info.exposure_end:.0f}) us", stacklevel=stacklevel)
+        warn("exposure_without_events", f"{name} has no events inside its exposure [{info.exposure_start:.0f}, "
+             f"{info.exposure_end:.0f}) us", "no events inside the exposure")
 
 
 def warn_unused_events(path: Path, count: int, last_frame: int, segment_label: str, past_us: float,
