@@ -144,6 +144,8 @@ class EventFrames:
         if after_us is not None and (not math.isfinite(after_us) or after_us < 0):
             raise ValueError(f"after_us must be None or a finite number >= 0, got {after_us}")
         check_shape(blurry, ["B", "C", "H", "W"], "blurry")
+        for times, name in ((exposure_start, "exposure_start"), (exposure_end, "exposure_end")):
+            warn_if_coarse_times(times, name)  # at the caller's line: float32 has already rounded them
         start = check_batch_vector(exposure_start, blurry.shape[0], "exposure_start").to(events.device, torch.float64)
         end = check_batch_vector(exposure_end, blurry.shape[0], "exposure_end").to(events.device, torch.float64)
         with warnings.catch_warnings():  # the constructor below warns of short exposures, once

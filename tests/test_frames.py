@@ -131,6 +131,15 @@ class TestFromStream:
         wider = EventFrames.from_stream(blurry, ev, [10.0, 20.0], [20.0, 30.0], before_us=5.0, after_us=20.0)
         assert wider.events.t.tolist() == [8.0, 15.0, 25.0, 15.0, 25.0, 45.0]
 
+    def test_float32_absolute_exposures_warn_at_the_caller(self):
+        ev = Events(torch.zeros(1), torch.zeros(1), torch.tensor([1.6e15], dtype=torch.float64), torch.ones(1),
+                    sensor_size=(1, 1))
+        start = torch.tensor([1.6e15], dtype=torch.float32)
+        with pytest.warns(UserWarning, match=r"exposure_start is float32 with times up to 1\.6e\+15 us") as caught:
+            EventFrames.from_stream(torch.rand(1, 1, 1, 1), ev, start, torch.tensor([1.6e15 + 1e9],
+                                                                                    dtype=torch.float64))
+        assert {w.filename for w in caught} == {__file__}
+
     @pytest.mark.parametrize("kwargs, message", [
         (dict(before_us=-1.0), "before_us must be a finite number >= 0, got -1.0"),
         (dict(after_us=float("nan")), "after_us must be None or a finite number >= 0, got nan"),
