@@ -220,7 +220,8 @@ def to_markdown(results: Sequence[Mapping[str, Any]], summary: Mapping[str, Any]
     lines += ["", "## Cases", "",
               "Error: estimate − true for constant latency, mean |map − true| for the intensity models. "
               "Recovery: (corr − uncorr) / (ideal − uncorr) of EDI PSNR (dB) against the sharp frame. "
-              "Best shift: the oracle constant latency whose EDI is closest to the sharp frame (0-15 ms, to 62.5 µs); "
+              "Best shift: the oracle constant latency whose EDI is closest to the sharp frame (0 to where the "
+              "events stop, to a 240th of that: 0-15 ms to 62.5 µs at the suite's 20 ms exposures); "
               "its error against the true constant latency is how far EDI's own optimum lies from the truth.", "",
               "| estimator | case | noise | true µs | est µs | error µs | PSNR ideal | uncorr | corr | recovery | "
               "best shift µs / PSNR | share of best | time s |",
