@@ -11,6 +11,7 @@ and what correcting them by it does to their EDI PSNR.
     python benchmarks/sequence_accuracy.py --split tuning              # dev + dev_wide: 160 sequences
     python benchmarks/sequence_accuracy.py --split test --frames 6     # report only
     python benchmarks/sequence_accuracy.py --split tuning --no-latency-mass 0 0.1   # also without the rule, and at 0.1
+    python benchmarks/sequence_accuracy.py --split test --exposure-us 40000 # every case at a 40 ms exposure
 
 Writes ``results.md``, ``results.csv`` and ``results.json`` under ``--out``.
 """
@@ -33,7 +34,7 @@ from pathlib import Path  # noqa: E402
 
 from tqdm import tqdm  # noqa: E402
 
-from evlatcorr.benchmark.accuracy import make_cases  # noqa: E402
+from evlatcorr.benchmark.accuracy import at_exposure, make_cases  # noqa: E402
 from evlatcorr.benchmark.sequences import (  # noqa: E402
     DEFAULT_WINDOWS,
     IDEAL,
@@ -85,8 +86,13 @@ def main(argv: list[str] | None = None) -> None:
                         f"windows use {DEFAULT_NO_LATENCY_MASS})")
     p.add_argument("--no-ideal", action="store_true",
                    help="skip the sequences' ideal events (estimated by default: what bright light gives)")
+    p.add_argument("--exposure-us", type=float, default=None, metavar="US",
+                   help="every case at this exposure instead of 20 ms, its latencies and the events' run-on scaled "
+                        "with it (evlatcorr.benchmark.accuracy.at_exposure)")
     p.add_argument("--out", type=Path, default=Path("outputs/sequences"))
     args = p.parse_args(argv)
+    if args.exposure_us is not None and not args.exposure_us > 0:
+        p.error(f"--exposure-us must be positive, got {args.exposure_us}")
     if args.frames < 1:
         p.error(f"--frames must be at least 1, got {args.frames}")
     if any(not 0 <= share < 1 for share in args.no_latency_mass):
@@ -96,6 +102,8 @@ def main(argv: list[str] | None = None) -> None:
             (2, 2, share or None) for share in args.no_latency_mass}
     splits = {"tuning": ("dev", "dev_wide")}.get(args.split, (args.split,))
     cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size)) if c.latency_model in args.models]
+    if args.exposure_us is not None:
+        cases = [at_exposure(c, args.exposure_us) for c in cases]
     t0 = time.perf_counter()
     rows = []
     for case in tqdm(cases, desc="sequences", unit="case"):
