@@ -546,6 +546,10 @@ def test_a_recording_without_events_warns_in_a_few_lines_whatever_its_length(tmp
     assert "evlatcorr correct: warning: 5 more frames (1-5): no events in the exposure and search window; the " \
            "events keep the previous frame's latency" in warned
     assert len(warned) <= 8, r.stderr  # one line a kind in full, one a kind for the other frames; not one a frame
+    # the threshold's pass says its own when it ends, before what comes of it
+    threshold_pass = ("evlatcorr correct: warning: 5 more frames (1-5): estimating the contrast threshold from the "
+                      "first frames: no events at all in the segment")
+    assert warned.index(threshold_pass) < next(i for i, line in enumerate(warned) if "no pair of consecutive" in line)
     assert "6 without events kept the previous latency" in r.stdout
 
 

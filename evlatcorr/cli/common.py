@@ -99,9 +99,12 @@ def threshold_of_recording(args: argparse.Namespace, rec, device: torch.device) 
     if theta != "auto":
         return theta
     # what the search says of a frame here, the main pass says again of every frame, by its number; what the reader
-    # says of a frame read here (with the wider window of a pair) is said to come from here; of the file, as it is
-    with _reworded(_said_of_the_threshold_pass):
+    # says of a frame read here (with the wider window of a pair) is said to come from here, the first of each kind in
+    # full and its other frames in one line when the pass ends; of the file, as it is
+    said = _ThresholdPassWords()
+    with _reworded(said):
         found = recording_threshold(rec, tuple(args.search_us) if args.search_us else None, device=device)
+    said.summarise()
     if found is None:
         warnings.warn("no pair of consecutive frames with events: the contrast threshold is estimated per frame",
                       stacklevel=2)
@@ -110,17 +113,34 @@ def threshold_of_recording(args: argparse.Namespace, rec, device: torch.device) 
     return found
 
 
-def _said_of_the_threshold_pass(message: Warning) -> Warning | str | None:
-    """How a warning of the threshold's pass is said again: the search's of a frame not at all (the main pass says it
-    of every frame, by its number); the reader's of a frame (read with the wider window of a pair) as coming from
-    there; of the file, as it is."""
-    prefix = "estimating the contrast threshold from the first frames: "
-    if isinstance(message, SampleWarning):
-        return None
-    if isinstance(message, FrameWarning):
-        return FrameWarning(f"threshold:{message.kind}", message.frame, prefix + message.text,
-                            prefix + message.summary)
-    return prefix + str(message) if re.search(r"\bframe \d+:", str(message)) else str(message)
+class _ThresholdPassWords:
+    """How a warning of the threshold's pass is said again (see :func:`threshold_of_recording`)."""
+
+    PREFIX = "estimating the contrast threshold from the first frames: "
+
+    def __init__(self) -> None:
+        self.later: dict[str, tuple[str, list[int]]] = {}
+
+    def __call__(self, message: Warning) -> str | None:
+        if isinstance(message, SampleWarning):
+            return None
+        if isinstance(message, FrameWarning):
+            if message.kind in self.later:
+                self.later[message.kind][1].append(message.frame)
+                return None
+            self.later[message.kind] = (self.PREFIX + message.summary, [])
+            return self.PREFIX + message.text
+        return self.PREFIX + str(message) if re.search(r"\bframe \d+:", str(message)) else str(message)
+
+    def summarise(self) -> None:
+        for summary, frames in self.later.values():
+            if frames:
+                warnings.warn(_more_frames(frames, summary), stacklevel=3)
+
+
+def _more_frames(frames: list[int], summary: str) -> str:
+    """``"3 more frames (4-6): SUMMARY"``."""
+    return f"{len(frames)} more frame{'s' if len(frames) > 1 else ''} ({_number_ranges(frames)}): {summary}"
 
 
 def build_corrector(args: argparse.Namespace, mode: str = "constant", curve: Path | None = None,
@@ -151,18 +171,17 @@ def progress(iterable, total: int | None, desc: str):
 
 
 @contextlib.contextmanager
-def _reworded(reword: Callable[[Warning], Warning | str | None]):
+def _reworded(reword: Callable[[Warning], str | None]):
     """The warnings raised inside, warned again as ``reword`` words them (each a :class:`Warning`; None: not
-    again; a Warning: that one)."""
+    again)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         yield
     for w in caught:
-        said = reword(w.message)
-        if isinstance(said, Warning):
-            warnings.warn(said, stacklevel=3)
-        elif said is not None:
-            warnings.warn(said, UserWarning if issubclass(w.category, SampleWarning) else w.category, stacklevel=3)
+        text = reword(w.message)
+        if text is not None:
+            category = UserWarning if issubclass(w.category, (SampleWarning, FrameWarning)) else w.category
+            warnings.warn(text, category, stacklevel=3)
 
 
 class FrameWarnings:
@@ -194,8 +213,7 @@ class FrameWarnings:
         """One warning per kind for the frames after its first."""
         for summary, numbers in self.later.values():
             if numbers:
-                warnings.warn(f"{len(numbers)} more frame{'s' if len(numbers) > 1 else ''} "
-                              f"({_number_ranges(numbers)}): {_option_names(summary)}", stacklevel=2)
+                warnings.warn(_more_frames(numbers, _option_names(summary)), stacklevel=2)
         self.later.clear()
 
 
@@ -293,8 +311,7 @@ class WarningPrinter:
         """One line a kind of frame warning for the frames after its first."""
         for summary, frames in self.later.values():
             if frames:
-                self._write(f"{len(frames)} more frame{'s' if len(frames) > 1 else ''} ({_number_ranges(frames)}): "
-                            f"{summary}", file)
+                self._write(_more_frames(frames, summary), file)
         self.later.clear()
 
     def _write(self, text: str, file=None) -> None:
