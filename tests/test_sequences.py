@@ -94,3 +94,21 @@ def test_the_script_writes_its_table(tmp_path):
     bad = subprocess.run([*script[:-2], "--no-latency-mass", "1"], capture_output=True, text=True, cwd=root,
                          timeout=300)
     assert bad.returncode == 2 and "--no-latency-mass must be in [0, 1)" in bad.stderr
+
+
+def test_a_case_the_simulator_refuses_is_left_out_and_named(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    # at 40 ms, six frames of dev-13's zoom compound past any photograph: that case is named, the others reported
+    root = Path(__file__).resolve().parents[1]
+    run = subprocess.run([sys.executable, str(root / "benchmarks" / "sequence_accuracy.py"), "--split", "dev", "--num",
+                          "14", "--size", "32", "40", "--frames", "6", "--models", "constant", "--no-ideal",
+                          "--exposure-us", "40000", "--out", str(tmp_path)], capture_output=True, text=True, cwd=root,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr
+    table = (tmp_path / "results.md").read_text()
+    assert "1 case(s) not simulated, left out: dev-13-proc-gradient-dark-b0.14-zoom3.2-const9000-e40ms (the motion" \
+        in table
+    assert "| per frame | constant latency | 24 (" in table  # the other four cases, six frames each

@@ -146,6 +146,10 @@ def test_motion_is_strong_enough_and_steps_are_small():
         (dict(margin_us=-1.0), "margin_us"),
         (dict(dt_us=0.0), "dt_us"),
         (dict(target_times=[float("inf")]), "target_times"),
+        # a zoom compounding over half a second would need the photograph at 10^18 times its size: refused, not
+        # allocated
+        (dict(num_frames=12, exposure_us=40000.0, frame_interval_us=40000.0, motion="zoom", max_speed_px_per_ms=4.0),
+         r"the motion over 564 ms sees .* past the photograph's edges .* over 64 M\): simulate fewer or shorter"),
     ],
 )
 def test_bad_input(kwargs, match):

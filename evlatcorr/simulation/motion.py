@@ -14,6 +14,9 @@ from evlatcorr.simulation.photographs import luminance
 __all__ = ["MOTIONS", "Camera", "Trajectory"]
 
 MOTIONS = ("random", "rotation", "zoom")  # named motions; a (vx, vy) tuple is a constant translation
+# the most pixels the photograph is upsampled to (1 GB as float32 RGB + luminance): past it the path over the
+# timeline (a zoom compounding over a long sequence) is refused rather than allocated
+MAX_PHOTO_PIXELS = 64_000_000
 
 
 class Trajectory:
@@ -112,6 +115,11 @@ class Camera:
         self.scale = max(1.0, need_w / pw, need_h / ph)
         if self.scale > 1.0:
             size = (math.ceil(ph * self.scale), math.ceil(pw * self.scale))
+            if size[0] * size[1] > MAX_PHOTO_PIXELS:
+                raise ValueError(f"the motion over {(span[1] - span[0]) / 1000:.0f} ms sees {self.scale:.3g}x past "
+                                 f"the photograph's edges (it would be upsampled to {size[1]}x{size[0]} pixels, over "
+                                 f"{MAX_PHOTO_PIXELS // 1_000_000} M): simulate fewer or shorter frames, or a slower "
+                                 "motion")
             photo = F.interpolate(photo[None], size=size, mode="bilinear", align_corners=False)[0].clamp(0, 1)
         self.rgby = torch.cat([photo, luminance(photo)], 0)[None].contiguous()  # (1, 4, h, w)
         self.lum = self.rgby[:, 3:4].contiguous()
