@@ -508,7 +508,7 @@ def test_the_search_reads_the_exposure_time_past_each_frame_even_with_a_narrower
 def test_command_line_warnings_print_each_message_once_as_one_line(capsys):
     from evlatcorr.cli import common
 
-    show = common.warning_printer("correct")
+    show = common.WarningPrinter("correct")
     for _ in range(2):  # the same message noticed in two places
         show(UserWarning("frame 3: no events"), UserWarning, "/somewhere/reader.py", 10)
         show(UserWarning("frame 3: no events"), UserWarning, "/elsewhere/tqdm.py", 99)
@@ -521,7 +521,7 @@ def test_frame_warnings_are_said_in_full_once_a_kind_and_the_other_frames_in_one
     from evlatcorr.cli import common
     from evlatcorr.sample_warnings import FrameWarning
 
-    show = common.warning_printer("correct")
+    show = common.WarningPrinter("correct")
     for frame in (2, 3, 4, 7):
         show(FrameWarning("empty", frame, f"frame {frame}: no events in [{frame}0, {frame}9) us", "no events"),
              FrameWarning, "/somewhere/reader.py", 10)

@@ -17,7 +17,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 
-from evlatcorr.cli.common import EXIT_BAD_INPUT, EXIT_OK, open_input, warning_printer
+from evlatcorr.cli.common import EXIT_BAD_INPUT, EXIT_OK, WarningPrinter, open_input
 from evlatcorr.cli.correct import cmd_correct
 from evlatcorr.cli.parser import build_parser
 from evlatcorr.cli.restoration import cmd_deblur, cmd_interpolate
@@ -74,7 +74,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():  # restores the filters and warnings.showwarning on the way out
             warnings.simplefilter("always")  # every warning reaches the printer, which keeps each message once
-            printer = warning_printer(args.command)
+            printer = WarningPrinter(args.command)
             warnings.showwarning = printer
             try:
                 return command[args.command](args)

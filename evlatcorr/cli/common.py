@@ -119,28 +119,45 @@ class _ThresholdPassWords:
     PREFIX = "estimating the contrast threshold from the first frames: "
 
     def __init__(self) -> None:
-        self.later: dict[str, tuple[str, list[int]]] = {}
+        self.later = _LaterFrames()
 
     def __call__(self, message: Warning) -> str | None:
         if isinstance(message, SampleWarning):
             return None
         if isinstance(message, FrameWarning):
-            if message.kind in self.later:
-                self.later[message.kind][1].append(message.frame)
-                return None
-            self.later[message.kind] = (self.PREFIX + message.summary, [])
-            return self.PREFIX + message.text
+            if self.later.first(message.kind, self.PREFIX + message.summary):
+                return self.PREFIX + message.text
+            self.later.add(message.kind, [message.frame])
+            return None
         return self.PREFIX + str(message) if re.search(r"\bframe \d+:", str(message)) else str(message)
 
     def summarise(self) -> None:
-        for summary, frames in self.later.values():
-            if frames:
-                warnings.warn(_more_frames(frames, summary), stacklevel=3)
+        for line in self.later.lines():
+            warnings.warn(line, stacklevel=3)
 
 
-def _more_frames(frames: list[int], summary: str) -> str:
-    """``"3 more frames (4-6): SUMMARY"``."""
-    return f"{len(frames)} more frame{'s' if len(frames) > 1 else ''} ({_number_ranges(frames)}): {summary}"
+class _LaterFrames:
+    """The frames each kind of warning is said of after its first: said in full once, then in one line a kind."""
+
+    def __init__(self) -> None:
+        self.kinds: dict[str, tuple[str, list[int]]] = {}
+
+    def first(self, kind: str, summary: str) -> bool:
+        """Whether ``kind`` comes for the first time (then ``summary`` is what its later frames are said to share)."""
+        if kind in self.kinds:
+            return False
+        self.kinds[kind] = (summary, [])
+        return True
+
+    def add(self, kind: str, frames: list[int]) -> None:
+        self.kinds[kind][1].extend(frames)
+
+    def lines(self) -> list[str]:
+        """``"3 more frames (4-6): SUMMARY"`` for each kind said of later frames; then forgets them."""
+        lines = [f"{len(frames)} more frame{'s' if len(frames) > 1 else ''} ({_number_ranges(frames)}): {summary}"
+                 for summary, frames in self.kinds.values() if frames]
+        self.kinds.clear()
+        return lines
 
 
 def build_corrector(args: argparse.Namespace, mode: str = "constant", curve: Path | None = None,
@@ -189,7 +206,7 @@ class FrameWarnings:
     the first of each kind in full as it happens, and at the end one line for the other frames it happened to."""
 
     def __init__(self, notes: dict[str, str] | None = None) -> None:
-        self.later: dict[str, tuple[str, list[int]]] = {}
+        self.later = _LaterFrames()
         #: what the command adds to a kind's warning (e.g. that the latency it names is fused afterwards)
         self.notes = notes or {}
 
@@ -201,20 +218,17 @@ class FrameWarnings:
             if not isinstance(message, SampleWarning):
                 return str(message)
             note = self.notes.get(message.kind, "")
-            if message.kind not in self.later:
-                self.later[message.kind] = (message.summary + note, [])
+            if self.later.first(message.kind, _option_names(message.summary + note)):
                 return _option_names(message.naming([f"frame {n}" for n in numbers]) + note)
-            self.later[message.kind][1].extend(numbers[i] for i in message.samples)
+            self.later.add(message.kind, [numbers[i] for i in message.samples])
             return None
 
         return _reworded(reword)
 
     def summarise(self) -> None:
         """One warning per kind for the frames after its first."""
-        for summary, numbers in self.later.values():
-            if numbers:
-                warnings.warn(_more_frames(numbers, _option_names(summary)), stacklevel=2)
-        self.later.clear()
+        for line in self.later.lines():
+            warnings.warn(line, stacklevel=2)
 
 
 def _option_names(text: str) -> str:
@@ -297,22 +311,18 @@ class WarningPrinter:
     def __init__(self, command: str) -> None:
         self.command = command
         self.seen: set[str] = set()
-        self.later: dict[str, tuple[str, list[int]]] = {}
+        self.later = _LaterFrames()
 
     def __call__(self, message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ARG002 (the hook)
-        if isinstance(message, FrameWarning):
-            if message.kind in self.later:
-                self.later[message.kind][1].append(message.frame)
-                return
-            self.later[message.kind] = (message.summary, [])
+        if isinstance(message, FrameWarning) and not self.later.first(message.kind, message.summary):
+            self.later.add(message.kind, [message.frame])
+            return
         self._write(str(message), file)
 
     def summarise(self, file=None) -> None:
         """One line a kind of frame warning for the frames after its first."""
-        for summary, frames in self.later.values():
-            if frames:
-                self._write(_more_frames(frames, summary), file)
-        self.later.clear()
+        for line in self.later.lines():
+            self._write(line, file)
 
     def _write(self, text: str, file=None) -> None:
         from tqdm import tqdm
@@ -320,11 +330,6 @@ class WarningPrinter:
         if text not in self.seen:
             self.seen.add(text)
             tqdm.write(f"evlatcorr {self.command}: warning: {text}", file=sys.stderr if file is None else file)
-
-
-def warning_printer(command: str) -> WarningPrinter:
-    """The command line's :class:`WarningPrinter` for ``command``."""
-    return WarningPrinter(command)
 
 
 def frames_per_call(device: torch.device, mode: str) -> int:
