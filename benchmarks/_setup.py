@@ -37,3 +37,38 @@ def add_case_options(parser: argparse.ArgumentParser, default_split: str, splits
     parser.add_argument("--split", choices=splits, default=default_split)
     parser.add_argument("--num", type=int, default=None, help=num_help)
     parser.add_argument("--size", type=int, nargs=2, default=DEFAULT_SIZE, metavar=("H", "W"))
+
+
+def add_exposure_option(parser: argparse.ArgumentParser) -> None:
+    """``--exposure-us``: every case at another exposure (:func:`cases_at_exposure`)."""
+    parser.add_argument("--exposure-us", type=float, default=None, metavar="US",
+                        help="every case at this exposure instead of 20 ms, its latencies and the events' run-on "
+                             "scaled with it, its motion kept (evlatcorr.benchmark.accuracy.at_exposure)")
+
+
+def cases_at_exposure(parser: argparse.ArgumentParser, cases: list, exposure_us: float | None) -> list:
+    """``cases`` at ``--exposure-us`` (as they are without it); a value that is not positive is a usage error."""
+    if exposure_us is None:
+        return cases
+    if not exposure_us > 0:
+        parser.error(f"--exposure-us must be positive, got {exposure_us}")
+    from evlatcorr.benchmark.accuracy import at_exposure
+
+    return [at_exposure(case, exposure_us) for case in cases]
+
+
+def each_simulated(cases: list, evaluate, desc: str) -> tuple[list, str]:
+    """``evaluate(case)`` of each case, with a progress bar; a case the simulator refuses (a ValueError, e.g. a zoom
+    compounding over a long recording) is left out. Returns the results and a line naming the cases left out ("" if
+    none), for the script's table."""
+    from tqdm import tqdm
+
+    results, refused = [], []
+    for case in tqdm(cases, desc=desc, unit="case"):
+        try:
+            results.append(evaluate(case))
+        except ValueError as err:
+            refused.append(f"{case.name} ({err})")
+            tqdm.write(f"{case.name}: not simulated: {err}")
+    note = f"\n{len(refused)} case(s) not simulated, left out: " + "; ".join(refused) + "\n" if refused else ""
+    return results, note

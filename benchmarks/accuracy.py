@@ -40,7 +40,6 @@ import torch  # noqa: E402
 
 from evlatcorr.benchmark.accuracy import (  # noqa: E402
     Case,
-    at_exposure,
     corrector_estimator,
     load_estimator,
     make_cases,
@@ -73,9 +72,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--before-us", type=float, default=0.0, metavar="US",
                    help="each frame also keeps this long of events before its exposure, as a recording's stream does "
                         "(default 0: from the exposure start)")
-    p.add_argument("--exposure-us", type=float, default=None, metavar="US",
-                   help="every case at this exposure instead of 20 ms, its latencies and the events' run-on scaled "
-                        "with it, its motion kept (evlatcorr.benchmark.accuracy.at_exposure)")
+    _setup.add_exposure_option(p)
     p.add_argument("--cases", nargs="+", default=None, metavar="NAME", help="case names or glob patterns")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     p.add_argument("--out", type=Path, default=Path("outputs/accuracy"))
@@ -91,10 +88,7 @@ def main(argv: list[str] | None = None) -> None:
         cases = [c for c in cases if any(fnmatch.fnmatchcase(c.name, pat) for pat in args.cases)]
         if not cases:
             p.error(f"no case of split {args.split} matches {args.cases}")
-    if args.exposure_us is not None:
-        if not args.exposure_us > 0:
-            p.error(f"--exposure-us must be positive, got {args.exposure_us}")
-        cases = [at_exposure(c, args.exposure_us) for c in cases]
+    cases = _setup.cases_at_exposure(p, cases, args.exposure_us)
 
     threshold_of = (lambda case: "auto") if args.auto_threshold else (lambda case: case.threshold)
     options = {} if args.search_range is None else {"search_range": tuple(args.search_range)}

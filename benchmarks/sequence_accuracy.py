@@ -32,9 +32,7 @@ import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from tqdm import tqdm  # noqa: E402
-
-from evlatcorr.benchmark.accuracy import at_exposure, make_cases  # noqa: E402
+from evlatcorr.benchmark.accuracy import make_cases  # noqa: E402
 from evlatcorr.benchmark.sequences import (  # noqa: E402
     DEFAULT_WINDOWS,
     IDEAL,
@@ -86,13 +84,9 @@ def main(argv: list[str] | None = None) -> None:
                         f"windows use {DEFAULT_NO_LATENCY_MASS})")
     p.add_argument("--no-ideal", action="store_true",
                    help="skip the sequences' ideal events (estimated by default: what bright light gives)")
-    p.add_argument("--exposure-us", type=float, default=None, metavar="US",
-                   help="every case at this exposure instead of 20 ms, its latencies and the events' run-on scaled "
-                        "with it (evlatcorr.benchmark.accuracy.at_exposure)")
+    _setup.add_exposure_option(p)
     p.add_argument("--out", type=Path, default=Path("outputs/sequences"))
     args = p.parse_args(argv)
-    if args.exposure_us is not None and not args.exposure_us > 0:
-        p.error(f"--exposure-us must be positive, got {args.exposure_us}")
     if args.frames < 1:
         p.error(f"--frames must be at least 1, got {args.frames}")
     if any(not 0 <= share < 1 for share in args.no_latency_mass):
@@ -102,24 +96,17 @@ def main(argv: list[str] | None = None) -> None:
             (2, 2, share or None) for share in args.no_latency_mass}
     splits = {"tuning": ("dev", "dev_wide")}.get(args.split, (args.split,))
     cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size)) if c.latency_model in args.models]
-    if args.exposure_us is not None:
-        cases = [at_exposure(c, args.exposure_us) for c in cases]
+    cases = _setup.cases_at_exposure(p, cases, args.exposure_us)
     t0 = time.perf_counter()
-    rows, unsimulated = [], []
-    for case in tqdm(cases, desc="sequences", unit="case"):
-        try:
-            rows += evaluate_sequence(case, args.frames, windows, ideal=not args.no_ideal)
-        except ValueError as err:  # a case the simulator refuses (e.g. a zoom compounding over a long sequence)
-            unsimulated.append(f"{case.name} ({err})")
-            tqdm.write(f"{case.name}: not simulated: {err}")
+    per_case, unsimulated = _setup.each_simulated(
+        cases, lambda case: evaluate_sequence(case, args.frames, windows, ideal=not args.no_ideal), "sequences")
+    rows = [row for case_rows in per_case for row in case_rows]
     seconds = time.perf_counter() - t0
     if not rows:
         sys.exit("no frame had events: nothing to report")
     summary = summarize_sequences(rows)
     command = shlex.join(["python", "benchmarks/sequence_accuracy.py", *(sys.argv[1:] if argv is None else argv)])
-    table = to_markdown(summary, command, seconds)
-    if unsimulated:
-        table += f"\n{len(unsimulated)} case(s) not simulated, left out: " + "; ".join(unsimulated) + "\n"
+    table = to_markdown(summary, command, seconds) + unsimulated
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.md").write_text(table)
     (args.out / "results.json").write_text(json.dumps({"command": command, "summary": summary}, indent=1))

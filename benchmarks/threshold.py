@@ -29,8 +29,6 @@ import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from tqdm import tqdm  # noqa: E402
-
 from evlatcorr.benchmark.accuracy import make_cases  # noqa: E402
 from evlatcorr.benchmark.threshold import CLOSE, MATTERS_DB, evaluate_threshold, summarize_thresholds  # noqa: E402
 from evlatcorr.consistency import THRESHOLD_BOUNDS as BOUNDS  # noqa: E402
@@ -113,6 +111,7 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     _setup.add_case_options(p, "test", ("test", "dev", "dev_wide", "tuning"), num_help="first N cases of each split")
     p.add_argument("--frames", type=int, default=6, help="frames per recording (default: 6)")
+    _setup.add_exposure_option(p)
     p.add_argument("--out", type=Path, default=Path("outputs/threshold"))
     args = p.parse_args(argv)
     if args.frames < 2:
@@ -121,9 +120,10 @@ def main(argv: list[str] | None = None) -> None:
         p.error(f"--num must be at least 1, got {args.num}")
     splits = {"tuning": ("dev", "dev_wide")}.get(args.split, (args.split,))
     cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size))]
+    cases = _setup.cases_at_exposure(p, cases, args.exposure_us)
     args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    rows = [evaluate_threshold(case, args.frames) for case in tqdm(cases, desc="recordings", unit="recording")]
+    rows, unsimulated = _setup.each_simulated(cases, lambda case: evaluate_threshold(case, args.frames), "recordings")
     seconds = time.perf_counter() - t0
     matters = [r for r in rows if r["matters"]]
     summaries = {"all": summarize_thresholds(rows), "where θ matters": summarize_thresholds(matters)}
@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> None:
         summaries[f"where θ matters: {label}"] = summarize_thresholds([r for r in matters
                                                                        if r["latency_model"] == model])
     command = shlex.join(["python", "benchmarks/threshold.py", *(sys.argv[1:] if argv is None else argv)])
-    table = to_markdown(rows, summaries, command, seconds)
+    table = to_markdown(rows, summaries, command, seconds) + unsimulated
     (args.out / "results.md").write_text(table)
     (args.out / "results.json").write_text(json.dumps({"command": command, "summary": summaries, "rows": rows},
                                                       indent=1))

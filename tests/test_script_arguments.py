@@ -16,6 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
     ("accuracy.py", ["--split", "test", "--threads", "0"], "--threads must be >= 1, got 0"),
     ("accuracy.py", ["--split", "test", "--exposure-us", "-5"], "--exposure-us must be positive, got -5.0"),
     ("sequence_accuracy.py", ["--exposure-us", "0"], "--exposure-us must be positive, got 0.0"),
+    ("threshold.py", ["--exposure-us", "-1"], "--exposure-us must be positive, got -1.0"),
     ("demo.py", ["--latency-us", "-3"], "latency_us must be in [0, 1000000]"),
     ("real_data.py", ["--threshold", "-1"], "--threshold must be a positive number, got -1.0"),
     ("profile_search.py", ["--device", "tpu"], "--device must be cpu or cuda, got 'tpu'"),
