@@ -98,8 +98,7 @@ def check_image(x: object, name: str, channels: Sequence[int] = (1, 3), unit_ran
         raise ValueError(f"{name} must have C in {tuple(channels)} channels, got {x.shape[1]}")
     check_finite(x, name)
     if unit_range and x.numel() > 0:
-        lo, hi = torch.aminmax(x.detach())  # detached: a check, not part of the graph
-        lo, hi = float(lo), float(hi)
+        lo, hi = torch.stack(torch.aminmax(x.detach())).tolist()  # one read; detached: a check, not the graph
         if lo < 0.0 or hi > 1.0:
             raise ValueError(f"{name} must hold linear intensities in [0, 1], got values in [{lo:.4g}, {hi:.4g}]")
 

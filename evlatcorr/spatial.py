@@ -455,8 +455,9 @@ class SpatialLatencyCorrector(nn.Module):
         if not kept:  # nothing to fit: every map is the fallback
             return PolynomialLatency(self.order).to(frames.device), fell_back
         config = self.config.replace(num_bins=self.train_bins)
-        # the fit trains the polynomial alone: the caller's frames stay out of its graph (their .grad untouched)
-        fitted = _select(frames, kept).replace(blurry=frames.blurry[kept].detach())
+        if frames.blurry.requires_grad:  # the fit trains the polynomial alone: the caller's .grad stays untouched
+            frames = frames.replace(blurry=frames.blurry.detach())
+        fitted = _select(frames, kept)
         with torch.no_grad():
             reference = _search_constant_latency(fitted.blurry, fitted.events, fitted.exposure_start,
                                                  fitted.exposure_end, theta[:len(kept)], config)
