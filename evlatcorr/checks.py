@@ -31,6 +31,8 @@ __all__ = [
     "check_search_range",
     "check_memory",
     "check_has_events",
+    "check_search_size",
+    "MIN_SEARCH_SIZE",
     "NoEventsError",
     "check_threshold",
     "resolve_memory_budget",
@@ -250,6 +252,27 @@ def _format_bytes(num_bytes: float) -> str:
         if num_bytes >= size:
             return f"{num_bytes / size:.1f} {unit}"
     return f"{int(num_bytes)} bytes"
+
+
+#: The smallest frame side (pixels) the latency search takes: its sharpness scores' and ghost cue's filters reach 3
+#: pixels from each one.
+MIN_SEARCH_SIZE = 4
+
+
+def check_search_size(size: Sequence[int], name: str = "frames") -> None:
+    """Raise when frames of ``size`` ``(H, W)`` are too small for the latency search (:data:`MIN_SEARCH_SIZE`).
+
+    Example:
+        >>> check_search_size((4, 346))
+        >>> check_search_size((3, 8))  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: frames of 3x8 pixels are too small for the latency search: it needs at least 4x4 ...
+    """
+    height, width = (int(v) for v in size[-2:])
+    if min(height, width) < MIN_SEARCH_SIZE:
+        raise ValueError(f"{name} of {height}x{width} pixels are too small for the latency search: it needs at least "
+                         f"{MIN_SEARCH_SIZE}x{MIN_SEARCH_SIZE} (its image filters reach 3 pixels); crop less")
 
 
 def check_has_events(frames: Any) -> None:

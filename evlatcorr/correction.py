@@ -8,13 +8,14 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from evlatcorr.checks import check_batch_vector, check_has_events, check_threshold
+from evlatcorr.blank_frames import BLANK_KINDS, blank_pairs
+from evlatcorr.checks import check_batch_vector, check_has_events, check_search_size, check_threshold
 from evlatcorr.config import DEFAULT_GHOST_CONFIDENCE, DEFAULT_SCORE, SearchConfig
 from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
 from evlatcorr.sample_warnings import SampleWarning
-from evlatcorr.search import ConstantSearchResult, _search_constant_latency, clipped_pairs, fallback_warning
+from evlatcorr.search import ConstantSearchResult, _search_constant_latency, fallback_warning
 from evlatcorr.search_candidates import HOT_PIXEL_LOG_RANGE
 from evlatcorr.temporal import LatencyHistory
 
@@ -82,6 +83,7 @@ def correct_constant_latency(
     b = frames.batch_size
     theta_vector = None if isinstance(threshold, str) else check_threshold(threshold, b)
     previous = None if previous_latency is None else check_batch_vector(previous_latency, b, "previous_latency")
+    check_search_size(frames.sensor_size)
     check_has_events(frames)
     _warn_if_short(frames, config)
     theta: float | Tensor = threshold
@@ -124,12 +126,15 @@ def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> N
     """What the search did to some samples that their user must hear of: a fallback latency, hot pixels left out, an
     estimate held at the edge of the user's range (:class:`~evlatcorr.sample_warnings.SampleWarning`: the command
     line names the frames)."""
-    clipped = [i for i, source in enumerate(result.source or []) if source == "clipped"]
-    if clipped:
-        warnings.warn(fallback_warning("clipped", clipped, "{its} latency is the fallback "
-                                       f"{_microseconds(result.latency, clipped)}"), stacklevel=3)
+    blank = []
+    for kind in BLANK_KINDS:
+        frames = [i for i, source in enumerate(result.source or []) if source == kind]
+        if frames:
+            warnings.warn(fallback_warning(kind, frames, "{its} latency is the fallback "
+                                           f"{_microseconds(result.latency, frames)}"), stacklevel=3)
+        blank += frames
     if result.fallback is not None and bool(result.fallback.any()):
-        which = [i for i in torch.nonzero(result.fallback).flatten().tolist() if i not in clipped]
+        which = [i for i in torch.nonzero(result.fallback).flatten().tolist() if i not in blank]
     else:
         which = []
     if which:
@@ -193,9 +198,9 @@ def _auto_threshold(frames: EventFrames, config: SearchConfig, previous: Tensor 
         # pairs: one θ that makes both frames' reconstructions agree between the exposures
         from evlatcorr.consistency import estimate_recording_threshold
 
-        # a black or saturated frame agrees with its neighbour at no θ: its pair is left out (all left out: the
-        # frames are not searched anyway)
-        kept = torch.nonzero(~clipped_pairs(frames.blurry, frames.blurry_next)).flatten().tolist()
+        # a blank frame (black, saturated or flat) agrees with its neighbour at no θ: its pair is left out (all
+        # left out: the frames are not searched anyway)
+        kept = torch.nonzero(~blank_pairs(frames.blurry, frames.blurry_next)).flatten().tolist()
         if not kept:
             return 0.2
         if len(kept) < frames.batch_size:

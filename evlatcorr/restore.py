@@ -180,17 +180,17 @@ def recording_threshold(rec, search_range: tuple[float, float] | None = None, nu
         best with hardly any deblurring (few events beside noise, or a latency the search missed), and EDI with it
         leaves the frames about as blurred as they are.
     """
+    from evlatcorr.blank_frames import blank_pairs
     from evlatcorr.consistency import THRESHOLD_BOUNDS, estimate_recording_threshold
     from evlatcorr.correction import EventLatencyCorrector
-    from evlatcorr.search import clipped_pairs
 
     saved = rec.after_us
     rec.after_us = pair_reach_us(rec, None if search_range is None else search_range[1])
     try:
         candidates = []
         for _, pair in itertools.islice(pair_frames(itertools.islice(rec, scan_frames + 1)), scan_frames):
-            # a black or saturated frame agrees with its neighbour at no θ (the search skips it too)
-            if pair is not None and has_events(pair) and not bool(clipped_pairs(pair.blurry, pair.blurry_next)[0]):
+            # a blank frame (black, saturated or flat) agrees with its neighbour at no θ (the search skips it too)
+            if pair is not None and has_events(pair) and not bool(blank_pairs(pair.blurry, pair.blurry_next)[0]):
                 inside = pair.events.window(pair.exposure_start, pair.exposure_end)
                 candidates.append((len(inside), pair))
     finally:

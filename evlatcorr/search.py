@@ -29,7 +29,15 @@ import kornia
 import torch
 from torch import Tensor
 
-from evlatcorr.checks import check_batch_vector, check_exposure, check_image, check_threshold, resolve_memory_budget
+from evlatcorr.blank_frames import BLANK_KINDS, MIN_STRUCTURE_RATIO, MIN_UNCLIPPED_SHARE, blank_codes
+from evlatcorr.checks import (
+    check_batch_vector,
+    check_exposure,
+    check_image,
+    check_search_size,
+    check_threshold,
+    resolve_memory_budget,
+)
 from evlatcorr.config import DEFAULT_SCORE, SCORES, SPARSITY_SCORES, SearchConfig
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.events import Events
@@ -55,13 +63,9 @@ from evlatcorr.sharpness import sharpness_score, sharpness_scores
 from evlatcorr.temporal import LatencyHistory
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score",
-           "sharpness_scores", "candidate_curves", "SCORES", "DEFAULT_SCORE", "SearchConfig", "MIN_UNCLIPPED_SHARE",
-           "unclipped_share", "clipped_pairs", "fallback_warning"]
+           "sharpness_scores", "candidate_curves", "SCORES", "DEFAULT_SCORE", "SearchConfig", "fallback_warning"]
 
 _SPARSITY = SPARSITY_SCORES
-#: a frame with fewer of its pixels inside the sensor's range (not black, not saturated) is not searched: its
-#: latency is the fallback (the suite's darkest frames keep 12 % or more of theirs; a lens cap or a flash none)
-MIN_UNCLIPPED_SHARE = 0.005
 
 
 @dataclass
@@ -82,8 +86,9 @@ class ConstantSearchResult:
             where fewer than three candidates could be scored.
         source: per sample, what set ``latency``: ``"reader"`` (``score="learned"``, the default: the curve
             reader's estimate), ``"sharpness"`` (the other scores: their minimum), ``"ghost"`` (the score curve
-            was nearly flat and :mod:`evlatcorr.ghost`'s moment crossed zero once), ``"fallback"``, or ``"clipped"``
-            (black or saturated nearly everywhere, :data:`MIN_UNCLIPPED_SHARE`: the fallback latency).
+            was nearly flat and :mod:`evlatcorr.ghost`'s moment crossed zero once), ``"fallback"``, or, with the
+            fallback latency, ``"clipped"`` (black or saturated nearly everywhere) or ``"flat"`` (no structure
+            above the frame's noise; :mod:`evlatcorr.blank_frames`).
         ignored_pixels: per sample, the hot pixels the search read as having no events (their events span more
             than :data:`~evlatcorr.search_candidates.HOT_PIXEL_LOG_RANGE` of log intensity; continuous method only).
         latency_spread: :math:`(B,)` µs, ``score="learned"``: the standard deviation of the curve reader's
@@ -218,6 +223,7 @@ def search_constant_latency(
                               refine=refine, score=score, epsilon=epsilon, window=window, sigma_us=sigma_us,
                               tiles=tiles)
     check_image(blurry, "blurry")
+    check_search_size(blurry.shape, "blurry frames")
     b = blurry.shape[0]
     if events.batch_size != b:
         raise ValueError(f"events have batch_size {events.batch_size} but blurry has {b} frames")
@@ -239,29 +245,11 @@ def search_constant_latency(
     return _search_constant_latency(blurry, events, start, end, theta, config, prev, integral, method, budget)
 
 
-def unclipped_share(images: Tensor) -> Tensor:
-    """The share of each image's pixels inside the sensor's range :math:`(B,)`, of images :math:`(B, C, H, W)` in
-    [0, 1] (grey when they have three channels): a pixel black or saturated (within half an 8-bit grey level of 0 or
-    1) tells EDI nothing of the scene's mean over the exposure. Below :data:`MIN_UNCLIPPED_SHARE` a frame is not
-    searched.
-
-    Example:
-        >>> frame = torch.zeros(1, 1, 10, 10)
-        >>> frame[..., 0, :5] = 0.5
-        >>> unclipped_share(frame).tolist()
-        [0.05000000074505806]
-    """
-    if not isinstance(images, Tensor) or images.ndim != 4:
-        raise ValueError(f"images must be a (B, C, H, W) tensor, got {getattr(images, 'shape', type(images))}")
-    grey = kornia.color.rgb_to_grayscale(images) if images.shape[1] == 3 else images
-    margin = 1 / 512
-    return ((grey > margin) & (grey < 1 - margin)).flatten(1).float().mean(1)
-
-
 def fallback_warning(kind: str, samples: list[int], outcome: str) -> SampleWarning:
     """The warning of samples given a fallback latency, in the constant and the spatial mode alike: ``kind``
-    ``"clipped"`` (black or saturated nearly everywhere) or ``"fallback"`` (no clear sharpness minimum);
-    ``outcome`` says what their latency is, with ``{its}`` for "its" / "their".
+    ``"clipped"`` (black or saturated nearly everywhere), ``"flat"`` (no structure above the frame's noise; both
+    :mod:`evlatcorr.blank_frames`) or ``"fallback"`` (no clear sharpness minimum); ``outcome`` says what their
+    latency is, with ``{its}`` for "its" / "their".
 
     Raises:
         ValueError: for another ``kind``.
@@ -276,26 +264,18 @@ def fallback_warning(kind: str, samples: list[int], outcome: str) -> SampleWarni
         why = (f"black or saturated in nearly every pixel (fewer than {MIN_UNCLIPPED_SHARE:.1%} inside the sensor's "
                "range): nothing for EDI to sharpen")
         summary = "black or saturated in nearly every pixel: the fallback latency"
+    elif kind == "flat":
+        why = (f"flat: no structure above its pixel noise (its smoothed contrast under {MIN_STRUCTURE_RATIO:g} times "
+               "what the noise alone leaves; a blank or grey frame, or one paired with the wrong events): nothing "
+               "for EDI to sharpen")
+        summary = "flat, no structure above its noise: the fallback latency"
     elif kind == "fallback":
         why = ("the sharpness score has no clear minimum inside the latency range the events cover (too few events "
                "or no texture)")
         summary = "no clear sharpness minimum inside the latency range the events cover: the fallback latency"
     else:
-        raise ValueError(f"kind must be 'clipped' or 'fallback', got {kind!r}")
+        raise ValueError(f"kind must be 'clipped', 'flat' or 'fallback', got {kind!r}")
     return SampleWarning(kind, samples, f"{{which}}: {why}; {outcome}", summary)
-
-
-def clipped_pairs(blurry: Tensor, blurry_next: Tensor) -> Tensor:
-    """Which frame pairs :math:`(B,)` hold a frame black or saturated nearly everywhere (below
-    :data:`MIN_UNCLIPPED_SHARE`): such a frame agrees with its neighbour at no contrast threshold, so the
-    two-frame estimates of θ leave its pair out.
-
-    Example:
-        >>> clipped_pairs(torch.full((2, 1, 4, 4), 0.5), torch.stack([torch.zeros(1, 4, 4), torch.rand(1, 4, 4)]))
-        tensor([ True, False])
-    """
-    shares = unclipped_share(torch.cat([blurry, blurry_next]))
-    return (shares < MIN_UNCLIPPED_SHARE).view(2, -1).any(0)
 
 
 def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Tensor, exposure_end: Tensor,
@@ -323,11 +303,11 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
     # a candidate's window [start + l, end + l] must not run past the sample's last event: past it
     # the EDI sees "no change" where the events were merely cut off, which looks sharp to any score
     reach = events.last_times() - end
-    unclipped = unclipped_share(grey).to(start)
+    blank = blank_codes(grey).to(start)
     # every sample's bounds in one copy to the host (one wait for a GPU, not six per sample)
-    spans = torch.stack([start, end, lows.to(start), highs.to(start), reach, unclipped]).T.cpu().tolist()
+    spans = torch.stack([start, end, lows.to(start), highs.to(start), reach, blank]).T.cpu().tolist()
     thetas = theta.cpu().tolist()
-    windows = [_Window(*span[:5], clipped=span[5] < MIN_UNCLIPPED_SHARE) for span in spans]
+    windows = [_Window(*span[:5], blank=BLANK_KINDS[int(span[5]) - 1] if span[5] else None) for span in spans]
     if config.score == "learned" and rng is not None:  # the reader reads the range it was trained on
         windows = _reader_windows(windows)
     from evlatcorr import search_batched  # it builds on this module
@@ -456,9 +436,9 @@ def _search_one(grey: Tensor, events: Events | None, span: _Window, theta: float
     if reader.top < reader.floor:  # no candidate window holds events: nothing to score
         read_latent = None  # and no latent image to read
         return result(fallback, to_us(coarse).cpu(), nan, to_us(coarse).cpu(), nan, 0.0, True, source="fallback")
-    if span.clipped:  # every candidate's latent is as flat (black) or as made up (saturated) as any other
+    if span.blank:  # every candidate's latent is as made up from the events as any other
         return result(fallback, to_us(coarse).cpu(), nan, to_us(coarse).cpu(), nan, 0.0, True,
-                      reader.final_ratio(fallback), "clipped")
+                      reader.final_ratio(fallback), span.blank)
 
     # the learned reader reads the curves as it was trained (no temporal prior) and takes the prior afterwards
     coarse_prev = None if config.score == "learned" else prev

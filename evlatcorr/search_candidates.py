@@ -50,8 +50,8 @@ class _Window:
     """One sample's exposure ``[start, end]``, the latency range ``[low, high]`` its candidates span and ``reach``
     = last event − end, µs; ``answer``: the range the estimate must lie in where it is narrower than the
     candidates' (the learned reader reads the range it was trained on,
-    :func:`evlatcorr.search_learned._reader_windows`), else None; ``clipped``: the frame holds almost no pixel
-    inside the sensor's range (:data:`evlatcorr.search.MIN_UNCLIPPED_SHARE`)."""
+    :func:`evlatcorr.search_learned._reader_windows`), else None; ``blank``: the frame's kind of blank, which is
+    not searched (:mod:`evlatcorr.blank_frames`: ``"clipped"``, ``"flat"``), else None."""
 
     start: float
     end: float
@@ -59,7 +59,7 @@ class _Window:
     high: float
     reach: float
     answer: tuple[float, float] | None = None
-    clipped: bool = False  # the frame is black or saturated nearly everywhere: nothing for EDI to sharpen
+    blank: str | None = None  # nothing for EDI to sharpen: black or saturated nearly everywhere, or flat
 
     @property
     def answer_range(self) -> tuple[float, float]:

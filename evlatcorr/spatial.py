@@ -39,14 +39,15 @@ import kornia
 import torch
 from torch import Tensor, nn
 
-from evlatcorr.checks import check_has_events, check_threshold, resolve_memory_budget
+from evlatcorr.blank_frames import BLANK_KINDS, blank_kinds
+from evlatcorr.checks import check_has_events, check_search_size, check_threshold, resolve_memory_budget
 from evlatcorr.config import SearchConfig
 from evlatcorr.edi import _check_grid, _edi_deblur
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
 from evlatcorr.event_grid import EventGrid, _event_grid, _event_grid_bytes
 from evlatcorr.frames import EventFrames
 from evlatcorr.latency_table import LatencyTable
-from evlatcorr.search import MIN_UNCLIPPED_SHARE, _search_constant_latency, fallback_warning, unclipped_share
+from evlatcorr.search import _search_constant_latency, fallback_warning
 
 __all__ = ["PolynomialLatency", "LossWeights", "spatial_objective", "fit_spatial_latency",
            "SpatialLatencyCorrector", "save_curve", "load_curve"]
@@ -259,6 +260,7 @@ def fit_spatial_latency(
     config = SearchConfig(num_bins=num_bins, search_range=search_range, num_candidates=num_candidates,
                           epsilon=epsilon, window=window, sigma_us=sigma_us)
     theta = check_threshold(threshold, frames.batch_size)
+    check_search_size(frames.sensor_size)
     check_has_events(frames)
     return _fit_spatial_latency(frames, model, steps, lr, theta, config, weights, progress, start_from_constant,
                                 objective_edi)
@@ -371,11 +373,12 @@ class SpatialLatencyCorrector(nn.Module):
     With ``curve``, the trained polynomial gives the map directly; without, a polynomial is fitted
     on the batch it is given (``steps`` Adam steps of the self-supervised objective). Like the
     constant mode, a batch with a frame that has no events in ``[exposure_start, exposure_end +
-    exposure time)`` is refused with a :class:`ValueError` naming the sample. A frame black or saturated nearly
-    everywhere, or one whose constant search finds no latency (its ``l_const`` would anchor the fit), takes no part
-    in the fit and gets the search range's low end, with a warning. ``meta["latency_source"]`` says per frame what
-    set its map (``"curve"``, ``"fit"``, ``"clipped"`` or ``"fallback"``), ``meta["latency_fallback"]`` :math:`(B,)`
-    which frames got the fallback.
+    exposure time)`` is refused with a :class:`ValueError` naming the sample. A blank frame (black or saturated
+    nearly everywhere, or flat: :mod:`evlatcorr.blank_frames`), or one whose constant search finds no latency (its
+    ``l_const`` would anchor the fit), takes no part in the fit and gets the search range's low end, with a warning;
+    a trained ``curve`` reads a flat frame's intensities as any other's. ``meta["latency_source"]`` says per frame
+    what set its map (``"curve"``, ``"fit"``, ``"clipped"``, ``"flat"`` or ``"fallback"``),
+    ``meta["latency_fallback"]`` :math:`(B,)` which frames got the fallback.
 
     Args:
         curve: path of a saved curve or Lightning checkpoint, or None.
@@ -419,16 +422,18 @@ class SpatialLatencyCorrector(nn.Module):
         return f"curve={'trained' if self.model is not None else 'fit per batch'}, steps={self.steps}"
 
     def forward(self, frames: EventFrames) -> EventFrames:
+        check_search_size(frames.sensor_size)
         check_has_events(frames)  # as the constant mode: no latency without events
         # the frames were checked when made, the settings in __init__: the work below checks nothing again
         theta = torch.full((frames.batch_size,), self.threshold, dtype=torch.float64)
-        clipped = _clipped_frames(frames)
         fell_back = [False] * frames.batch_size
-        if self.model is not None:
+        if self.model is not None:  # the curve reads intensities: only a black or saturated frame has none to read
+            blank = [kind if kind == "clipped" else None for kind in _blank_frames(frames, ("clipped",))]
             model = self.model.to(frames.device)
         else:
-            model, fell_back = self._fit(frames, theta, clipped)
-        skipped = [c or f for c, f in zip(clipped, fell_back)]
+            blank = _blank_frames(frames)
+            model, fell_back = self._fit(frames, theta, blank)
+        skipped = [c is not None or f for c, f in zip(blank, fell_back)]
         with torch.no_grad():  # the map inside the search range, as a constant estimate is
             low, high = (bound.to(frames.blurry).view(-1, 1, 1, 1)
                          for bound in _latency_bounds(frames, self.config.search_range))
@@ -442,16 +447,16 @@ class SpatialLatencyCorrector(nn.Module):
         meta = dict(frames.meta)
         meta["latency_curve"] = model.coefficients.detach().cpu()
         meta["latency_fallback"] = torch.tensor(skipped, dtype=torch.bool, device=frames.device)
-        meta["latency_source"] = ["clipped" if c else "fallback" if f else "fit" if self.model is None else "curve"
-                                  for c, f in zip(clipped, fell_back)]
+        meta["latency_source"] = [c or ("fallback" if f else "fit" if self.model is None else "curve")
+                                  for c, f in zip(blank, fell_back)]
         return frames.with_outputs(latency=latency.float().contiguous(), corrected=corrected, latent=latent, meta=meta)
 
-    def _fit(self, frames: EventFrames, theta: Tensor, clipped: list[bool]) -> tuple[PolynomialLatency, list[bool]]:
-        """The polynomial fitted on the frames that are not ``clipped`` and whose constant search finds a latency,
+    def _fit(self, frames: EventFrames, theta: Tensor, blank: list[str | None]) -> tuple[PolynomialLatency, list[bool]]:
+        """The polynomial fitted on the frames that are not ``blank`` and whose constant search finds a latency,
         and which frames it did not (the fit anchors each frame's map at that latency, so a frame with none would
         be pulled to the fallback's no shift: it is left out, and warned of, as in constant mode)."""
         fell_back = [False] * frames.batch_size
-        kept = [i for i, skip in enumerate(clipped) if not skip]
+        kept = [i for i, kind in enumerate(blank) if kind is None]
         if not kept:  # nothing to fit: every map is the fallback
             return PolynomialLatency(self.order).to(frames.device), fell_back
         config = self.config.replace(num_bins=self.train_bins)
@@ -496,14 +501,15 @@ def _select(frames: EventFrames, which: list[int]) -> EventFrames:
 _LEFT_OUT = "left out of the fit, {its} latency is the low end of the search range"
 
 
-def _clipped_frames(frames: EventFrames) -> list[bool]:
-    """Which frames are black or saturated nearly everywhere (:data:`evlatcorr.search.MIN_UNCLIPPED_SHARE`): they
-    take no part in the fit and keep the fallback latency, with a warning, as the constant search does."""
-    clipped = (unclipped_share(frames.blurry) < MIN_UNCLIPPED_SHARE).tolist()
-    if any(clipped):
-        which = [i for i, skip in enumerate(clipped) if skip]
-        warnings.warn(fallback_warning("clipped", which, _LEFT_OUT), stacklevel=3)
-    return clipped
+def _blank_frames(frames: EventFrames, kinds: tuple[str, ...] = BLANK_KINDS) -> list[str | None]:
+    """Each frame's kind of blank among ``kinds`` (:func:`evlatcorr.blank_frames.blank_kinds`), else None: such
+    frames take no part in the fit and keep the fallback latency, with a warning, as the constant search does."""
+    blank = [kind if kind in kinds else None for kind in blank_kinds(frames.blurry)]
+    for kind in kinds:
+        which = [i for i, k in enumerate(blank) if k == kind]
+        if which:
+            warnings.warn(fallback_warning(kind, which, _LEFT_OUT), stacklevel=3)
+    return blank
 
 
 def _clone_frames(frames: EventFrames) -> EventFrames:

@@ -17,6 +17,14 @@ def device(request: pytest.FixtureRequest) -> torch.device:
     return torch.device(request.param)
 
 
+def textured_frames(*shape: int, seed: int = 0) -> torch.Tensor:
+    """Seeded frames ``(B, C, H, W)`` in [0.1, 0.9]: a diagonal ramp under white noise. White noise alone is flat
+    to the latency search (:mod:`evlatcorr.blank_frames`), which does not search such frames."""
+    *_, height, width = shape
+    ramp = (torch.arange(height)[:, None] + torch.arange(width)[None, :]).float() / max(1, height + width - 2)
+    return 0.1 + 0.3 * torch.rand(*shape, generator=torch.Generator().manual_seed(seed)) + 0.5 * ramp
+
+
 def random_events(num: int, sensor_size: tuple[int, int], t_range: tuple[float, float], batch_size: int = 1,
                   seed: int = 0) -> Events:
     """Uniformly random events, sorted, for tests."""

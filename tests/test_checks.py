@@ -19,6 +19,7 @@ from evlatcorr.checks import (
     check_int,
     check_memory,
     check_search_range,
+    check_search_size,
     check_shape,
     check_threshold,
     resolve_memory_budget,
@@ -173,6 +174,15 @@ class TestMemoryBudget:
         check_memory(100, "x", "y")
         with pytest.raises(ValueError, match="over the memory budget of 100 bytes"):
             check_memory(101, "x", "y")
+
+
+@pytest.mark.parametrize("size, ok", [((4, 4), True), ((2, 3, 4, 5), True), ((3, 100), False), ((100, 0), False)])
+def test_check_search_size(size, ok):
+    if ok:
+        check_search_size(size)  # (H, W) or a tensor's whole shape
+    else:
+        with pytest.raises(ValueError, match=rf"blurry of {size[-2]}x{size[-1]} pixels .* at least 4x4"):
+            check_search_size(size, "blurry")
 
 
 def test_check_has_events_names_the_empty_sample_and_its_window():

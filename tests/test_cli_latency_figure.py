@@ -53,6 +53,12 @@ def test_fused_rows_show_each_frames_own_estimate_and_marked_sources():
     assert bottom.get_yscale() == "symlog"  # a frame without events sits at 0
 
 
+def test_a_flat_frame_is_marked():
+    rows = _rows(source=["reader", "flat", "reader", "reader", "reader", "reader"])
+    top, _ = latency_figure(rows).axes
+    assert list(_line(top, "flat frame (no structure above noise): 1").get_xdata()) == pytest.approx([0.025])
+
+
 def test_a_maps_range_is_a_band_and_rows_without_a_latency_are_left_out():
     rows = _rows(latency_min_us=["2500"] * 6, latency_max_us=["4500"] * 6)
     rows[0]["latency_us"] = ""  # e.g. deblur's last frame of an interpolation ("no next frame")

@@ -74,6 +74,20 @@ class TestCorrectorModule:
         with pytest.raises(ValueError, match="no events"):
             EventLatencyCorrector(num_bins=20)(frames_with(ev))
 
+    @pytest.mark.parametrize("mode", ["constant", "spatial"])
+    @pytest.mark.parametrize("size", [(1, 1), (3, 8), (8, 2)])
+    def test_frames_too_small_to_search_raise(self, mode, size):
+        ev = random_events(500, size, (0.0, 200.0))
+        with pytest.raises(ValueError, match=f"{size[0]}x{size[1]} pixels are too small .* at least 4x4"):
+            EventLatencyCorrector(mode=mode, num_bins=20, num_candidates=5)(frames_with(ev, size=size))
+
+    def test_smallest_frames_searched(self):
+        ev = random_events(500, (4, 4), (0.0, 200.0))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # random events: no clear minimum
+            out = EventLatencyCorrector(num_bins=20, num_candidates=5)(frames_with(ev, size=(4, 4)))
+        assert out.latency.shape == (1, 1, 4, 4) and bool(torch.isfinite(out.latency).all())
+
     def test_latency_lies_in_a_range_off_the_candidate_grid(self):
         # 5 us candidates (100 us / 20 bins): the range (31, 47) starts between two of them
         ev = random_events(3000, (6, 8), (0.0, 200.0), batch_size=2, seed=3)
@@ -341,8 +355,8 @@ def test_a_black_or_saturated_frame_is_not_searched_and_is_named(monkeypatch):
     # a lens cap, or a flash: EDI's latents are as flat (black) or as made up from the events (saturated) at every
     # candidate; the reader used to pick any latency there (16.6 ms on a black 32x40 frame of 3 ms latency, no warning)
     import evlatcorr.search_batched
+    from evlatcorr.blank_frames import MIN_UNCLIPPED_SHARE
     from evlatcorr.sample_warnings import SampleWarning
-    from evlatcorr.search import MIN_UNCLIPPED_SHARE
 
     frames = simulate("camera", num_frames=4, height=32, width=40, latency_us=3000.0, seed=0).frames("delayed")
     lit = frames.blurry[2:3].clone().fill_(0.0)
@@ -374,6 +388,48 @@ def test_a_black_or_saturated_frame_is_not_searched_and_is_named(monkeypatch):
     assert float(outs[1].latency.mean()) == pytest.approx(float(outs[0].latency.mean()), abs=1e-3)
 
 
+def test_a_flat_frame_is_not_searched_and_is_named(monkeypatch):
+    # a frame with no structure above its noise beside a scene's events (a grey frame, a blank wall under a
+    # flickering lamp, the wrong events): the reader answered the top of the range (19.8 ms for a true 3 ms)
+    import evlatcorr.search_batched
+    from evlatcorr.sample_warnings import SampleWarning
+
+    frames = simulate("camera", num_frames=3, height=32, width=40, latency_us=3000.0, seed=0).frames("delayed")
+    g = torch.Generator().manual_seed(0)
+    noisy_grey = (0.5 + 0.01 * torch.randn(frames.blurry[:1].shape, generator=g)).clamp(0, 1)
+    blurry = torch.cat([frames.blurry[:1], noisy_grey, torch.full_like(noisy_grey, 0.3)])
+    for together in (False, True):  # frame by frame, and the frames sharing one pass as a GPU runs them
+        monkeypatch.setattr(evlatcorr.search_batched, "ON_CPU", together)
+        with pytest.warns(SampleWarning, match=r"samples \[1, 2\]: flat: no structure above its pixel noise"):
+            out = EventLatencyCorrector(threshold=0.2)(frames.replace(blurry=blurry))
+        assert out.meta["latency_source"] == ["reader", "flat", "flat"]
+        latency = out.latency.flatten(1).mean(1)
+        assert latency[1:].tolist() == [0.0, 0.0] and bool(out.meta["latency_fallback"][1:].all())
+        assert 2000.0 < float(latency[0]) < 4000.0  # the frame with a scene is searched as before
+    # a stream keeps the latency before it
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    stream = StreamingLatencyCorrector(threshold=0.2)
+    parts = frames.split()
+    with pytest.warns(SampleWarning, match="flat: no structure"):
+        outs = [stream(parts[0]), stream(parts[1].replace(blurry=noisy_grey))]
+    assert outs[1].meta["latency_source"] == ["flat"]
+    assert float(outs[1].latency.mean()) == pytest.approx(float(outs[0].latency.mean()), abs=1e-3)
+
+
+def test_auto_threshold_on_pairs_leaves_out_a_pair_with_a_flat_frame():
+    seq = simulate("camera", num_frames=4, height=48, width=64, threshold=0.5, latency_us=2000.0, seed=0)
+    pairs = seq.pairs("delayed", after_us=25_000.0)  # 3 pairs
+    flat, flat_next = pairs.blurry.clone(), pairs.blurry_next.clone()
+    flat[1], flat_next[0] = 0.4, 0.4  # frame 1: the second of pair 0 and the first of pair 1
+    corrector = EventLatencyCorrector(threshold="auto")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        theta = corrector(pairs.replace(blurry=flat, blurry_next=flat_next)).meta["threshold"]
+        alone = corrector(pairs.split()[2]).meta["threshold"]  # the one pair without it
+    assert float(theta) == pytest.approx(float(alone), rel=1e-6)
+
+
 def test_auto_threshold_on_pairs_leaves_out_a_pair_with_a_black_frame():
     import warnings
 
@@ -390,16 +446,3 @@ def test_auto_threshold_on_pairs_leaves_out_a_pair_with_a_black_frame():
         alone = corrector(pairs.split()[2]).meta["threshold"]  # the one pair without it
     assert float(theta) == pytest.approx(float(alone), rel=1e-6)
     assert 0.4 < float(theta) < 0.6
-
-
-def test_unclipped_share_counts_the_pixels_inside_the_range_and_refuses_other_shapes():
-    from evlatcorr.search import clipped_pairs, unclipped_share
-
-    frame = torch.zeros(2, 3, 10, 10)
-    frame[0, :, :2] = 0.5  # 20 of 100 pixels of grey inside the range
-    frame[1] = 1.0  # saturated
-    torch.testing.assert_close(unclipped_share(frame), torch.tensor([0.2, 0.0]))
-    assert clipped_pairs(frame[:1], frame[1:]).tolist() == [True]
-    assert clipped_pairs(frame[:1], frame[:1]).tolist() == [False]
-    with pytest.raises(ValueError, match=r"images must be a \(B, C, H, W\) tensor"):
-        unclipped_share(torch.zeros(10, 10))

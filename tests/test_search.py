@@ -14,14 +14,14 @@ import evlatcorr.sharpness
 from evlatcorr.continuous import ContinuousIntegral
 from evlatcorr.edi import edi_deblur
 from evlatcorr.search import search_constant_latency, sharpness_score
-from tests.conftest import random_events
+from tests.conftest import random_events, textured_frames
 
 START, END = torch.tensor([0.0]), torch.tensor([100.0])
 
 
 def grey_frame(seed: int, size: tuple[int, int] = (8, 9)) -> torch.Tensor:
-    """A seeded random grey frame in [0.1, 0.9] (unseeded ones made these tests depend on the process)."""
-    return torch.rand(1, 1, *size, generator=torch.Generator().manual_seed(seed)) * 0.8 + 0.1
+    """A seeded grey frame in [0.1, 0.9] with structure (unseeded ones made these tests depend on the process)."""
+    return textured_frames(1, 1, *size, seed=seed)
 
 
 @pytest.mark.parametrize("score", ["etf", "sparsity"])
@@ -56,7 +56,7 @@ def test_refined_latency_is_argmin_neighbourhood():
 
 def test_search_range_and_batch():
     ev = random_events(4000, (6, 6), (0.0, 400.0), batch_size=2, seed=9)
-    res = search_constant_latency(torch.rand(2, 3, 6, 6), ev, torch.zeros(2), torch.full((2,), 100.0),
+    res = search_constant_latency(textured_frames(2, 3, 6, 6), ev, torch.zeros(2), torch.full((2,), 100.0),
                                   num_bins=20, search_range=(-50.0, 150.0), num_candidates=5)
     assert res.latency.shape == (2,)
     assert res.candidates[0, 0].item() == pytest.approx(-50.0)
@@ -81,12 +81,12 @@ def test_search_range_and_batch():
 def test_exceptions(kwargs, match):
     ev = random_events(100, (4, 4), (0.0, 200.0))
     with pytest.raises(ValueError, match=match):
-        search_constant_latency(torch.rand(1, 1, 4, 4), ev, START, END, **kwargs)
+        search_constant_latency(textured_frames(1, 1, 4, 4), ev, START, END, **kwargs)
 
 
 def test_device(device):
     ev = random_events(500, (4, 4), (0.0, 200.0)).to(device)
-    res = search_constant_latency(torch.rand(1, 1, 4, 4, device=device), ev, START, END, num_bins=20,
+    res = search_constant_latency(textured_frames(1, 1, 4, 4).to(device), ev, START, END, num_bins=20,
                                   num_candidates=5)
     assert res.latency.device.type == device.type
 
@@ -106,7 +106,7 @@ def test_never_scores_a_window_past_the_last_event(score):
 
 def test_no_events_past_the_exposure_falls_back_to_previous_or_zero():
     ev = random_events(500, (4, 4), (0.0, 90.0), seed=12)  # nothing after the exposure end
-    blurry = torch.rand(1, 1, 4, 4)
+    blurry = textured_frames(1, 1, 4, 4)
     res = search_constant_latency(blurry, ev, START, END, num_bins=20, num_candidates=5)
     assert res.fallback.tolist() == [True] and res.confidence.tolist() == [0.0]
     assert res.latency.item() == 0.0
@@ -283,5 +283,8 @@ def test_the_fallback_warning_of_both_modes_names_its_kind_and_refuses_another()
     assert warning.kind == "clipped" and warning.samples == (3,)
     assert str(warning) == ("sample 3: black or saturated in nearly every pixel (fewer than 0.5% inside the sensor's "
                             "range): nothing for EDI to sharpen; its latency is the fallback 0 us")
-    with pytest.raises(ValueError, match="kind must be 'clipped' or 'fallback', got 'hot_pixels'"):
+    flat = fallback_warning("flat", [0, 2], "{its} latency is the fallback 0 us")
+    assert flat.kind == "flat" and str(flat).startswith("samples [0, 2]: flat: no structure above its pixel noise")
+    assert str(flat).endswith("nothing for EDI to sharpen; their latency is the fallback 0 us")
+    with pytest.raises(ValueError, match="kind must be 'clipped', 'flat' or 'fallback', got 'hot_pixels'"):
         fallback_warning("hot_pixels", [0], "")

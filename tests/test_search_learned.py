@@ -12,7 +12,7 @@ from evlatcorr.curve_reader import NUM_FEATURES
 from evlatcorr.sample_warnings import SampleWarning
 from evlatcorr.search import search_constant_latency
 from evlatcorr.search_learned import candidate_curves
-from tests.conftest import random_events
+from tests.conftest import random_events, textured_frames
 
 
 def test_learned_score_known_answer_on_a_suite_case():
@@ -42,7 +42,7 @@ class _PlantedReader(torch.nn.Module):
 def test_learned_estimate_is_the_centre_of_the_reader_probability_near_its_pick(monkeypatch, mode):
     # 11 candidates 0..100 us; the events stop just before 200 us, so the window of l = 100 reaches past them
     ev = random_events(3000, (8, 9), (0.0, 200.0), seed=6)
-    blurry = torch.rand(1, 1, 8, 9, generator=torch.Generator().manual_seed(6)) * 0.8 + 0.1
+    blurry = textured_frames(1, 1, 8, 9, seed=6)
     log_p = torch.full((11,), -30.0)
     log_p[mode] = 0.0
     weights = {mode - 2: -3.0, mode - 1: -1.0, mode + 1: -0.5, mode + 2: -2.0}
@@ -110,7 +110,7 @@ def test_learned_score_reads_the_binned_table_too():
 def _planted_search(monkeypatch, log_p, search_range, events_until=200.0):
     """The search over a small random frame (exposure 0-100 us, 11 default candidates) with a planted reader."""
     ev = random_events(3000, (8, 9), (0.0, events_until), seed=6)
-    blurry = torch.rand(1, 1, 8, 9, generator=torch.Generator().manual_seed(6)) * 0.8 + 0.1
+    blurry = textured_frames(1, 1, 8, 9, seed=6)
     monkeypatch.setattr(search_learned, "_curve_reader_on", lambda device: _PlantedReader(log_p))
     return search_constant_latency(blurry, ev, torch.zeros(1), torch.full((1,), 100.0), 0.2, num_bins=50,
                                    num_candidates=11, score="learned", search_range=search_range)
@@ -143,7 +143,7 @@ def test_an_estimate_held_at_the_range_edge_is_reported_not_silent(monkeypatch):
     log_p = torch.full((11,), -30.0)
     log_p[8] = 0.0
     ev = random_events(3000, (8, 9), (0.0, 200.0), seed=6)
-    frames = EventFrames(torch.rand(2, 1, 8, 9, generator=torch.Generator().manual_seed(6)) * 0.8 + 0.1,
+    frames = EventFrames(textured_frames(2, 1, 8, 9, seed=6),
                          Events.cat([ev, ev]), torch.zeros(2), torch.full((2,), 100.0))
     monkeypatch.setattr(search_learned, "_curve_reader_on", lambda device: _PlantedReader(log_p))
     corrector = EventLatencyCorrector(threshold=0.2, num_bins=50, num_candidates=11, search_range=(20.0, 50.0))
@@ -162,7 +162,7 @@ def test_a_range_narrower_than_10_us_is_named_with_its_decimals(monkeypatch):
     log_p[8] = 0.0
     monkeypatch.setattr(search_learned, "_curve_reader_on", lambda device: _PlantedReader(log_p))
     ev = random_events(3000, (8, 9), (0.0, 200.0), seed=6)
-    frames = EventFrames(torch.full((1, 1, 8, 9), 0.5), ev, torch.zeros(1), torch.full((1,), 100.0))
+    frames = EventFrames(textured_frames(1, 1, 8, 9), ev, torch.zeros(1), torch.full((1,), 100.0))
     corrector = EventLatencyCorrector(threshold=0.2, num_bins=50, num_candidates=11, search_range=(33.25, 37.5))
     with pytest.warns(SampleWarning, match=r"outside search_range 33\.25-37\.50 us"):
         corrector(frames)

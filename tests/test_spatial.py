@@ -213,6 +213,32 @@ def test_a_black_frame_is_left_out_of_the_fit_and_keeps_the_fallback():
     assert float(none.latency.abs().max()) == 0.0
 
 
+def test_a_flat_frame_is_left_out_of_the_fit_and_a_trained_curve_still_reads_it(tmp_path):
+    from evlatcorr.sample_warnings import SampleWarning
+
+    frames = simulate("camera", num_frames=2, height=32, width=40, latency_us=3000.0, seed=0).frames("delayed")
+    blurry = frames.blurry.clone()
+    blurry[0] = 0.3
+    corrector = EventLatencyCorrector(mode="spatial", threshold=0.2, steps=10)
+    with pytest.warns(SampleWarning, match="sample 0: flat: no structure above its pixel noise"):
+        out = corrector(frames.replace(blurry=blurry))
+    assert out.meta["latency_source"] == ["flat", "fit"]
+    assert float(out.latency[0].abs().max()) == 0.0
+    torch.testing.assert_close(out.latency[1], corrector(frames.split()[1]).latency[0])
+    # a curve maps intensity to latency: a flat frame has intensities to read
+    curve = PolynomialLatency(order=1)
+    with torch.no_grad():
+        curve.coefficients.copy_(torch.tensor([2.0, 0.0]))  # 2 ms whatever the intensity
+    save_curve(curve, tmp_path / "curve.pt")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read = EventLatencyCorrector(mode="spatial", threshold=0.2, curve=tmp_path / "curve.pt")(
+            frames.replace(blurry=blurry))
+    assert read.meta["latency_source"] == ["curve", "curve"]
+    assert float(read.latency[0].mean()) == pytest.approx(float(read.latency[1].mean()), rel=1e-4)
+    assert float(read.latency[0].mean()) == pytest.approx(2000.0, rel=1e-4)
+
+
 def test_a_frame_without_a_latency_minimum_is_left_out_of_the_fit_with_a_warning():
     # events that stop at the exposure's end (a recording's last frame) leave the constant search nothing to score:
     # the fit used to anchor that frame's map at the search's fallback, silently (the CSV said nothing)

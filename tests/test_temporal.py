@@ -7,7 +7,7 @@ from evlatcorr.curve_reader import probability_centre
 from evlatcorr.edi import edi_deblur
 from evlatcorr.search import search_constant_latency
 from evlatcorr.temporal import DEFAULT_NO_LATENCY_MASS, frame_evidence, fuse_latencies, no_latency_share
-from tests.conftest import random_events
+from tests.conftest import random_events, textured_frames
 
 CANDIDATES = torch.arange(0.0, 2000.0, 100.0, dtype=torch.float64)
 
@@ -130,7 +130,7 @@ def test_bad_arguments_are_refused(latency, candidates, log_p, before, after, ma
 
 def test_the_search_gives_the_readers_log_probability_of_each_scored_candidate():
     ev = random_events(3000, (8, 9), (0.0, 200.0), seed=6)
-    blurry = torch.rand(1, 1, 8, 9, generator=torch.Generator().manual_seed(6)) * 0.8 + 0.1
+    blurry = textured_frames(1, 1, 8, 9, seed=6)
     args = (blurry, ev, torch.zeros(1), torch.full((1,), 100.0), 0.2)
     res = search_constant_latency(*args, num_bins=50, num_candidates=11, score="learned")
     log_p = res.log_probability

@@ -18,6 +18,7 @@ __all__ = ["latency_figure", "write_figure_or_warn", "write_latency_figure"]
 #: ``skipped`` column), drawn with a marker of their own
 _MARKED = {"fallback": ("x", "C3", "fallback (no clear minimum)"),
            "clipped": ("X", "C3", "black or saturated frame"),
+           "flat": ("D", "C3", "flat frame (no structure above noise)"),
            "no events": ("v", "0.45", "no events: the previous latency")}
 
 
