@@ -268,6 +268,55 @@ def test_correct_refuses_outputs_that_destroy_files(simulated, tmp_path):
     assert r.returncode == 2 and "not a folder" in r.stderr
 
 
+def test_correct_makes_display_encoded_frames_linear_with_frame_gamma(simulated, tmp_path):
+    # the frames written are those the corrector saw: linear, as our format holds them
+    r = run("correct", str(simulated), str(tmp_path / "out.h5"), "--frame-gamma", "2.2", "--no-figure",
+            "--threshold", "0.2", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    with h5py.File(simulated) as src, h5py.File(tmp_path / "out.h5") as out:
+        np.testing.assert_allclose(out["frames/blurry"][:], np.clip(src["frames/blurry"][:], 0, 1) ** 2.2,
+                                   rtol=1e-5, atol=1e-6)
+
+
+def test_deblur_with_frame_gamma_writes_pngs_encoded_as_the_files_frames(simulated, tmp_path):
+    # the frames are read linear for EDI; the PNGs are encoded back, so they look as the file's frames do
+    from evlatcorr.restore import to_uint8
+
+    r = run("deblur", str(simulated), str(tmp_path / "png"), "--frame-gamma", "2.2", "--num-bins", "100",
+            "--max-frames", "1", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    with h5py.File(simulated) as src:
+        expected = to_uint8(torch.from_numpy(src["frames/blurry"][0]))
+    written = np.asarray(Image.open(tmp_path / "png" / "frame_00000_blurry.png")).astype(int)
+    assert np.abs(written - expected.astype(int)).max() <= 1
+
+
+@pytest.mark.parametrize(("linear_model", "expected_power"), [(True, 1.0), (False, 1 / 2.2)])
+def test_with_frame_gamma_edi_reads_the_frames_linear_and_a_network_as_the_file_has_them(linear_model,
+                                                                                          expected_power):
+    from types import SimpleNamespace
+
+    from evlatcorr.cli.restoration import _as_in_the_file, _Restoration, _restored_outputs
+
+    frames = simulate("astronaut", num_frames=1, height=16, width=20, seed=0).frames("delayed")  # as read: linear
+    seen = []
+
+    class Spy(torch.nn.Module):
+        def forward(self, frames):
+            seen.append(frames.blurry)
+            return SimpleNamespace(output=frames.blurry)
+
+    run = _Restoration(SimpleNamespace(before_us=0.0), Spy(), None, 0.2, False, torch.device("cpu"), 2.2,
+                       linear_model)
+    plain, _ = _restored_outputs(run, frames, None)
+    torch.testing.assert_close(seen[0], frames.blurry.clamp(0, 1) ** expected_power)
+    blurry, written, corrected = _as_in_the_file(run, frames.blurry[0], plain, None)
+    # what is written is in the file's encoding either way: the identity network writes the file's frame back
+    torch.testing.assert_close(blurry, frames.blurry[0].clamp(0, 1) ** (1 / 2.2))
+    torch.testing.assert_close(written[0], blurry)
+    assert corrected is None
+
+
 def test_deblur_refuses_bad_options_with_exit_2(simulated, tmp_path):
     cases = [
         (["--device", "foo"], "unknown device"),
@@ -275,6 +324,7 @@ def test_deblur_refuses_bad_options_with_exit_2(simulated, tmp_path):
         (["--num-bins", "0"], "argument --num-bins: must be a whole number >= 2, got '0'"),
         (["--num-bins", "x"], "argument --num-bins: must be a whole number >= 2, got 'x'"),
         (["--search-us", "0", "nan"], "argument --search-us: must be a finite number of us, got 'nan'"),
+        (["--frame-gamma", "0"], "argument --frame-gamma: must be a finite number > 0, got '0'"),
         (["--correct", "spatial", "--curve", str(simulated)], "not a latency curve"),
     ]
     if not torch.cuda.is_available():

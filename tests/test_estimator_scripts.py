@@ -266,3 +266,18 @@ def test_tile_reader_script_reads_a_delay_frame_s_tiles_and_takes_known_targets(
     assert name == case.name and target == 1234.0  # no best-shift scan where the target is known
     assert tiles.shape == (9, *whole.shape) and whole.shape[-1] == len(latencies) == len(valid)
     assert float(share.sum()) == pytest.approx(1.0) and int(valid.sum()) >= 3
+
+
+def test_display_gamma_estimators_encode_the_frames_and_frame_gamma_undoes_it(monkeypatch):
+    delayed = simulate_case(tiny_case())[0]
+    delayed.meta["threshold"] = 0.2
+    script = "benchmarks/estimators/display_gamma.py"
+    linear = load_estimator(f"{script}:linear")(delayed)
+    torch.testing.assert_close(linear, EventLatencyCorrector(threshold=0.2)(delayed).latency)
+    torch.testing.assert_close(load_estimator(f"{script}:linearised")(delayed), linear, atol=1.0, rtol=0)
+    encode = load_estimator(f"{script}:encode")
+    torch.testing.assert_close(encode(delayed, 2.2).blurry, delayed.blurry.clamp(0, 1) ** (1 / 2.2))
+    assert load_estimator(f"{script}:encoded")(delayed).shape == linear.shape
+    monkeypatch.setenv("EVLATCORR_DISPLAY_GAMMA", "0")
+    with pytest.raises(ValueError, match="frame_gamma must be a finite number > 0"):
+        load_estimator(f"{script}:encoded")(delayed)

@@ -66,6 +66,20 @@ def test_reader_options_are_checked(ours):
     assert open_recording(ours, sequence=0, after_us=10.0).after_us == 10.0
 
 
+def test_frame_gamma_makes_display_encoded_frames_linear_in_every_read(ours):
+    plain, encoded = open_recording(ours), open_recording(ours, frame_gamma=2.2)
+    assert plain.frame_gamma == 1.0 and encoded.frame_gamma == 2.2
+    for index, (streamed, kept) in enumerate(zip(encoded, plain)):
+        torch.testing.assert_close(streamed.blurry, kept.blurry.clamp(0, 1) ** 2.2)
+        if kept.sharp is not None:
+            torch.testing.assert_close(streamed.sharp, kept.sharp.clamp(0, 1) ** 2.2)
+        torch.testing.assert_close(streamed.events.t, kept.events.t)  # the events are untouched
+        torch.testing.assert_close(encoded.frame(index).blurry, streamed.blurry)  # random access too
+    for bad in (0, -1.0, float("nan"), float("inf"), "2.2", True):
+        with pytest.raises(ValueError, match="frame_gamma must be a finite number > 0"):
+            open_recording(ours, frame_gamma=bad)
+
+
 def test_write_events_picks_the_input_format(tmp_path, ours):
     seq = fake_sequence()
     rec = H5Recording(ours)

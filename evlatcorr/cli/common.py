@@ -55,7 +55,7 @@ def open_input(args: argparse.Namespace):
         else:
             warnings.warn(f"--{option.replace('_', '-')} is not used: {reader.format_name} recordings {why}",
                           stacklevel=2)
-    rec = open_recording(args.input, **kwargs)
+    rec = open_recording(args.input, frame_gamma=getattr(args, "frame_gamma", 1.0), **kwargs)
     if getattr(args, "search_us", None):
         rec.after_us = search_reach_us(rec, args.search_us[1])
     return rec

@@ -35,6 +35,17 @@ def _positive_us(text: str) -> float:
     return value
 
 
+def _frame_gamma(text: str) -> float:
+    """A finite, positive exponent."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return value
+
+
 def _num_bins(text: str) -> int:
     """EDI's sub-intervals of an exposure: a whole number >= 2, refused before any reading."""
     try:
@@ -162,4 +173,8 @@ def _common_options(p: argparse.ArgumentParser) -> None:
                         "reads 0 to the exposure time as trained (default: 0 to the exposure time)")
     p.add_argument("--exposure-us", type=_positive_us,
                    help=_EXPOSURE_HELP)
+    p.add_argument("--frame-gamma", type=_frame_gamma, default=1.0, metavar="G",
+                   help="raise the frames to G as they are read: EDI needs linear intensity, as a DAVIS's raw "
+                        "frames are (default 1: kept as they are); 2.2 for frames encoded for display (PNG or "
+                        "video frames, sRGB); a network still reads them, and PNGs are written, as the file has them")
     _topic_options(p)

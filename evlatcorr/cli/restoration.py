@@ -70,8 +70,8 @@ def _restore(args: argparse.Namespace, task: str) -> int:
         rows.append(latency_row(batch, out, run.theta, seconds + time.perf_counter() - t0, skipped))
         if out is not None and "frame_latency_us" in out.meta:  # fused: the frame's own estimate too
             rows[-1]["frame_latency_us"] = f"{float(out.meta['frame_latency_us'][0]):.1f}"
-        _save_restored(tmp, task, args.model, batch.meta["frame"], frames.blurry[0], plain,
-                       corrected if run.corrector is not None else None, gif)
+        _save_restored(tmp, task, args.model, batch.meta["frame"], *_as_in_the_file(run, frames.blurry[0], plain,
+                                                                                 corrected), gif)
 
     def restore_pending() -> None:
         if pending:
@@ -129,6 +129,8 @@ class _Restoration(NamedTuple):
     theta: float | str
     pairs: bool  # the model reads each frame with the next one
     device: torch.device
+    frame_gamma: float = 1.0  # the recording's: its frames are read linear, as EDI and the corrector need them
+    linear_model: bool = True  # EDI; a network reads the frames encoded as in the file, as its dataset stored them
 
 
 def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _Restoration:
@@ -150,7 +152,7 @@ def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _
     if pairs:  # the first frame's events must reach the next exposure's end, plus the latency searched
         rec.after_us = pair_reach_us(rec, high)
         rec.before_us = max(rec.before_us, pair_lead_us(rec))  # and REFID reads before the first exposure
-    return _Restoration(rec, model, corrector, theta, pairs, device)
+    return _Restoration(rec, model, corrector, theta, pairs, device, rec.frame_gamma, args.model == "edi")
 
 
 def _restore_inputs(rec, max_frames: int | None, pairs: bool):
@@ -190,12 +192,27 @@ def _corrected_frames(run: _Restoration, frames: list) -> list:
 def _restored_outputs(run: _Restoration, frames, out):
     """The model's output with the stamped events and with the corrected ones in ``out`` (the stamped ones again
     where there is no ``out``)."""
+    from evlatcorr.io.batching import linear_frames
+
+    gamma = 1.0 if run.linear_model else 1 / run.frame_gamma  # a network: the frames encoded back as in the file
     with torch.no_grad():
-        plain = run.model(frames).output
-        corrected = plain if out is None else run.model(out).output
+        plain = run.model(linear_frames(frames, gamma)).output
+        corrected = plain if out is None else run.model(linear_frames(out, gamma)).output
     if run.device.type == "cuda":
         torch.cuda.synchronize(run.device)  # so the row's time is the frame's
     return plain, corrected
+
+
+def _as_in_the_file(run: _Restoration, blurry, plain, corrected):
+    """The blurry frame and the outputs to write, encoded as the file's frames are: the blurry frame and EDI's
+    outputs are linear, a network's are as it read them; ``corrected`` is ``None`` without a corrector."""
+    from evlatcorr.io.batching import display_image
+
+    def output_to_file(image):
+        return display_image(image, run.frame_gamma) if run.linear_model and image is not None else image
+
+    corrected = corrected if run.corrector is not None else None
+    return display_image(blurry, run.frame_gamma), output_to_file(plain), output_to_file(corrected)
 
 
 def _save_restored(tmp: Path, task: str, name: str, i: int, blurry, plain, corrected, gif: list) -> None:

@@ -36,6 +36,7 @@ import numpy as np
 from evlatcorr.events import Events
 from evlatcorr.io.aedat4 import AedatRecording
 from evlatcorr.io.base import FrameInfo, Recording, RecordingError
+from evlatcorr.io.batching import check_frame_gamma
 from evlatcorr.io.event_utils import EventUtilsRecording, is_event_utils_h5, write_event_utils
 from evlatcorr.io.gem_npz import GemNpzRecording, is_gem_npz
 from evlatcorr.io.h5 import EventWriter, is_evlatcorr_h5, write_dataset, write_h5_events, write_sequence
@@ -72,11 +73,16 @@ _ZIP_MAGIC = b"PK\x03\x04"
 
 
 def _make(cls: type[Recording], path: Path, kwargs: dict[str, Any]) -> Recording:
+    kwargs = dict(kwargs)
+    gamma = check_frame_gamma(kwargs.pop("frame_gamma", 1.0))  # every reader's: set on the recording it makes
     accepted = set(inspect.signature(cls.__init__).parameters) - {"self", "path"}
     unknown = sorted(set(kwargs) - accepted)
     if unknown:
-        raise TypeError(f"{path} is read by {cls.__name__}, which does not take {unknown}; it takes {sorted(accepted)}")
-    return cls(path, **kwargs)
+        raise TypeError(f"{path} is read by {cls.__name__}, which does not take {unknown}; it takes "
+                        f"{sorted(accepted | {'frame_gamma'})}")
+    recording = cls(path, **kwargs)
+    recording.frame_gamma = gamma
+    return recording
 
 
 def _sniff_file(path: Path) -> type[Recording]:
@@ -132,9 +138,10 @@ def open_recording(path: str | Path, **kwargs: Any) -> Recording:
 
     Args:
         path: a file (AEDAT4, ROS1 bag, HDF5, npz) or a folder (HighREV, folder of GEM npz).
-        **kwargs: passed to the reader: ``before_us``, ``after_us`` for all, and the reader's own
-            options (e.g. ``exposure_us`` for event_utils and bags, ``events_topic`` for bags, ``sequence`` for our
-            HDF5 and HighREV).
+        **kwargs: passed to the reader: ``before_us``, ``after_us`` and ``frame_gamma`` (the frames' images raised
+            to it as they are read: 2.2 makes display-encoded frames linear, as EDI needs them; default 1) for all,
+            and the reader's own options (e.g. ``exposure_us`` for event_utils and bags, ``events_topic`` for bags,
+            ``sequence`` for our HDF5 and HighREV).
 
     Returns:
         A :class:`Recording`.

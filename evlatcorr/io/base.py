@@ -29,7 +29,7 @@ import numpy as np
 
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
-from evlatcorr.io.batching import frame_batch
+from evlatcorr.io.batching import frame_batch, linear_frames
 from evlatcorr.io.conversions import (
     TIME_UNITS,
     iter_events_as_chunks,
@@ -72,6 +72,9 @@ class Recording:
     Attributes:
         sensor_size: ``(H, W)``.
         format_name: short name of the format.
+        frame_gamma: the frames' images are raised to this power as they are read (default 1: kept as they are).
+            EDI needs linear intensity, as a DAVIS's raw frames are; images encoded for display (PNG or video
+            frames, sRGB) are about ``image ** 2.2``: ``open_recording(path, frame_gamma=2.2)``.
 
     Example:
         >>> from evlatcorr.io import open_recording
@@ -87,6 +90,7 @@ class Recording:
     #: ``_items`` yields every frame before the events it needs (the default) use 0; interleaved
     #: files (AEDAT4) keep this much of the past events while no frame is waiting.
     _frame_delay_us: float = 0.0
+    frame_gamma: float = 1.0
 
     def __init__(self, path: str | Path, before_us: float = 0.0, after_us: float | None = None) -> None:
         self.path = Path(path)
@@ -189,7 +193,7 @@ class Recording:
 
     def _batch(self, info: FrameInfo, events: np.ndarray, lo: float, hi: float) -> EventFrames:
         """Wrap one frame and its events as a batch of 1."""
-        return frame_batch(info, events, lo, hi, self.sensor_size, self.path)
+        return linear_frames(frame_batch(info, events, lo, hi, self.sensor_size, self.path), self.frame_gamma)
 
     # random access --------------------------------------------------------------------------
     def frame(self, index: int) -> EventFrames:
