@@ -40,6 +40,7 @@ import torch  # noqa: E402
 
 from evlatcorr.benchmark.accuracy import (  # noqa: E402
     Case,
+    Estimator,
     corrector_estimator,
     load_estimator,
     make_cases,
@@ -50,6 +51,11 @@ from evlatcorr.benchmark.accuracy import (  # noqa: E402
     write_results,
 )
 from evlatcorr.config import SCORES  # noqa: E402
+
+
+def _given_auto_threshold(estimate: Estimator) -> Estimator:
+    """``estimate`` handed ``meta["threshold"] = "auto"`` in place of the case's θ (``--auto-threshold``)."""
+    return lambda frames: estimate(frames.replace(meta={**frames.meta, "threshold": "auto"}))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -112,7 +118,8 @@ def main(argv: list[str] | None = None) -> None:
         name = spec.rpartition(":")[2]
         while name in estimators:
             name += "'"
-        estimators[name] = lambda case, fn=fn: fn
+        estimators[name] = (lambda case, fn=fn: _given_auto_threshold(fn)) if args.auto_threshold else \
+            (lambda case, fn=fn: fn)
     if not estimators:
         p.error("nothing to evaluate: --mode none needs --estimator")
 

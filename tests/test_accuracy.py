@@ -352,6 +352,26 @@ def test_the_accuracy_script_writes_its_tables_and_groups_its_warnings(tmp_path)
     assert len(kinds) == 1
 
 
+@pytest.mark.parametrize(("flags", "expected"), [([], "number"), (["--auto-threshold"], "auto")])
+def test_an_extra_estimator_is_handed_auto_as_the_threshold_with_auto_threshold(tmp_path, flags, expected):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    # the estimator fails its case unless it sees the threshold it is promised: the error lands in the csv
+    path = tmp_path / "threshold_check.py"
+    path.write_text("import torch\n\ndef estimate(frames):\n"
+                    "    seen = 'auto' if frames.meta['threshold'] == 'auto' else 'number'\n"
+                    f"    assert seen == {expected!r}, seen\n"
+                    "    return torch.zeros(frames.batch_size)\n")
+    root = Path(__file__).resolve().parents[1]
+    run = subprocess.run([sys.executable, str(root / "benchmarks" / "accuracy.py"), "--split", "dev", "--num", "1",
+                          "--size", "32", "40", "--mode", "none", "--estimator", f"{path}:estimate", *flags,
+                          "--out", str(tmp_path)], capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert "the estimator failed" not in run.stdout
+
+
 def test_warning_kinds_counts_the_estimates_raising_each_kind_and_refuses_rows_without_messages():
     from evlatcorr.benchmark.accuracy import warning_kinds
 
