@@ -417,32 +417,16 @@ def test_a_flat_frame_is_not_searched_and_is_named(monkeypatch):
     assert float(outs[1].latency.mean()) == pytest.approx(float(outs[0].latency.mean()), abs=1e-3)
 
 
-def test_auto_threshold_on_pairs_leaves_out_a_pair_with_a_flat_frame():
+@pytest.mark.parametrize("value", [0.4, 0.0], ids=["flat", "black"])
+def test_auto_threshold_on_pairs_leaves_out_a_pair_with_a_blank_frame(value):
     seq = simulate("camera", num_frames=4, height=48, width=64, threshold=0.5, latency_us=2000.0, seed=0)
     pairs = seq.pairs("delayed", after_us=25_000.0)  # 3 pairs
-    flat, flat_next = pairs.blurry.clone(), pairs.blurry_next.clone()
-    flat[1], flat_next[0] = 0.4, 0.4  # frame 1: the second of pair 0 and the first of pair 1
+    blank, blank_next = pairs.blurry.clone(), pairs.blurry_next.clone()
+    blank[1], blank_next[0] = value, value  # frame 1: the second of pair 0 and the first of pair 1
     corrector = EventLatencyCorrector(threshold="auto")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        theta = corrector(pairs.replace(blurry=flat, blurry_next=flat_next)).meta["threshold"]
-        alone = corrector(pairs.split()[2]).meta["threshold"]  # the one pair without it
-    assert float(theta) == pytest.approx(float(alone), rel=1e-6)
-
-
-def test_auto_threshold_on_pairs_leaves_out_a_pair_with_a_black_frame():
-    import warnings
-
-    seq = simulate("camera", num_frames=4, height=48, width=64, threshold=0.5, latency_us=2000.0, seed=0)
-    pairs = seq.pairs("delayed", after_us=25_000.0)  # 3 pairs
-    black = pairs.blurry.clone()
-    black[1] = 0.0  # frame 1: the second of pair 0 and the first of pair 1
-    black_next = pairs.blurry_next.clone()
-    black_next[0] = 0.0
-    corrector = EventLatencyCorrector(threshold="auto")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        theta = corrector(pairs.replace(blurry=black, blurry_next=black_next)).meta["threshold"]
+        theta = corrector(pairs.replace(blurry=blank, blurry_next=blank_next)).meta["threshold"]
         alone = corrector(pairs.split()[2]).meta["threshold"]  # the one pair without it
     assert float(theta) == pytest.approx(float(alone), rel=1e-6)
     assert 0.4 < float(theta) < 0.6

@@ -195,13 +195,19 @@ def test_fit_over_the_memory_budget_reads_strips(frames, monkeypatch):
     torch.testing.assert_close(torch.tensor(small_history), torch.tensor(history), rtol=1e-3, atol=0.0)
 
 
+def _two_frames_the_first_set_to(value: float):
+    """Two delayed frames, and their blurry images with the first one uniform at ``value``."""
+    frames = simulate("camera", num_frames=2, height=32, width=40, latency_us=3000.0, seed=0).frames("delayed")
+    blurry = frames.blurry.clone()
+    blurry[0] = value
+    return frames, blurry
+
+
 def test_a_black_frame_is_left_out_of_the_fit_and_keeps_the_fallback():
     # as in constant mode: a black frame used to get a map from the fit (984 us here) with no warning
     from evlatcorr.sample_warnings import SampleWarning
 
-    frames = simulate("camera", num_frames=2, height=32, width=40, latency_us=3000.0, seed=0).frames("delayed")
-    blurry = frames.blurry.clone()
-    blurry[0] = 0.0
+    frames, blurry = _two_frames_the_first_set_to(0.0)
     corrector = EventLatencyCorrector(mode="spatial", threshold=0.2, steps=10)
     with pytest.warns(SampleWarning, match="sample 0: black or saturated in nearly every pixel"):
         out = corrector(frames.replace(blurry=blurry))
@@ -216,9 +222,7 @@ def test_a_black_frame_is_left_out_of_the_fit_and_keeps_the_fallback():
 def test_a_flat_frame_is_left_out_of_the_fit_and_a_trained_curve_still_reads_it(tmp_path):
     from evlatcorr.sample_warnings import SampleWarning
 
-    frames = simulate("camera", num_frames=2, height=32, width=40, latency_us=3000.0, seed=0).frames("delayed")
-    blurry = frames.blurry.clone()
-    blurry[0] = 0.3
+    frames, blurry = _two_frames_the_first_set_to(0.3)
     corrector = EventLatencyCorrector(mode="spatial", threshold=0.2, steps=10)
     with pytest.warns(SampleWarning, match="sample 0: flat: no structure above its pixel noise"):
         out = corrector(frames.replace(blurry=blurry))
