@@ -130,6 +130,20 @@ def recording_without_ground_truth(tmp_path_factory):
     return path
 
 
+def test_training_frames_from_a_recording_are_read_linear_with_frame_gamma(recording_without_ground_truth):
+    # the curve maps intensity to latency: it must be trained on the intensities it will read (evlatcorr --frame-gamma)
+    from evlatcorr.lightning.latency_data import recording_training_frames
+
+    as_stored, _, _ = recording_training_frames(recording_without_ground_truth, threshold=0.2, val_every=0)
+    linear, _, _ = recording_training_frames(recording_without_ground_truth, threshold=0.2, val_every=0,
+                                             frame_gamma=2.2)
+    assert len(linear) == len(as_stored) > 0
+    for a, b in zip(as_stored, linear):
+        torch.testing.assert_close(b.blurry, a.blurry.clamp(0, 1) ** 2.2)
+    with pytest.raises(ValueError, match="frame_gamma must be a finite number > 0"):
+        recording_training_frames(recording_without_ground_truth, threshold=0.2, frame_gamma=0.0)
+
+
 def test_curve_trains_on_a_recording(recording_without_ground_truth, tmp_path, recwarn):
     from evlatcorr.spatial import PolynomialLatency
     from evlatcorr.training import main as train_curve

@@ -16,12 +16,17 @@ _EXPOSURE_HELP = ("exposure, us, for files that only stamp frame times (event_ut
                   "timestamp alone, ROS1 bags without the driver's exposure topic); other recordings keep their own")
 
 
+def _float_or_nan(text: str) -> float:
+    """``text`` as a float; NaN where it is not a number (refused as such by the caller's check)."""
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
+
+
 def _finite_us(text: str) -> float:
     """A finite number of µs (argparse's ``float`` takes ``nan`` and ``inf``)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
+    value = _float_or_nan(text)
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"must be a finite number of us, got {text!r}")
     return value
@@ -37,10 +42,7 @@ def _positive_us(text: str) -> float:
 
 def _frame_gamma(text: str) -> float:
     """A finite, positive exponent."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
+    value = _float_or_nan(text)
     if not math.isfinite(value) or value <= 0:
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
     return value

@@ -65,6 +65,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threshold", default="auto", help="--data: contrast threshold, or 'auto' (default): one θ "
                                                        "for the recording")
     p.add_argument("--val-every", type=int, default=5, help="--data: every N-th frame is held out (0: none)")
+    p.add_argument("--frame-gamma", type=float, default=1.0, metavar="G",
+                   help="--data: raise the frames to G as they are read (default 1; 2.2 for frames encoded for "
+                        "display), as the curve will read them (evlatcorr --frame-gamma)")
     p.add_argument("--max-steps", type=int, default=-1, help="stop after this many steps (default: --epochs only)")
 
 
@@ -86,7 +89,8 @@ def run(args: argparse.Namespace) -> None:
         try:
             threshold: Any = args.threshold if args.threshold == "auto" else float(args.threshold)
             frames, val, theta = recording_training_frames(args.data, tuple(args.crop) if args.crop else None,
-                                                           threshold, val_every=args.val_every)
+                                                           threshold, val_every=args.val_every,
+                                                           frame_gamma=args.frame_gamma)
         except (ValueError, OSError) as exc:  # bad input: one line and exit code 2, as the evlatcorr command
             exit_bad_input(args.error_label, exc)
         print(f"{args.data}: {len(frames)} training and {len(val)} validation samples, threshold {theta:.3f}")

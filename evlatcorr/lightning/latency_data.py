@@ -30,7 +30,7 @@ def simulated_training_frames(names: Sequence[str], size: tuple[int, int], seed:
 
 
 def recording_training_frames(path: str | Path, crop: tuple[int, int] | None = None, threshold: float | str = "auto",
-                              search_high_us: float | None = None, val_every: int = 5
+                              search_high_us: float | None = None, val_every: int = 5, frame_gamma: float = 1.0
                               ) -> tuple[list[EventFrames], list[EventFrames], float]:
     """Training and validation samples from a recording (any format ``evlatcorr.io`` reads), no ground truth.
 
@@ -45,6 +45,8 @@ def recording_training_frames(path: str | Path, crop: tuple[int, int] | None = N
         search_high_us: the largest latency searched (default: the exposure time); events are read
             that far past each exposure.
         val_every: every this-many-th frame goes to validation (0: none).
+        frame_gamma: the frames are raised to it as they are read (2.2: frames encoded for display made linear, as
+            EDI needs them; :func:`~evlatcorr.io.open_recording`).
 
     Returns:
         ``(train, val, θ)``.
@@ -55,7 +57,7 @@ def recording_training_frames(path: str | Path, crop: tuple[int, int] | None = N
     from evlatcorr.io import open_recording
     from evlatcorr.restore import has_events, recording_threshold
 
-    rec = open_recording(path, after_us=search_high_us)
+    rec = open_recording(path, after_us=search_high_us, frame_gamma=frame_gamma)
     if isinstance(threshold, str):
         found = recording_threshold(rec, None if search_high_us is None else (0.0, search_high_us))
         theta = found if found is not None else 0.2
