@@ -298,18 +298,19 @@ def test_with_frame_gamma_edi_reads_the_frames_linear_and_a_network_as_the_file_
 
     from evlatcorr.cli.restoration import _as_in_the_file, _Restoration, _restored_outputs
 
-    frames = simulate("astronaut", num_frames=1, height=16, width=20, seed=0).frames("delayed")  # as read: linear
+    frames = simulate("astronaut", num_frames=2, height=16, width=20, seed=0).pairs("delayed")  # as read: linear
     seen = []
 
     class Spy(torch.nn.Module):
         def forward(self, frames):
-            seen.append(frames.blurry)
+            seen.append((frames.blurry, frames.blurry_next))
             return SimpleNamespace(output=frames.blurry)
 
     run = _Restoration(SimpleNamespace(before_us=0.0), Spy(), None, 0.2, False, torch.device("cpu"), 2.2,
                        linear_model)
     plain, _ = _restored_outputs(run, frames, None)
-    torch.testing.assert_close(seen[0], frames.blurry.clamp(0, 1) ** expected_power)
+    torch.testing.assert_close(seen[0][0], frames.blurry.clamp(0, 1) ** expected_power)
+    torch.testing.assert_close(seen[0][1], frames.blurry_next.clamp(0, 1) ** expected_power)  # a pair's both frames
     blurry, written, corrected = _as_in_the_file(run, frames.blurry[0], plain, None)
     # what is written is in the file's encoding either way: the identity network writes the file's frame back
     torch.testing.assert_close(blurry, frames.blurry[0].clamp(0, 1) ** (1 / 2.2))

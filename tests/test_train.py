@@ -267,6 +267,21 @@ class TestCorrectedRestorationModule:
         assert abs(latency - true) < 700.0
         assert torch.allclose(corrected.corrected.t.sort().values, (batch.events.t - latency).sort().values)
 
+    def test_with_frame_gamma_the_corrector_reads_linear_frames_and_the_network_the_encoded_ones(self):
+        from evlatcorr.io import linear_frames
+
+        batch = _sim_batch(events="delayed")  # linear, as simulated
+        encoded = linear_frames(batch, 1 / 2.2)  # as a file encoded for display would hold it
+        plain = CorrectedRestorationModule(EFNetAdapter(), "deblur", corrector="constant", num_bins=40)
+        gamma = CorrectedRestorationModule(EFNetAdapter(), "deblur", corrector="constant", num_bins=40,
+                                           frame_gamma=2.2)
+        expected, _ = plain.correct(batch)
+        corrected, _ = gamma.correct(encoded)
+        torch.testing.assert_close(corrected.latency, expected.latency, rtol=0, atol=1e-2)
+        assert torch.equal(corrected.blurry, encoded.blurry)  # the network reads the frames as they came
+        with pytest.raises(ValueError, match="frame_gamma must be a finite number > 0"):
+            CorrectedRestorationModule(EFNetAdapter(), "deblur", frame_gamma=0.0)
+
     def test_interpolation_pairs_are_corrected(self, delayed_pair):
         # a polynomial fixed at the true constant latency: both frames' events move 4474 us earlier, and EDI
         # interpolation from them is the blend of the two frames' EDI latent images from the shifted events
@@ -439,6 +454,13 @@ def test_cli_data_without_truth_trains_only_the_polynomial(recording, tmp_path, 
     torch.testing.assert_close(load_curve(tmp_path / "run" / "curve.pt").coefficients.detach(), coefficients)
 
 
+def test_cli_data_estimates_the_threshold_from_the_frames_as_the_corrector_reads_them(recording, tmp_path):
+    # the simulated frames are linear: raised to 2.2, two-frame consistency sees each log step 2.2 times larger
+    plain = main(_data_cli(recording, tmp_path / "plain", "--max-steps", "1"))
+    raised = main(_data_cli(recording, tmp_path / "raised", "--max-steps", "1", "--frame-gamma", "2.2"))
+    assert 1.5 < raised["threshold"] / plain["threshold"] < 2.6
+
+
 def test_cli_data_with_sharp_frames_trains_the_network(recording_with_sharp, tmp_path, capsys):
     card = main(_data_cli(recording_with_sharp, tmp_path / "run", "--checkpoint", "default", "--max-steps", "2",
                           "--threshold", "0.2"))
@@ -467,6 +489,7 @@ def test_cli_data_refid_trains_on_pairs(recording, tmp_path):
     (["--model", "unet"], "invalid choice: 'unet'"),
     (["--events", "delayed"], "--events choose simulated data"),
     (["--threshold", "-1"], "positive number or 'auto'"),
+    (["--frame-gamma", "0"], "--frame-gamma must be a finite number > 0"),
 ])
 def test_cli_data_bad_input_exits_2_with_one_line(recording, tmp_path, capsys, extra, match):
     with pytest.raises(SystemExit) as exc:

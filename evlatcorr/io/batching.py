@@ -67,8 +67,9 @@ def check_frame_gamma(gamma: object) -> float:
 
 
 def linear_frames(batch: EventFrames, gamma: float) -> EventFrames:
-    """``batch`` with its images (the blurry frame, a sharp one and target frames where present) raised to
-    ``gamma``: display-encoded images made linear, as EDI needs them (``gamma = 1``: the batch itself).
+    """``batch`` with its images (the blurry frame, the next one, a sharp one and target frames where present)
+    raised to ``gamma``: display-encoded images made linear, as EDI needs them (``gamma = 1``: the batch itself;
+    ``1 / gamma`` encodes linear ones back).
 
     Example:
         >>> ev = Events(torch.tensor([0]), torch.tensor([0]), torch.tensor([5.0]), torch.tensor([1]),
@@ -79,8 +80,8 @@ def linear_frames(batch: EventFrames, gamma: float) -> EventFrames:
     """
     if gamma == 1:
         return batch
-    changes = {name: getattr(batch, name).clamp(0, 1) ** gamma for name in ("blurry", "sharp", "target_frames")
-               if getattr(batch, name) is not None}
+    images = ("blurry", "blurry_next", "sharp", "target_frames")
+    changes = {name: getattr(batch, name).clamp(0, 1) ** gamma for name in images if getattr(batch, name) is not None}
     return batch.replace(**changes)
 
 

@@ -141,6 +141,8 @@ class CorrectedRestorationModule(_RestorationBase):
         corrector_weight: weight of the corrector's objective in the total loss.
         lr, corrector_lr: learning rates of the network and of the polynomial.
         threshold, num_bins: contrast threshold and EDI sub-intervals of the correction.
+        frame_gamma: the batches' frames are encoded as ``linear ** (1 / frame_gamma)`` (2.2: encoded for display);
+            the corrector reads them made linear, as EDI needs them, and the network as they are (default 1).
 
     Example:
         >>> from evlatcorr.adapters import EFNetAdapter
@@ -152,9 +154,12 @@ class CorrectedRestorationModule(_RestorationBase):
     def __init__(self, adapter: nn.Module, task: str, corrector: str = "spatial", curve: str | Path | None = None,
                  train_corrector: bool = True, train_network: bool = True, corrector_weight: float = 1.0,
                  lr: float = 5e-5, corrector_lr: float = 0.02, weight_decay: float = 0.0, warmup_steps: int = 0,
-                 max_steps: int = 1000, threshold: float = 0.2, num_bins: int = 100) -> None:
+                 max_steps: int = 1000, threshold: float = 0.2, num_bins: int = 100, frame_gamma: float = 1.0) -> None:
         super().__init__(task, lr, weight_decay, warmup_steps, max_steps)
+        from evlatcorr.io.batching import check_frame_gamma
         from evlatcorr.spatial import LossWeights, PolynomialLatency, load_curve
+
+        check_frame_gamma(frame_gamma)
 
         if corrector not in ("spatial", "constant"):
             raise ValueError(f"corrector must be 'spatial' or 'constant', got {corrector!r}")
@@ -173,11 +178,13 @@ class CorrectedRestorationModule(_RestorationBase):
         """``frames`` with ``corrected`` events and ``latency``, and the corrector's loss (or None)."""
         from evlatcorr.benchmark import pair_with_latency
         from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
+        from evlatcorr.io.batching import linear_frames
         from evlatcorr.search import search_constant_latency
         from evlatcorr.spatial import constant_reference, spatial_objective
 
         hp = self.hparams
-        first = EventFrames(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end)
+        linear = linear_frames(frames, hp.frame_gamma)  # what EDI and the polynomial read
+        first = EventFrames(linear.blurry, frames.events, frames.exposure_start, frames.exposure_end)
         loss = None
         if hp.corrector == "constant":
             latency = search_constant_latency(first.blurry, first.events, first.exposure_start, first.exposure_end,
@@ -193,9 +200,9 @@ class CorrectedRestorationModule(_RestorationBase):
                     terms = spatial_objective(self.latency_model, first, l_const, first.exposure_time, etf_const,
                                               hp.threshold, hp.num_bins, self.weights)
                 loss = terms["total"]
-            latency = torch.minimum(self.latency_model(frames.blurry).clamp_min(0.0), high).detach()
+            latency = torch.minimum(self.latency_model(linear.blurry).clamp_min(0.0), high).detach()
             latency_next = latency if frames.blurry_next is None else torch.minimum(
-                self.latency_model(frames.blurry_next).clamp_min(0.0), high).detach()
+                self.latency_model(linear.blurry_next).clamp_min(0.0), high).detach()
         if self.task == "interpolation":
             corrected = pair_with_latency(frames, latency.double(), latency_next.double())
             return corrected.replace(latency=latency), loss

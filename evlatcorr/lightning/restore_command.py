@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 import warnings
 from pathlib import Path
@@ -85,6 +86,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--data: every K-th usable frame (pair for REFID) is held out for validation, at least one "
                         "(0: none)")
     p.add_argument("--max-frames", type=int, default=None, help="--data: read at most this many frames")
+    p.add_argument("--frame-gamma", type=float, default=1.0, metavar="G",
+                   help="--data with --finetune: the corrector reads the frames raised to G (2.2 for frames encoded "
+                        "for display: made linear, as EDI needs them), the network as the file has them (default 1)")
     p.add_argument("--events", choices=("ideal", "delayed", "mixed"), default=None,
                    help="simulated data: events of the training samples (default: ideal; delayed with --finetune)")
     p.add_argument("--max-steps", type=int, default=2000)
@@ -140,6 +144,8 @@ def check(args: argparse.Namespace, p: argparse.ArgumentParser) -> None:
         p.error("--freeze-network needs --finetune spatial (otherwise nothing is trained)")
     if args.curve is not None and args.finetune != "spatial":
         p.error("--curve needs --finetune spatial (the polynomial it starts)")
+    if not (math.isfinite(args.frame_gamma) and args.frame_gamma > 0):
+        p.error(f"--frame-gamma must be a finite number > 0, got {args.frame_gamma}")
 
 
 def _precision(args: argparse.Namespace) -> str:
@@ -189,7 +195,7 @@ def _corrected_module(args: argparse.Namespace, task: str, train_network: bool, 
     return CorrectedRestorationModule(
         adapter, task, corrector=args.finetune, curve=args.curve, train_network=train_network,
         lr=args.lr or 5e-5, warmup_steps=min(args.warmup_steps, args.max_steps - 1), max_steps=args.max_steps,
-        threshold=threshold)
+        threshold=threshold, frame_gamma=args.frame_gamma)
 
 
 def _simulated_setup(args: argparse.Namespace) -> tuple[L.LightningDataModule, L.LightningModule, dict[str, Any]]:
@@ -281,7 +287,11 @@ def _recording_threshold(args: argparse.Namespace, data: RecordingRestorationDat
         return float(args.threshold)
     with warnings.catch_warnings():  # the reader's notes on windows were given by the read above
         warnings.simplefilter("ignore")
-        estimated = recording_threshold(data.recording, device=_threshold_device(args))
+        data.recording.frame_gamma = args.frame_gamma  # θ from linear frames; the samples were read as they are
+        try:
+            estimated = recording_threshold(data.recording, device=_threshold_device(args))
+        finally:
+            data.recording.frame_gamma = 1.0
     if estimated is None:
         _note("contrast threshold: 0.2 (auto: no pair of consecutive frames with events to estimate one)")
         return 0.2
@@ -306,7 +316,7 @@ def _recording_setup(args: argparse.Namespace) -> tuple[L.LightningDataModule, L
         module = _corrected_module(args, task, network == "trained", threshold, adapter)
     found = data.summary
     info = {"events": "recorded", "truth": data.has_truth, "network": network,
-            "threshold": None if args.finetune == "none" else round(threshold, 4),
+            "threshold": None if args.finetune == "none" else round(threshold, 4), "frame_gamma": args.frame_gamma,
             "data": {"recording": str(args.data), **{k: found[k] for k in ("format", "sensor_size", "frames_read")},
                      "crop": list(data.crop), "train_samples": found["train"], "val_samples": found["val"],
                      "pairs": data.pairs, "holdout": args.holdout, "max_frames": args.max_frames, "seed": args.seed}}
