@@ -289,6 +289,11 @@ class EventLatencyCorrector(nn.Module):
         tiles: ``score="learned"``: also read the frame's 3x3 tiles and weigh them against the whole frame with
             the tile reader (default; :mod:`evlatcorr.tile_reader`); False: the whole frame's curves alone.
         curve: ``mode="spatial"`` only: a trained latency curve checkpoint.
+        frame_gamma: the frames are encoded as ``linear ** (1 / frame_gamma)`` (2.2: encoded for display, as PNG
+            exports and video frames are; default 1: linear, as a DAVIS's frames). The estimate reads them made
+            linear, as EDI needs them; the output keeps the frames as given, for the model behind it, and its
+            ``latent`` is encoded as they are. Frames read with ``open_recording(path, frame_gamma=...)`` are
+            linear already: leave this at 1.
         **spatial_kwargs: ``mode="spatial"`` only: options of the spatial corrector (``steps``, ``lr``,
             ``train_bins``, ``order``, ``weights``, ``progress``: :class:`~evlatcorr.spatial.SpatialLatencyCorrector`);
             any other keyword is a :class:`TypeError` naming it.
@@ -322,9 +327,13 @@ class EventLatencyCorrector(nn.Module):
         ghost_confidence: float | None = DEFAULT_GHOST_CONFIDENCE,
         tiles: bool = True,
         curve: str | None = None,
+        frame_gamma: float = 1.0,
         **spatial_kwargs: Any,
     ) -> None:
         super().__init__()
+        from evlatcorr.gamma import check_frame_gamma
+
+        self.frame_gamma = check_frame_gamma(frame_gamma)
         if mode not in _MODES:
             raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
         if spatial_kwargs:
@@ -355,13 +364,21 @@ class EventLatencyCorrector(nn.Module):
     score = property(lambda self: self.config.score)
 
     def extra_repr(self) -> str:
+        gamma = f", frame_gamma={self.frame_gamma}" if self.frame_gamma != 1 else ""
         return (f"mode={self.mode}, threshold={self.threshold}, num_bins={self.num_bins}, "
-                f"search_range={self.search_range}, num_candidates={self.num_candidates}")
+                f"search_range={self.search_range}, num_candidates={self.num_candidates}{gamma}")
 
     def forward(self, frames: EventFrames) -> EventFrames:
         if not isinstance(frames, EventFrames):
             raise ValueError(f"EventLatencyCorrector takes an EventFrames batch, got {type(frames).__name__}")
-        return (self.spatial or self.constant)(frames)
+        if self.frame_gamma == 1:
+            return (self.spatial or self.constant)(frames)
+        from evlatcorr.gamma import display_image, linear_frames
+
+        out = (self.spatial or self.constant)(linear_frames(frames, self.frame_gamma))
+        latent = None if out.latent is None else display_image(out.latent, self.frame_gamma)
+        return out.replace(blurry=frames.blurry, blurry_next=frames.blurry_next, sharp=frames.sharp,
+                           target_frames=frames.target_frames, latent=latent)
 
 
 def _warn_if_short(frames: EventFrames, config: SearchConfig) -> None:

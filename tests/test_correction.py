@@ -430,3 +430,27 @@ def test_auto_threshold_on_pairs_leaves_out_a_pair_with_a_blank_frame(value):
         alone = corrector(pairs.split()[2]).meta["threshold"]  # the one pair without it
     assert float(theta) == pytest.approx(float(alone), rel=1e-6)
     assert 0.4 < float(theta) < 0.6
+
+
+@pytest.mark.parametrize("mode", ["constant", "spatial-curve"])
+def test_frame_gamma_estimates_from_linear_frames_and_hands_the_model_the_frames_as_given(mode, curve_path):
+    from evlatcorr.gamma import display_image, linear_frames
+
+    frames = simulate("camera", num_frames=1, height=24, width=32, latency_us=3000.0, seed=0).frames("delayed")
+    encoded = linear_frames(frames, 1 / 2.2)  # as a PNG export or a video frame holds it
+    kwargs = {"constant": dict(num_bins=100), "spatial-curve": dict(mode="spatial", num_bins=100, curve=curve_path)}
+    expected = EventLatencyCorrector(**kwargs[mode])(frames)
+    seen = []
+
+    class Model(nn.Module):
+        def forward(self, batch):
+            seen.append(batch)
+            return batch
+
+    out = nn.Sequential(EventLatencyCorrector(frame_gamma=2.2, **kwargs[mode]), Model())(encoded)
+    torch.testing.assert_close(out.latency, expected.latency, rtol=1e-4, atol=1.0)  # µs: read as the linear frames
+    assert seen[0] is out and torch.equal(out.blurry, encoded.blurry)  # the model reads the frames as given
+    torch.testing.assert_close(out.corrected.t, expected.corrected.t, rtol=0, atol=1.0)
+    torch.testing.assert_close(out.latent, display_image(expected.latent, 2.2), rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="frame_gamma must be a finite number > 0"):
+        EventLatencyCorrector(frame_gamma=-1.0)

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from evlatcorr.benchmark.accuracy import corrector_estimator
 from evlatcorr.frames import EventFrames
-from evlatcorr.io.batching import check_frame_gamma, linear_frames
+from evlatcorr.gamma import check_frame_gamma, linear_frames
 
 DEFAULT_GAMMA = 2.2
 

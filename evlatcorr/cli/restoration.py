@@ -192,7 +192,7 @@ def _corrected_frames(run: _Restoration, frames: list) -> list:
 def _restored_outputs(run: _Restoration, frames, out):
     """The model's output with the stamped events and with the corrected ones in ``out`` (the stamped ones again
     where there is no ``out``)."""
-    from evlatcorr.io.batching import linear_frames
+    from evlatcorr.gamma import linear_frames
 
     gamma = 1.0 if run.linear_model else 1 / run.frame_gamma  # a network: the frames encoded back as in the file
     with torch.no_grad():
@@ -206,7 +206,7 @@ def _restored_outputs(run: _Restoration, frames, out):
 def _as_in_the_file(run: _Restoration, blurry, plain, corrected):
     """The blurry frame and the outputs to write, encoded as the file's frames are: the blurry frame and EDI's
     outputs are linear, a network's are as it read them; ``corrected`` is ``None`` without a corrector."""
-    from evlatcorr.io.batching import display_image
+    from evlatcorr.gamma import display_image
 
     def output_to_file(image):
         return display_image(image, run.frame_gamma) if run.linear_model and image is not None else image

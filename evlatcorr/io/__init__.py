@@ -34,9 +34,9 @@ import h5py
 import numpy as np
 
 from evlatcorr.events import Events
+from evlatcorr.gamma import check_frame_gamma, linear_frames
 from evlatcorr.io.aedat4 import AedatRecording
 from evlatcorr.io.base import FrameInfo, Recording, RecordingError
-from evlatcorr.io.batching import check_frame_gamma, linear_frames
 from evlatcorr.io.event_utils import EventUtilsRecording, is_event_utils_h5, write_event_utils
 from evlatcorr.io.gem_npz import GemNpzRecording, is_gem_npz
 from evlatcorr.io.h5 import EventWriter, is_evlatcorr_h5, write_dataset, write_h5_events, write_sequence

@@ -29,7 +29,8 @@ import numpy as np
 
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
-from evlatcorr.io.batching import frame_batch, linear_frames
+from evlatcorr.gamma import linear_frames
+from evlatcorr.io.batching import frame_batch
 from evlatcorr.io.conversions import (
     TIME_UNITS,
     iter_events_as_chunks,

@@ -156,7 +156,7 @@ class CorrectedRestorationModule(_RestorationBase):
                  lr: float = 5e-5, corrector_lr: float = 0.02, weight_decay: float = 0.0, warmup_steps: int = 0,
                  max_steps: int = 1000, threshold: float = 0.2, num_bins: int = 100, frame_gamma: float = 1.0) -> None:
         super().__init__(task, lr, weight_decay, warmup_steps, max_steps)
-        from evlatcorr.io.batching import check_frame_gamma
+        from evlatcorr.gamma import check_frame_gamma
         from evlatcorr.spatial import LossWeights, PolynomialLatency, load_curve
 
         check_frame_gamma(frame_gamma)
@@ -178,7 +178,7 @@ class CorrectedRestorationModule(_RestorationBase):
         """``frames`` with ``corrected`` events and ``latency``, and the corrector's loss (or None)."""
         from evlatcorr.benchmark import pair_with_latency
         from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
-        from evlatcorr.io.batching import linear_frames
+        from evlatcorr.gamma import linear_frames
         from evlatcorr.search import search_constant_latency
         from evlatcorr.spatial import constant_reference, spatial_objective
 
