@@ -454,3 +454,17 @@ def test_frame_gamma_estimates_from_linear_frames_and_hands_the_model_the_frames
     torch.testing.assert_close(out.latent, display_image(expected.latent, 2.2), rtol=1e-4, atol=1e-4)
     with pytest.raises(ValueError, match="frame_gamma must be a finite number > 0"):
         EventLatencyCorrector(frame_gamma=-1.0)
+
+
+def test_a_stream_passes_frame_gamma_to_its_corrector():
+    from evlatcorr.gamma import linear_frames
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    frames = simulate("camera", num_frames=1, height=24, width=32, latency_us=3000.0, seed=0).frames("delayed")
+    encoded = linear_frames(frames, 1 / 2.2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the stream's own notes; the estimate is what is checked
+        expected = StreamingLatencyCorrector(num_bins=100)(frames)
+        out = StreamingLatencyCorrector(num_bins=100, frame_gamma=2.2)(encoded)
+    torch.testing.assert_close(out.latency, expected.latency, rtol=1e-4, atol=1.0)
+    assert torch.equal(out.blurry, encoded.blurry)
