@@ -19,6 +19,13 @@ from evlatcorr.pages import prefer_fast_memory  # noqa: E402
 prefer_fast_memory()
 
 
+def shared_recording(name: str) -> Path:
+    """A shared DAVIS346 recording: ``../shared`` beside the checkout, else ``/work/shared`` (it may not exist)."""
+    shared = next((p for p in (Path(__file__).resolve().parents[2] / "shared", Path("/work/shared"))
+                   if (p / "data").is_dir()), Path("../shared"))
+    return shared / "data" / "davis346" / name
+
+
 def passive_openmp() -> None:
     """Let idle OpenMP threads sleep (``OMP_WAIT_POLICY=PASSIVE`` unless set): call before torch loads.
 

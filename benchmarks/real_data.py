@@ -41,8 +41,7 @@ from evlatcorr.io import open_recording  # noqa: E402
 from evlatcorr.restore import build_model, has_events, pair_frames, pair_reach_us, recording_threshold  # noqa: E402
 from evlatcorr.temporal import frame_evidence, fuse_latencies  # noqa: E402
 
-DEFAULT = next((p for p in (Path(__file__).resolve().parents[2] / "shared", Path("/work/shared"))
-                if (p / "data").is_dir()), Path("../shared")) / "data" / "davis346" / "cradle_lowlight.aedat4"
+DEFAULT = _setup.shared_recording("cradle_lowlight.aedat4")
 MOVING_EVENTS = 5000  # a frame "moves" when its exposure holds at least this many events
 
 

@@ -39,7 +39,7 @@ def linear_frames(batch: EventFrames, gamma: float) -> EventFrames:
         >>> linear_frames(batch, 2.0).blurry.flatten().tolist()
         [0.25, 1.0]
     """
-    if gamma == 1:
+    if check_frame_gamma(gamma) == 1:
         return batch
     images = ("blurry", "blurry_next", "sharp", "target_frames")
     changes = {name: getattr(batch, name).clamp(0, 1) ** gamma for name in images if getattr(batch, name) is not None}
@@ -55,4 +55,4 @@ def display_image(image: Tensor, gamma: float) -> Tensor:
         >>> display_image(torch.tensor([0.25, 1.0]), 2.0).tolist()
         [0.5, 1.0]
     """
-    return image if gamma == 1 else image.clamp(0, 1) ** (1 / gamma)
+    return image if check_frame_gamma(gamma) == 1 else image.clamp(0, 1) ** (1 / gamma)

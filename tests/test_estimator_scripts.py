@@ -281,3 +281,24 @@ def test_display_gamma_estimators_encode_the_frames_and_frame_gamma_undoes_it(mo
     monkeypatch.setenv("EVLATCORR_DISPLAY_GAMMA", "0")
     with pytest.raises(ValueError, match="frame_gamma must be a finite number > 0"):
         load_estimator(f"{script}:encoded")(delayed)
+
+
+def test_display_gamma_recording_script_moves_the_estimate_and_frame_gamma_takes_it_back(tmp_path):
+    import sys
+    from pathlib import Path
+
+    from tests.conftest import shared_data_dir
+
+    recording = shared_data_dir() / "davis346" / "cradle_lowlight.aedat4"
+    if not recording.is_file():
+        pytest.skip("shared DAVIS346 data absent")
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from display_gamma_recording import main
+
+    results = main([str(recording), "--min-events", "40000"])  # its busiest frames
+    as_read, encoded, given = (results[k] for k in ("as read", "encoded", "encoded, frame_gamma=2.2"))
+    assert len(as_read) > 0
+    assert given == pytest.approx(as_read, abs=1.0)  # µs: the encoded frames made linear again
+    assert encoded != pytest.approx(as_read, abs=1.0)
+    with pytest.raises(SystemExit):
+        main([str(recording), "--gamma", "0"])
