@@ -3,13 +3,14 @@ them, and linear images encoded back."""
 
 from __future__ import annotations
 
+import argparse
 import math
 
 from torch import Tensor
 
 from evlatcorr.frames import EventFrames
 
-__all__ = ["check_frame_gamma", "linear_frames", "display_image"]
+__all__ = ["check_frame_gamma", "frame_gamma_argument", "linear_frames", "display_image"]
 
 
 def check_frame_gamma(gamma: object) -> float:
@@ -23,6 +24,19 @@ def check_frame_gamma(gamma: object) -> float:
         raise ValueError(f"frame_gamma must be a finite number > 0 (1: frames kept as read, 2.2: display-encoded "
                          f"frames made linear), got {gamma!r}")
     return float(gamma)
+
+
+def frame_gamma_argument(text: str) -> float:
+    """``--frame-gamma`` on a command line: the number, refused by argparse unless finite and positive.
+
+    Example:
+        >>> frame_gamma_argument("2.2")
+        2.2
+    """
+    try:
+        return check_frame_gamma(float(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}") from None
 
 
 def linear_frames(batch: EventFrames, gamma: float) -> EventFrames:

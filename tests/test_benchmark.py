@@ -58,6 +58,34 @@ def test_edi_rows_on_a_lightning_test_loop(recwarn):
     assert not [w for w in recwarn if "transfer_batch_to_device" in str(w.message)]
 
 
+class _FrameRecorder(torch.nn.Module):
+    """A stand-in network that restores nothing: it returns the blurry frame it was given, and keeps it."""
+
+    def forward(self, batch):
+        self.seen = batch.blurry
+        return batch.with_outputs(output=batch.blurry)
+
+
+def test_rows_are_scored_as_the_file_encoded_its_frames():
+    # a scene read with frame_gamma 2.2 holds linear frames: a network reads them encoded back, EDI reads them
+    # linear, and both are scored against the sharp frame encoded back
+    from evlatcorr.benchmark.loop import _run
+
+    frames = scene(0).frames_ideal
+    network, edi = Method("net", _FrameRecorder(), "deblur"), Method("EDI", EDIAdapter(num_bins=50), "deblur")
+    assert (network.linear, edi.linear) == (False, True)
+    restored, target = _run(network, frames, 2.2)
+    torch.testing.assert_close(network.model.seen, frames.blurry.clamp(0, 1) ** (1 / 2.2))
+    torch.testing.assert_close(restored, frames.blurry.clamp(0, 1) ** (1 / 2.2))
+    torch.testing.assert_close(target, frames.sharp.clamp(0, 1) ** (1 / 2.2))
+    plain, _ = _run(edi, frames)
+    encoded, target = _run(edi, frames, 2.2)
+    torch.testing.assert_close(encoded, plain ** (1 / 2.2))
+    torch.testing.assert_close(target, frames.sharp.clamp(0, 1) ** (1 / 2.2))
+    restored, target = _run(network, frames)  # linear files: as before
+    assert torch.equal(restored, frames.blurry.clamp(0, 1)) and torch.equal(target, frames.sharp)
+
+
 def test_pairs_corrected_with_the_true_latency_give_refid_the_ideal_input():
     # REFID's voxel grid starts half a sharp-frame interval before the exposure, where the ideal pairs
     # have no events: corrected events moved there would give it an input the ideal events never do

@@ -71,6 +71,8 @@ def test_ddp_on_two_cpu_processes_gives_the_same_table(tmp_path):
     (["--latency-us", "-5"], "--latency-us must be between 0 and 1000000 us, got -5.0"),
     (["--device", "tpu"], "--device must be cpu or cuda, got 'tpu'"),
     (["--data", "/no/such/recording"], "--data /no/such/recording: no such file or directory"),
+    (["--frame-gamma", "0"], "argument --frame-gamma: must be a finite number > 0, got '0'"),
+    (["--frame-gamma", "2.2"], "--frame-gamma is for --data recordings whose frames are encoded for display"),
 ] + ([] if torch.cuda.is_available() else
      [(["--device", "cuda"], "--device cuda: CUDA is not available on this machine")]))
 def test_bad_options_are_refused_before_any_scene(argv, message, capsys, tmp_path):

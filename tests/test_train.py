@@ -489,7 +489,7 @@ def test_cli_data_refid_trains_on_pairs(recording, tmp_path):
     (["--model", "unet"], "invalid choice: 'unet'"),
     (["--events", "delayed"], "--events choose simulated data"),
     (["--threshold", "-1"], "positive number or 'auto'"),
-    (["--frame-gamma", "0"], "--frame-gamma must be a finite number > 0"),
+    (["--frame-gamma", "0"], "argument --frame-gamma: must be a finite number > 0"),
 ])
 def test_cli_data_bad_input_exits_2_with_one_line(recording, tmp_path, capsys, extra, match):
     with pytest.raises(SystemExit) as exc:

@@ -8,6 +8,7 @@ from typing import Any
 import torch
 
 from evlatcorr.benchmark.loop import CONST, BenchmarkScene
+from evlatcorr.gamma import display_image
 
 __all__ = ["Figures", "sharpest_window"]
 
@@ -39,7 +40,8 @@ class Figures:
         for ax in axes.flat:
             ax.axis("off")
         for row, method in zip(axes, methods):
-            panels = [("blurry input", scene.frames_ideal.blurry[0]), ("ground truth", targets[method][0])]
+            blurry = display_image(scene.frames_ideal.blurry[0], scene.frame_gamma)  # as the file has it
+            panels = [("blurry input", blurry), ("ground truth", targets[method][0])]
             panels += [(name, restored[(method, name)][0]) for name in inputs if (method, name) in restored]
             for ax, (title, image) in zip(row, panels):
                 ax.imshow(image[crop].permute(1, 2, 0).clamp(0, 1).numpy(), interpolation="nearest")

@@ -22,8 +22,10 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset, Subset
 
+from evlatcorr.adapters.edi import EDIAdapter
 from evlatcorr.benchmark.metrics import ImageQuality, LatencyError
 from evlatcorr.frames import EventFrames
+from evlatcorr.gamma import display_image, linear_frames
 
 __all__ = [
     "INPUTS",
@@ -53,6 +55,9 @@ class BenchmarkScene:
         true_latency: (F, 1, H, W) µs.
         events_before_us: how long before the first exposure the pairs' events begin (ideal and
             delayed alike); corrected pairs are cut to the same window in corrected time.
+        frame_gamma: how the source file encoded its frames (``linear ** (1 / gamma)``; 1: linear). The scene's
+            frames are held linear, as EDI and the correctors need them; a network reads them, and every row is
+            scored, encoded back as in the file.
     """
 
     name: str
@@ -63,6 +68,7 @@ class BenchmarkScene:
     true_latency: Tensor
     extra: dict[str, Any] = field(default_factory=dict)
     events_before_us: float = 0.0
+    frame_gamma: float = 1.0
 
     def to(self, device: torch.device | str, non_blocking: bool = False) -> BenchmarkScene:
         """Move every batch and the true latency to ``device`` (Lightning's default batch transfer calls this)."""
@@ -71,16 +77,25 @@ class BenchmarkScene:
 
         return BenchmarkScene(self.name, move(self.frames_ideal), move(self.frames_delayed), move(self.pairs_ideal),
                               move(self.pairs_delayed), self.true_latency.to(device, non_blocking=non_blocking),
-                              self.extra, self.events_before_us)
+                              self.extra, self.events_before_us, self.frame_gamma)
 
 
 @dataclass
 class Method:
-    """A row group of the table: a model and the task it solves (``"deblur"`` or ``"interpolation"``)."""
+    """A row group of the table: a model and the task it solves (``"deblur"`` or ``"interpolation"``).
+
+    ``linear``: the model reads and writes linear intensity (EDI; the default for an
+    :class:`~evlatcorr.adapters.edi.EDIAdapter`), where a network reads frames as its dataset encoded them.
+    """
 
     name: str
     model: nn.Module
     task: str
+    linear: bool | None = None
+
+    def __post_init__(self) -> None:
+        if self.linear is None:
+            self.linear = isinstance(self.model, EDIAdapter)
 
 
 def pair_with_latency(pairs: EventFrames, latency_first: Tensor, latency_second: Tensor,
@@ -189,7 +204,7 @@ class BenchmarkModule(L.LightningModule):
                     continue
                 try:
                     with self._stage(f"{method.name} forward"):
-                        restored, target = _run(method, batch)
+                        restored, target = _run(method, batch, scene.frame_gamma)
                 except torch.cuda.OutOfMemoryError as exc:  # keep the other rows
                     self.failures[method.name] = f"out of GPU memory ({exc})"
                     torch.cuda.empty_cache()
@@ -222,7 +237,15 @@ def _key(a: str, b: str) -> str:
     return f"{a}|{b}".replace(".", "_")
 
 
-def _run(method: Method, batch: EventFrames) -> tuple[Tensor, Tensor]:
+def _run(method: Method, batch: EventFrames, frame_gamma: float = 1.0) -> tuple[Tensor, Tensor]:
+    """The method's restored frames and their targets, both encoded as the scene's file had its frames."""
+    if method.linear:
+        restored, target = _restore(method, batch)
+        return display_image(restored, frame_gamma), display_image(target, frame_gamma)
+    return _restore(method, linear_frames(batch, 1 / frame_gamma))  # a network reads the file's encoding
+
+
+def _restore(method: Method, batch: EventFrames) -> tuple[Tensor, Tensor]:
     with torch.no_grad():
         out = method.model(batch)
     restored = out.output

@@ -71,7 +71,7 @@ def _center_crop(frames: EventFrames, multiple: int) -> EventFrames:
 
 def scenes_from_recording(path: str | Path, *, latency: str = "constant", latency_us: float = 4000.0,
                           frames_per_scene: int = 4, max_scenes: int | None = None,
-                          multiple: int = 16) -> Iterator[BenchmarkScene]:
+                          multiple: int = 16, frame_gamma: float = 1.0) -> Iterator[BenchmarkScene]:
     """Benchmark scenes from a recording with sharp frames, one per segment (sequence).
 
     Args:
@@ -82,6 +82,10 @@ def scenes_from_recording(path: str | Path, *, latency: str = "constant", latenc
         frames_per_scene: frames with a sharp frame taken from each segment.
         max_scenes: stop after this many scenes.
         multiple: frames are centre-cropped to multiples of this (the networks' divisor).
+        frame_gamma: the recording's frames are encoded for display as ``linear ** (1 / frame_gamma)`` (2.2: sRGB,
+            PNG or video frames; 1: linear, as a DAVIS's raw frames are). The scenes hold them linear, as EDI, the
+            correctors and the intensity-dependent latency need them, and carry the value so that the networks
+            read, and every row is scored on, the frames as the file has them.
 
     Yields:
         :class:`BenchmarkScene` with ``pairs_ideal = pairs_delayed = None`` (no ground truth between
@@ -98,7 +102,7 @@ def scenes_from_recording(path: str | Path, *, latency: str = "constant", latenc
     if latency not in ("constant", "intensity"):
         raise ValueError(f"latency must be 'constant' or 'intensity', got {latency!r}")
     before = float(latency_us) if latency == "constant" else LATENCY_RANGE_US[1]
-    rec = open_recording(path, before_us=before)
+    rec = open_recording(path, before_us=before, frame_gamma=frame_gamma)
     names = rec.segment_names or [Path(path).stem]
     taken: dict[int, list[EventFrames]] = {}
     for batch in rec:
@@ -125,4 +129,4 @@ def scenes_from_recording(path: str | Path, *, latency: str = "constant", latenc
             true_latency = intensity_latency(frames.blurry)
         delayed = delay_events(frames, true_latency)
         name = names[segment] if segment < len(names) else f"{Path(path).stem}_{segment}"
-        yield BenchmarkScene(name, ideal, delayed, None, None, true_latency)
+        yield BenchmarkScene(name, ideal, delayed, None, None, true_latency, frame_gamma=rec.frame_gamma)

@@ -63,6 +63,10 @@ def data_sources(args: argparse.Namespace) -> list[Any]:
     candidates = sorted(path.glob("*.h5")) if path.is_dir() else [path]
     sequence_files = [f for f in candidates if is_sequence_file(f)]
     if sequence_files:
+        if args.frame_gamma != 1:
+            raise SystemExit(f"run.py: error: --frame-gamma {args.frame_gamma:g}: {path} holds our HDF5 sequences, "
+                             "whose frames are linear; the option is for recordings whose frames are encoded for "
+                             "display")
         skipped = sorted(set(candidates) - set(sequence_files))
         if skipped:
             print(f"skipping {len(skipped)} .h5 files that hold no simulated sequence: "
@@ -70,7 +74,8 @@ def data_sources(args: argparse.Namespace) -> list[Any]:
         return [(f, i) for f in sequence_files for i in range(num_sequences(f))][:args.scenes]
     try:
         scenes = list(scenes_from_recording(path, latency=args.latency_model, latency_us=args.latency_us,
-                                            frames_per_scene=args.frames_per_scene, max_scenes=args.scenes))
+                                            frames_per_scene=args.frames_per_scene, max_scenes=args.scenes,
+                                            frame_gamma=args.frame_gamma))
     except (OSError, ValueError) as exc:
         raise SystemExit(f"run.py: error: cannot read {path}: {exc}") from exc
     print(f"{path}: {len(scenes)} scenes of up to {args.frames_per_scene} frames with sharp ground truth; "

@@ -45,6 +45,7 @@ from evlatcorr.benchmark.scenes import prepare_data, scene_from_sequence
 from evlatcorr.benchmark.table import format_table
 from evlatcorr.cli.common import parse_cpu_or_cuda
 from evlatcorr.correction import EventLatencyCorrector
+from evlatcorr.gamma import frame_gamma_argument
 from evlatcorr.io import read_sequence
 from evlatcorr.simulate import PHOTOGRAPHS_TEST
 from evlatcorr.simulation.latency import MAX_LATENCY_US
@@ -66,6 +67,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--data", type=Path, help="our HDF5 sequence file(s) (a file or a folder), or a recording with "
                    "sharp frames in any format evlatcorr.io reads (HighREV folder, event_utils HDF5, ...) into "
                    "which the latency is injected (default: the simulated test set)")
+    p.add_argument("--frame-gamma", type=frame_gamma_argument, default=1.0, metavar="G",
+                   help="a --data recording whose frames are encoded for display (2.2: PNG or video frames, sRGB): "
+                   "EDI and the correctors read them raised to G, linear as they need them, while the networks "
+                   "read, and every row is scored on, the frames as the file has them (default 1: linear, as a "
+                   "DAVIS's raw frames are)")
     p.add_argument("--frames-per-scene", type=int, default=4, help="frames taken from each sequence of a --data "
                    "recording")
     p.add_argument("--ckpt", action="append", default=[], metavar="NAME=PATH",
@@ -100,6 +106,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--scenes must be >= 1")
     if args.frames_per_scene < 1:
         p.error("--frames-per-scene must be >= 1")
+    if args.data is None and args.frame_gamma != 1:
+        p.error("--frame-gamma is for --data recordings whose frames are encoded for display; the simulated test set "
+                "is linear")
     if args.data is not None and not args.data.exists():
         p.error(f"--data {args.data}: no such file or directory")
     if not 0.0 <= args.latency_us <= MAX_LATENCY_US:  # before any scene is simulated (the simulator refuses it too)
@@ -241,6 +250,9 @@ def _markdown(args: argparse.Namespace, results: dict[str, Any], files: list[Any
         h, w = files[0].frames_ideal.sensor_size
         data = (f"{args.data}: {read} sequences ({w}x{h} centre crop, up to {args.frames_per_scene} frames each), "
                 f"latency {truth} injected into the recorded events")
+        if args.frame_gamma != 1:
+            data += (f"; frames encoded for display, read linear with frame_gamma {args.frame_gamma:g} by EDI and "
+                     "the correctors, as in the file by the networks and the metrics")
     else:
         data = f"{args.data}: {read} simulated sequences"
     header = f"{data}; EDI {args.num_bins} bins; LPIPS {'AlexNet' if lpips_why is None else 'n/a: ' + lpips_why}"

@@ -6,6 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
+from evlatcorr.gamma import frame_gamma_argument
 from evlatcorr.restore import INTERPOLATION_MODELS, MODELS
 from evlatcorr.temporal import DEFAULT_FUSED_FRAMES
 
@@ -37,14 +38,6 @@ def _positive_us(text: str) -> float:
     value = _finite_us(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be a positive number of us, got {text!r}")
-    return value
-
-
-def _frame_gamma(text: str) -> float:
-    """A finite, positive exponent."""
-    value = _float_or_nan(text)
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
     return value
 
 
@@ -175,7 +168,7 @@ def _common_options(p: argparse.ArgumentParser) -> None:
                         "reads 0 to the exposure time as trained (default: 0 to the exposure time)")
     p.add_argument("--exposure-us", type=_positive_us,
                    help=_EXPOSURE_HELP)
-    p.add_argument("--frame-gamma", type=_frame_gamma, default=1.0, metavar="G",
+    p.add_argument("--frame-gamma", type=frame_gamma_argument, default=1.0, metavar="G",
                    help="raise the frames to G as they are read: EDI needs linear intensity, as a DAVIS's raw "
                         "frames are (default 1: kept as they are); 2.2 for frames encoded for display (PNG or "
                         "video frames, sRGB); a network still reads them, and PNGs are written, as the file has them")

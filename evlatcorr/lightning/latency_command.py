@@ -9,6 +9,7 @@ from typing import Any
 import lightning as L
 
 from evlatcorr.frames import EventFrames
+from evlatcorr.gamma import frame_gamma_argument
 from evlatcorr.lightning.arguments import exit_bad_input, parse_devices, trainer_or_exit
 from evlatcorr.lightning.data import EventFramesDataModule
 from evlatcorr.lightning.latency import LatencyCorrectionModule
@@ -65,7 +66,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threshold", default="auto", help="--data: contrast threshold, or 'auto' (default): one θ "
                                                        "for the recording")
     p.add_argument("--val-every", type=int, default=5, help="--data: every N-th frame is held out (0: none)")
-    p.add_argument("--frame-gamma", type=float, default=1.0, metavar="G",
+    p.add_argument("--frame-gamma", type=frame_gamma_argument, default=1.0, metavar="G",
                    help="--data: raise the frames to G as they are read (default 1; 2.2 for frames encoded for "
                         "display), as the curve will read them (evlatcorr --frame-gamma)")
     p.add_argument("--max-steps", type=int, default=-1, help="stop after this many steps (default: --epochs only)")

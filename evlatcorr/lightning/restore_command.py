@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 import warnings
 from pathlib import Path
@@ -20,6 +19,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from torch import Tensor, nn
 
 from evlatcorr.frames import EventFrames
+from evlatcorr.gamma import frame_gamma_argument
 from evlatcorr.lightning.arguments import exit_bad_input, parse_devices, threshold_argument, trainer_or_exit
 from evlatcorr.lightning.export import export_network
 from evlatcorr.lightning.networks import MODELS, build_adapter, checkpoint_name
@@ -86,7 +86,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--data: every K-th usable frame (pair for REFID) is held out for validation, at least one "
                         "(0: none)")
     p.add_argument("--max-frames", type=int, default=None, help="--data: read at most this many frames")
-    p.add_argument("--frame-gamma", type=float, default=1.0, metavar="G",
+    p.add_argument("--frame-gamma", type=frame_gamma_argument, default=1.0, metavar="G",
                    help="--data with --finetune: the corrector reads the frames raised to G (2.2 for frames encoded "
                         "for display: made linear, as EDI needs them), the network as the file has them (default 1)")
     p.add_argument("--events", choices=("ideal", "delayed", "mixed"), default=None,
@@ -144,8 +144,6 @@ def check(args: argparse.Namespace, p: argparse.ArgumentParser) -> None:
         p.error("--freeze-network needs --finetune spatial (otherwise nothing is trained)")
     if args.curve is not None and args.finetune != "spatial":
         p.error("--curve needs --finetune spatial (the polynomial it starts)")
-    if not (math.isfinite(args.frame_gamma) and args.frame_gamma > 0):
-        p.error(f"--frame-gamma must be a finite number > 0, got {args.frame_gamma}")
 
 
 def _precision(args: argparse.Namespace) -> str:
