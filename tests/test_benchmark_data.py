@@ -41,25 +41,26 @@ def write_highrev_split(root: Path, sequences: dict[str, object], gamma: float =
                          polarity=(piece.p.numpy() > 0).astype(np.uint8)[:, None])
 
 
-@pytest.fixture(scope="module")
-def highrev(tmp_path_factory):
+def _highrev_folder(tmp_path_factory, gamma: float = 1.0) -> Path:
     root = tmp_path_factory.mktemp("highrev") / "val"
     seqs = {name: simulate(name, num_frames=2, height=36, width=52, exposure_us=20000.0,
                            frame_interval_us=25000.0, latency="none", seed=i)
             for i, name in enumerate(("camera", "rocket"))}
-    write_highrev_split(root, seqs)
+    write_highrev_split(root, seqs, gamma)
     return root
+
+
+@pytest.fixture(scope="module")
+def highrev(tmp_path_factory):
+    return _highrev_folder(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
 def highrev_encoded(tmp_path_factory):
     """The same scenes as ``highrev``, their PNGs encoded for display (gamma 2.2)."""
-    root = tmp_path_factory.mktemp("highrev_encoded") / "val"
-    seqs = {name: simulate(name, num_frames=2, height=36, width=52, exposure_us=20000.0,
-                           frame_interval_us=25000.0, latency="none", seed=i)
-            for i, name in enumerate(("camera", "rocket"))}
-    write_highrev_split(root, seqs, gamma=2.2)
-    return root
+    return _highrev_folder(tmp_path_factory, gamma=2.2)
+
+
 
 
 def test_delay_events_known_answer():
