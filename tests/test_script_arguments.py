@@ -22,6 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
     ("profile_search.py", ["--device", "tpu"], "--device must be cpu or cuda, got 'tpu'"),
     ("threshold.py", ["--frames", "1"], "--frames must be at least 2 (θ is estimated from pairs of frames), got 1"),
     ("threshold.py", ["--num", "0"], "--num must be at least 1, got 0"),
+    ("compare_accuracy.py", ["missing", "missing"], "missing: cannot read an accuracy run's results"),
 ])
 def test_bad_arguments_exit_2_with_one_line(script, args, message, tmp_path):
     run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args], capture_output=True, text=True,

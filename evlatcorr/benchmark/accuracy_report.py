@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from evlatcorr.benchmark.accuracy_cases import LATENCY_MODELS, SPLITS
+from evlatcorr.benchmark.accuracy_compare import comparison_markdown, paired_comparison
 
 __all__ = ["summarize", "warning_kinds", "to_markdown", "write_results"]
 
@@ -100,10 +101,11 @@ def summarize(results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         ideal events, whose right answer is 0), "mean_ideal_psnr_change_db", "p10_ideal_psnr_change_db",
         "worst_ideal_psnr_change_db", "ideal_losing_half_db" (the EDI PSNR change of the ideal events corrected by that
         estimate, and the cases where it loses more than 0.5 dB)}, ...], "spatial_vs_constant": [...], "spread_bands":
-        [...]}``;
+        [...], "paired": [[...], ...]}``;
         the second lists, for map cases evaluated by both ``"constant"`` and ``"spatial"``, their
         map errors and whether spatial's is lower; the third, the constant-latency cases in three bands of the
-        learned reader's spread (``latency_spread_us``) with their errors.
+        learned reader's spread (``latency_spread_us``) with their errors; the fourth, each estimator after the first
+        against the first, case by case (:func:`~evlatcorr.benchmark.accuracy_compare.paired_comparison`).
     """
     groups = []
     keys = sorted({(r["estimator"], r["split"]) for r in results}, key=lambda k: (k[0], SPLITS.index(k[1])))
@@ -125,7 +127,20 @@ def summarize(results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                                "map_error_spatial_us": s, "spatial_better": s < c,
                                "psnr_constant": rows["constant"]["psnr_corrected"],
                                "psnr_spatial": rows["spatial"]["psnr_corrected"]})
-    return {"groups": groups, "spatial_vs_constant": comparison, "spread_bands": _spread_bands(results, keys)}
+    return {"groups": groups, "spatial_vs_constant": comparison, "spread_bands": _spread_bands(results, keys),
+            "paired": _paired(results)}
+
+
+def _paired(results: Sequence[Mapping[str, Any]]) -> list[list[dict[str, Any]]]:
+    """Each estimator after the first (in the rows' order) against the first, where they share scored cases."""
+    estimators = list(dict.fromkeys(r["estimator"] for r in results))
+    paired = []
+    for other in estimators[1:]:
+        try:
+            paired.append(paired_comparison(results, estimators[0], other))
+        except ValueError:  # no case both scored: nothing to compare
+            continue
+    return paired
 
 
 def _spread_bands(results: Sequence[Mapping[str, Any]], keys: Sequence[tuple[str, str]]) -> list[dict[str, Any]]:
@@ -217,6 +232,8 @@ def to_markdown(results: Sequence[Mapping[str, Any]], summary: Mapping[str, Any]
             lines.append(f"| {b['estimator']} | {b['split']} | {b['band']} | {b['cases']} | "
                          f"{_num(b['spread_low_us'])}-{_num(b['spread_high_us'])} | {_num(b['median_abs_error_us'])} | "
                          f"{_num(b['worst_abs_error_us'])} | {b['over_2ms']} |")
+    for groups in summary.get("paired") or []:
+        lines += ["", comparison_markdown(groups).rstrip("\n")]
     lines += ["", "## Cases", "",
               "Error: estimate − true for constant latency, mean |map − true| for the intensity models. "
               "Recovery: (corr − uncorr) / (ideal − uncorr) of EDI PSNR (dB) against the sharp frame. "
