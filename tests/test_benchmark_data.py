@@ -170,3 +170,16 @@ def test_benchmark_skips_an_unreadable_sequence_file(tmp_path):
                              "--out", str(tmp_path / "out"))
     assert list(results["unreadable"]) == [f"{data / 'b.h5'}:0"]
     assert results["table"][0]["psnr"] == results["table"][0]["psnr"]  # a.h5 was still scored
+
+
+def test_frame_gamma_is_refused_for_our_linear_sequence_files(tmp_path):
+    import argparse
+
+    from evlatcorr.benchmark.scenes import data_sources
+
+    write_sequence(tmp_path / "a.h5", simulate("camera", num_frames=2, height=16, width=16, latency="none"))
+    args = argparse.Namespace(data=tmp_path / "a.h5", frame_gamma=2.2, scenes=None)
+    with pytest.raises(SystemExit, match="holds our HDF5 sequences, whose frames are linear"):
+        data_sources(args)
+    assert data_sources(argparse.Namespace(data=tmp_path / "a.h5", frame_gamma=1.0, scenes=None)) == [
+        (tmp_path / "a.h5", 0)]
