@@ -35,6 +35,12 @@ def test_bootstrap_interval_known_answers():
     assert low < 0.0 < high
     with pytest.raises(ValueError, match="level must lie in"):
         bootstrap_interval([1.0, 2.0], level=1.0)
+    # the median's interval: an outlier moves the mean's, barely the median's
+    skewed = [1.0, 1.0, 1.1, 0.9, 1.0, 1.05, 0.95, 50.0]
+    assert bootstrap_interval(skewed, statistic="median")[1] < 1.2 < bootstrap_interval(skewed)[1]
+    assert bootstrap_interval([2.0, math.nan, 2.0], statistic="median") == (2.0, 2.0)  # NaN left out
+    with pytest.raises(ValueError, match="statistic must be"):
+        bootstrap_interval([1.0, 2.0], statistic="mode")
 
 
 def test_paired_comparison_pairs_cases_and_counts_clear_changes():
@@ -79,7 +85,11 @@ def test_suite_report_compares_each_estimator_with_the_first(tmp_path):
     # not correcting loses what the true latency recovers
     assert every["mean_psnr_change_db"] == pytest.approx(results[1]["psnr_corrected"] - results[0]["psnr_corrected"])
     assert every["mean_psnr_change_db"] < -1.0 and every["losing"] == 1
-    assert "## none against truth, case by case" in to_markdown(results, summary)
+    report = to_markdown(results, summary)
+    assert "## none against truth, case by case" in report
+    # one case: its median has no interval (two are needed), and the report says nothing it cannot tell
+    assert all(math.isnan(v) for v in summary["groups"][0]["median_abs_error_interval_us"])
+    assert "## How sure the medians are" not in report
     # the run written and read back compares with itself, or another run, by case
     write_results(results, tmp_path / "run")
     rows = load_results(tmp_path / "run")
@@ -103,3 +113,23 @@ def test_load_results_refuses_what_is_not_a_run(tmp_path):
     (tmp_path / "other.json").write_text(json.dumps({"table": []}))
     with pytest.raises(ValueError, match="holds no accuracy-suite rows"):
         load_results(tmp_path / "other.json")
+
+
+def test_summary_gives_the_headline_medians_their_intervals():
+    # the fields the report's case table reads, as a run fills them
+    case = dict(no_gap=False, best_shift_us=0.0, true_latency_us=0.0, est_latency_us=0.0, latency_error_us=0.0,
+                time_s=0.1, noise_models="", psnr_ideal=31.0, psnr_uncorrected=25.0, psnr_best_shift=31.0)
+    rows = [row("a", f"c{i}", 30.0, error_us=100.0 * (i + 1), recovery=0.8 + 0.02 * i, best_shift_share=math.nan,
+                **case) for i in range(9)]
+    rows += [row("a", f"p{i}", 30.0, "intensity", recovery=math.nan, best_shift_share=0.7 + 0.05 * i, **case)
+             for i in range(5)]
+    groups = {g["latency_model"]: g for g in summarize(rows)["groups"]}
+    const = groups["constant"]
+    assert const["median_abs_error_us"] == 500.0
+    low, high = const["median_abs_error_interval_us"]
+    assert 100.0 <= low < 500.0 < high <= 900.0
+    low, high = groups["intensity"]["median_best_shift_share_interval"]
+    assert 0.7 <= low < 0.8 < high <= 0.9
+    report = to_markdown(rows)
+    assert "| a | dev | constant | 9 | median abs error | 500 µs (" in report
+    assert "| a | dev | intensity | 5 | median share of the best shift | 80% (" in report

@@ -24,9 +24,10 @@ __all__ = ["bootstrap_interval", "paired_comparison", "comparison_markdown", "lo
 CLEAR_CHANGE_DB = 0.5
 
 
-def bootstrap_interval(values: Sequence[float], level: float = 0.95, resamples: int = 4000,
-                       seed: int = 0) -> tuple[float, float]:
-    """The percentile bootstrap interval of the mean of ``values`` (cases drawn with replacement), seeded.
+def bootstrap_interval(values: Sequence[float], level: float = 0.95, resamples: int = 4000, seed: int = 0,
+                       statistic: str = "mean") -> tuple[float, float]:
+    """The percentile bootstrap interval of the mean (or ``statistic="median"``) of ``values``: the cases drawn with
+    replacement, seeded. NaN values are left out.
 
     Returns ``(nan, nan)`` for fewer than two values.
 
@@ -37,13 +38,16 @@ def bootstrap_interval(values: Sequence[float], level: float = 0.95, resamples: 
     """
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must lie in (0, 1), got {level}")
+    if statistic not in ("mean", "median"):
+        raise ValueError(f"statistic must be 'mean' or 'median', got {statistic!r}")
     data = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
     if data.size < 2:
         return math.nan, math.nan
     rng = np.random.default_rng(seed)
-    means = data[rng.integers(0, data.size, size=(resamples, data.size))].mean(axis=1)
+    samples = data[rng.integers(0, data.size, size=(resamples, data.size))]
+    values_of = samples.mean(axis=1) if statistic == "mean" else np.median(samples, axis=1)
     tail = (1.0 - level) / 2
-    return float(np.quantile(means, tail)), float(np.quantile(means, 1.0 - tail))
+    return float(np.quantile(values_of, tail)), float(np.quantile(values_of, 1.0 - tail))
 
 
 def _scored(row: Mapping[str, Any]) -> bool:

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from evlatcorr.benchmark.accuracy_cases import LATENCY_MODELS, SPLITS
-from evlatcorr.benchmark.accuracy_compare import comparison_markdown, paired_comparison
+from evlatcorr.benchmark.accuracy_compare import bootstrap_interval, comparison_markdown, paired_comparison
 
 __all__ = ["summarize", "warning_kinds", "to_markdown", "write_results"]
 
@@ -40,6 +40,7 @@ def _group_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     recovery = _finite(r["recovery"] for r in gap)
     ideal = _finite(r.get("ideal_estimate_us", math.nan) for r in rows)
     ideal_change = sorted(_finite(r.get("ideal_psnr_change_db", math.nan) for r in rows))
+    photo_share = [r["best_shift_share"] for r in photo]
     return {
         "cases": len(rows),
         "median_abs_error_us": _median(errors), "worst_abs_error_us": max(errors, default=math.nan),
@@ -61,7 +62,15 @@ def _group_stats(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "p10_ideal_psnr_change_db": ideal_change[len(ideal_change) // 10] if ideal_change else math.nan,
         "worst_ideal_psnr_change_db": ideal_change[0] if ideal_change else math.nan,
         "ideal_losing_half_db": sum(v < -0.5 for v in ideal_change),
+        # how far one case more or less could move the headline medians: their bootstrap 95 % intervals
+        "median_abs_error_interval_us": _median_interval(errors),
+        "median_recovery_interval": _median_interval(recovery),
+        "median_best_shift_share_interval": _median_interval(photo_share),
     }
+
+
+def _median_interval(values: Iterable[float]) -> tuple[float, float]:
+    return bootstrap_interval(_finite(values), statistic="median")
 
 
 def warning_kinds(results: Sequence[Mapping[str, Any]]) -> list[tuple[int, str]]:
@@ -178,6 +187,30 @@ def _num(v: float, digits: int = 0) -> str:
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
 
 
+def _interval_lines(groups: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The headline medians with their bootstrap 95 % intervals, per estimator, split and latency model."""
+    rows = []
+    for g in groups:
+        figures = {"constant": [("median abs error", g["median_abs_error_us"], g["median_abs_error_interval_us"],
+                                 "us"), ("median recovery", g["median_recovery"], g["median_recovery_interval"], "%")],
+                   "intensity_delay": [("median recovery", g["median_recovery"], g["median_recovery_interval"], "%")],
+                   "intensity": [("median share of the best shift", g["median_best_shift_share"],
+                                  g["median_best_shift_share_interval"], "%")]}.get(g["latency_model"], [])
+        for name, value, (low, high), unit in figures:
+            if value is None or math.isnan(value) or math.isnan(low):  # no interval from fewer than two cases
+                continue
+            text = (f"{_num(value)} µs ({_num(low)} to {_num(high)})" if unit == "us" else
+                    f"{_share(value)} ({_share(low)} to {_share(high)})")
+            rows.append(f"| {g['estimator']} | {g['split']} | {g['latency_model']} | {g['cases']} | {name} | {text} |")
+    if not rows:
+        return []
+    return ["", "## How sure the medians are", "",
+            "Bootstrap 95 % intervals (the cases resampled, seeded): how far the same estimator's median could "
+            "move on another draw of as many cases.", "",
+            "| estimator | split | latency model | cases | figure | median (95 % interval) |", "|" + " --- |" * 6,
+            *rows]
+
+
 def to_markdown(results: Sequence[Mapping[str, Any]], summary: Mapping[str, Any] | None = None) -> str:
     """Markdown tables: the summary per estimator / split / latency model, then one row per case and estimator."""
     summary = summary if summary is not None else summarize(results)
@@ -197,6 +230,7 @@ def to_markdown(results: Sequence[Mapping[str, Any]], summary: Mapping[str, Any]
                      f"{_share(g['worst_recovery'])} | {g['no_gap']} | "
                      f"{_share(share)} | "
                      f"{_num(g['median_time_s'], 2)} | {g['failed']} |")
+    lines += _interval_lines(summary["groups"])
     comparison = summary.get("spatial_vs_constant") or []
     if comparison:
         wins = sum(c["spatial_better"] for c in comparison)
