@@ -269,7 +269,8 @@ class EventLatencyCorrector(nn.Module):
     Args:
         mode: ``"constant"`` (one latency per frame) or ``"spatial"`` (a per-pixel map).
         threshold: contrast threshold θ of the events, or ``"auto"`` (see :func:`correct_constant_latency`;
-            for a recording the command line estimates one θ from its first frame pairs).
+            spatial mode estimates θ the same way, then fits with it; for a recording the command line estimates one
+            θ from its first frame pairs).
         num_bins: sub-intervals of the exposure used by EDI (paper: 500).
         search_range: ``(low, high)`` µs, finite, ``high > low``; default 0 to each frame's exposure time. A
             range inside that one bounds the estimate (the learned reader still reads its candidates over 0
@@ -354,8 +355,9 @@ class EventLatencyCorrector(nn.Module):
 
             if not (threshold == "auto" or (isinstance(threshold, (int, float)) and threshold > 0)):
                 raise ValueError(f"threshold must be a positive number or 'auto', got {threshold!r}")
-            self.spatial = SpatialLatencyCorrector(curve=curve, threshold=threshold, config=self.config,
-                                                   **spatial_kwargs)
+            # "auto": θ is estimated on each batch as constant mode does (forward), and handed to the fit
+            self.spatial = SpatialLatencyCorrector(curve=curve, threshold=0.2 if threshold == "auto" else threshold,
+                                                   config=self.config, **spatial_kwargs)
 
     # the settings, read through the config (one source of truth)
     num_bins = property(lambda self: self.config.num_bins)
@@ -372,13 +374,25 @@ class EventLatencyCorrector(nn.Module):
         if not isinstance(frames, EventFrames):
             raise ValueError(f"EventLatencyCorrector takes an EventFrames batch, got {type(frames).__name__}")
         if self.frame_gamma == 1:
-            return (self.spatial or self.constant)(frames)
+            return self._correct(frames)
         from evlatcorr.gamma import display_image, linear_frames
 
-        out = (self.spatial or self.constant)(linear_frames(frames, self.frame_gamma))
+        out = self._correct(linear_frames(frames, self.frame_gamma))
         latent = None if out.latent is None else display_image(out.latent, self.frame_gamma)
         return out.replace(blurry=frames.blurry, blurry_next=frames.blurry_next, sharp=frames.sharp,
                            target_frames=frames.target_frames, latent=latent)
+
+
+    def _correct(self, frames: EventFrames) -> EventFrames:
+        if self.constant is not None:
+            return self.constant(frames)
+        if self.threshold != "auto":
+            return self.spatial(frames)
+        # spatial mode with threshold="auto": θ as constant mode estimates it (one for pairs, else per frame), at
+        # the constant search's latency, then the fit with it
+        check_search_size(frames.sensor_size)
+        check_has_events(frames)
+        return self.spatial(frames, threshold=_auto_threshold(frames, self.config, None))
 
 
 def _warn_if_short(frames: EventFrames, config: SearchConfig) -> None:

@@ -382,7 +382,8 @@ class SpatialLatencyCorrector(nn.Module):
 
     Args:
         curve: path of a saved curve or Lightning checkpoint, or None.
-        threshold: contrast threshold θ.
+        threshold: contrast threshold θ (``forward(frames, threshold=...)`` overrides it for one call: a θ estimated
+            on those frames, as ``EventLatencyCorrector(mode="spatial", threshold="auto")`` does).
         config: the search settings (:class:`~evlatcorr.config.SearchConfig`): the output latent's EDI bins
             (``num_bins``), the latency range, and how the fit's constant starting point ``l_const`` is searched
             and scored; default ``SearchConfig()``.
@@ -421,11 +422,14 @@ class SpatialLatencyCorrector(nn.Module):
     def extra_repr(self) -> str:
         return f"curve={'trained' if self.model is not None else 'fit per batch'}, steps={self.steps}"
 
-    def forward(self, frames: EventFrames) -> EventFrames:
+    def forward(self, frames: EventFrames, threshold: float | Tensor | None = None) -> EventFrames:
         check_search_size(frames.sensor_size)
         check_has_events(frames)  # as the constant mode: no latency without events
         # the frames were checked when made, the settings in __init__: the work below checks nothing again
-        theta = torch.full((frames.batch_size,), self.threshold, dtype=torch.float64)
+        if threshold is None:
+            theta = torch.full((frames.batch_size,), self.threshold, dtype=torch.float64)
+        else:
+            theta = check_threshold(threshold, frames.batch_size).detach().to("cpu", torch.float64)
         fell_back = [False] * frames.batch_size
         if self.model is not None:  # the curve reads intensities: only a black or saturated frame has none to read
             blank = [kind if kind == "clipped" else None for kind in _blank_frames(frames, ("clipped",))]
@@ -445,6 +449,7 @@ class SpatialLatencyCorrector(nn.Module):
             latent = _edi_deblur(frames.blurry, corrected, frames.exposure_start, frames.exposure_end,
                                  _mid_exposure(frames), theta, None, self.config.num_bins)
         meta = dict(frames.meta)
+        meta["threshold"] = self.threshold if threshold is None else threshold
         meta["latency_curve"] = model.coefficients.detach().cpu()
         meta["latency_fallback"] = torch.tensor(skipped, dtype=torch.bool, device=frames.device)
         meta["latency_source"] = [c or ("fallback" if f else "fit" if self.model is None else "curve")

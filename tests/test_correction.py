@@ -351,6 +351,24 @@ def test_auto_threshold_warns_on_single_frames_and_not_on_pairs():
     assert float(torch.as_tensor(pairs.meta["threshold"]).reshape(-1)[0]) == pytest.approx(0.4, rel=0.3)
 
 
+def test_spatial_mode_estimates_the_threshold_as_constant_mode_does():
+    # threshold="auto" in spatial mode: θ as the constant corrector estimates it (per frame; one for pairs), then
+    # the fit with it, as a SpatialLatencyCorrector given that θ
+    seq = simulate("camera", num_frames=2, height=32, width=40, latency_us=3000.0, threshold=0.4, seed=0)
+    frames = seq.frames("delayed")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        constant = EventLatencyCorrector(threshold="auto", num_bins=100)(frames)
+        auto = EventLatencyCorrector(mode="spatial", threshold="auto", steps=3, num_bins=100)
+        spatial = auto(frames)
+        given = auto.spatial(frames, threshold=constant.meta["threshold"])
+        pairs = EventLatencyCorrector(mode="spatial", threshold="auto", steps=3, num_bins=100)(seq.pairs("delayed"))
+    torch.testing.assert_close(spatial.meta["threshold"], constant.meta["threshold"])
+    torch.testing.assert_close(spatial.latency, given.latency)
+    assert float(pairs.meta["threshold"]) == pytest.approx(0.4, rel=0.3)
+    assert "threshold=auto" in repr(auto)
+
+
 def test_a_black_or_saturated_frame_is_not_searched_and_is_named(monkeypatch):
     # a lens cap, or a flash: EDI's latents are as flat (black) or as made up from the events (saturated) at every
     # candidate; the reader used to pick any latency there (16.6 ms on a black 32x40 frame of 3 ms latency, no warning)

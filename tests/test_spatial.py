@@ -84,7 +84,9 @@ class TestPolynomialLatency:
         with pytest.raises(ValueError, match="order"):
             EventLatencyCorrector(mode="spatial", order=-2)
         with pytest.raises(ValueError, match="numeric threshold"):
-            EventLatencyCorrector(mode="spatial", threshold="auto")
+            SpatialLatencyCorrector(threshold="auto")
+        with pytest.raises(ValueError, match="threshold must be a positive number or 'auto'"):
+            EventLatencyCorrector(mode="spatial", threshold="guess")
         assert SpatialLatencyCorrector(steps=150).progress and not SpatialLatencyCorrector(steps=60).progress
 
     def test_search_settings_reach_the_spatial_mode(self):
