@@ -143,7 +143,8 @@ def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> Non
                    help="latency correction (default: none; --correct alone: constant)")
     p.add_argument("--curve", type=Path, help="trained latency curve checkpoint (--correct spatial)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty OUTDIR")
-    p.add_argument("--max-frames", type=int, help="only the first N frames (default: all)")
+    p.add_argument("--max-frames", type=int, help="only the first N frames (default: all); interpolate and REFID: "
+                   "the N pairs they start, each with the frame after it")
     _fuse_frames_option(p, "--correct constant", "the N frames before it too (frame by frame, as a stream",
                         "frames.csv")
     _common_options(p)
