@@ -372,6 +372,7 @@ def edi_deblur(
     start, end, ref = _exposure_times(events, exposure_start, exposure_end, num_bins, time)
     _check_latency(latency, events, integral)
     if isinstance(threshold, str):
+        _check_threshold_size(blurry)
         theta = _estimate_threshold(blurry, events, start, end, latency, num_bins)
     else:
         theta = check_threshold(threshold, events.batch_size)
@@ -469,10 +470,19 @@ def estimate_threshold(
     if not 0 < bounds[0] < bounds[1]:
         raise ValueError(f"bounds must satisfy 0 < low < high, got {bounds}")
     check_image(blurry, "blurry")
+    _check_threshold_size(blurry)
     _check_events_match(blurry, events)
     start, end, _ = _exposure_times(events, exposure_start, exposure_end, num_bins, None)
     _check_latency(latency, events, "step")
     return _estimate_threshold(blurry, events, start, end, latency, num_bins, bounds, iterations)
+
+
+def _check_threshold_size(blurry: Tensor) -> None:
+    """The θ estimate's 3x3 filters need frames of at least 2x2 pixels."""
+    height, width = blurry.shape[-2:]
+    if min(height, width) < 2:
+        raise ValueError(f"threshold='auto' needs frames of at least 2x2 pixels (its gradient filters reach a pixel "
+                         f"either side), got {height}x{width}; give a number")
 
 
 def _estimate_threshold(blurry: Tensor, events: Events, start: Tensor, end: Tensor, latency: Tensor | float | None,

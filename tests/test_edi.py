@@ -261,6 +261,13 @@ def test_estimate_threshold_bounds():
     assert theta.shape == (1,) and 0.02 <= float(theta) <= 1.0
     with pytest.raises(ValueError, match="bounds"):
         estimate_threshold(torch.rand(1, 1, 8, 8), ev, START, END, bounds=(1.0, 0.5))
+    # a frame one pixel high or wide: a clear refusal, where the filters failed inside kornia's padding
+    line = random_events(50, (1, 8), (0.0, 200.0))
+    with pytest.raises(ValueError, match="threshold='auto' needs frames of at least 2x2 pixels .*got 1x8"):
+        estimate_threshold(torch.rand(1, 1, 1, 8), line, START, END)
+    with pytest.raises(ValueError, match="at least 2x2 pixels"):
+        edi_deblur(torch.rand(1, 1, 1, 8), line, START, END, threshold="auto")
+    assert edi_deblur(torch.rand(1, 1, 1, 8), line, START, END, threshold=0.2).shape == (1, 1, 1, 8)
 
 
 def test_grid_reads_finish_at_any_threshold_as_edi_deblur_does():
