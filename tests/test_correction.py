@@ -6,6 +6,8 @@ import warnings
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from torch import nn
 
 from evlatcorr import EventFrames, EventLatencyCorrector, Events, correct_constant_latency
@@ -486,3 +488,36 @@ def test_a_stream_passes_frame_gamma_to_its_corrector():
         out = StreamingLatencyCorrector(num_bins=100, frame_gamma=2.2)(encoded)
     torch.testing.assert_close(out.latency, expected.latency, rtol=1e-4, atol=1.0)
     assert torch.equal(out.blurry, encoded.blurry)
+
+
+@settings(max_examples=20, deadline=None)
+@given(height=st.sampled_from([4, 5, 9]), width=st.sampled_from([4, 7, 12]), batch=st.integers(1, 2),
+       channels=st.sampled_from([1, 3]), num_events=st.sampled_from([1, 40, 600]),
+       exposure=st.sampled_from([500.0, 20000.0]), mode=st.sampled_from(["constant", "spatial"]),
+       threshold=st.sampled_from([0.2, "auto"]), frame_gamma=st.sampled_from([1.0, 2.2]), seed=st.integers(0, 99))
+def test_any_small_batch_gives_a_finite_map_in_range_or_a_clear_error(height, width, batch, channels, num_events,
+                                                                      exposure, mode, threshold, frame_gamma, seed):
+    # random frames and events, every option of the corrector that changes its path: a finite latency map inside
+    # the search range (0 to the exposure) and a finite latent, or a ValueError that says why (no events), never a
+    # failure from inside a library
+    g = torch.Generator().manual_seed(seed)
+    start = torch.arange(batch, dtype=torch.float64) * exposure * 1.5
+    sample = torch.randint(0, batch, (num_events,), generator=g)
+    t = start[sample] + torch.rand(num_events, generator=g, dtype=torch.float64) * 2 * exposure
+    events = Events(torch.randint(0, width, (num_events,), generator=g),
+                    torch.randint(0, height, (num_events,), generator=g), t,
+                    torch.randint(0, 2, (num_events,), generator=g), sample, sensor_size=(height, width),
+                    batch_size=batch, sort=True)
+    frames = EventFrames(torch.rand(batch, channels, height, width, generator=g), events, start, start + exposure)
+    kwargs = {"steps": 2} if mode == "spatial" else {}
+    corrector = EventLatencyCorrector(mode=mode, threshold=threshold, frame_gamma=frame_gamma, num_bins=40, **kwargs)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            out = corrector(frames)
+        except ValueError as exc:  # a sample without events in its window: nothing to estimate from
+            assert "no events" in str(exc)
+            return
+    assert out.latency.shape == (batch, 1, height, width)
+    assert bool(torch.isfinite(out.latency).all()) and bool(torch.isfinite(out.latent).all())
+    assert float(out.latency.min()) >= 0.0 and float(out.latency.max()) <= exposure + 1e-3
