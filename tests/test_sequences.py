@@ -64,6 +64,23 @@ def test_the_ideal_events_are_estimated_too_and_scored_by_what_correcting_them_c
     assert [(r["estimate"], r["frame"], r["latency_us"], r["psnr_corrected"]) for r in without] == key
 
 
+def test_fused_against_own_averages_frames_within_a_case_first():
+    from evlatcorr.benchmark.sequences import fused_against_own
+
+    rows = []
+    for case, changes in (("a", [3.0, 3.0, 3.0, 3.0]), ("b", [0.0]), ("c", [-0.6, -0.6])):
+        for frame, change in enumerate(changes):
+            rows += [dict(case=case, model="constant", frame=frame, estimate="per frame", psnr_corrected=30.0),
+                     dict(case=case, model="constant", frame=frame, estimate="fused", psnr_corrected=30.0 + change)]
+    rows.append(dict(case="d", model="constant", frame=0, estimate="fused", psnr_corrected=99.0))  # no own estimate
+    (group,) = fused_against_own(rows)
+    # case means 3, 0 and -0.6: their mean, not the frames' (which would weigh case a four times)
+    assert (group["cases"], group["frames"]) == (3, 7)
+    assert group["mean_psnr_change_db"] == pytest.approx(0.8)
+    assert (group["cases_gaining"], group["cases_losing"]) == (1, 1)
+    assert group["psnr_change_low_db"] <= 0.8 <= group["psnr_change_high_db"]
+
+
 def test_a_sequence_needs_at_least_one_frame():
     with pytest.raises(ValueError, match="num_frames"):
         evaluate_sequence(make_cases("dev")[0], num_frames=0)
@@ -89,6 +106,11 @@ def test_the_script_writes_its_table(tmp_path):
     rows = (tmp_path / "results.csv").read_text().splitlines()
     assert rows[0].startswith("case,model,frame,estimate") and len(rows) == 1 + 2 * 4 * 2  # and the ideal events'
     assert "| fused ±2 | 2 |" in table  # the ideal events' table
+    # each fused estimate against the frames' own, case by case (one case here: no interval)
+    paired = json.loads((tmp_path / "results.json").read_text())["fused_against_own"]
+    assert {(g["estimate"], g["model"], g["cases"], g["frames"]) for g in paired} >= {
+        ("fused ±2", "constant", 1, 2), ("fused ±2", IDEAL, 1, 2)}
+    assert "| fused ±2 | constant latency | 1 (2) |" in table and "(– to –)" in table
     bad = subprocess.run([*script[:-2], "--frames", "0"], capture_output=True, text=True, cwd=root, timeout=300)
     assert bad.returncode == 2 and "--frames must be at least 1" in bad.stderr
     bad = subprocess.run([*script[:-2], "--no-latency-mass", "1"], capture_output=True, text=True, cwd=root,

@@ -25,10 +25,11 @@ import numpy as np
 import torch
 
 from evlatcorr.benchmark.accuracy import NO_GAP_DB, Case, simulate_case
+from evlatcorr.benchmark.accuracy_compare import CLEAR_CHANGE_DB, bootstrap_interval
 from evlatcorr.benchmark.compare import edi_psnr, recovery
 from evlatcorr.temporal import frame_evidence, fuse_latencies
 
-__all__ = ["evaluate_sequence", "summarize_sequences", "DEFAULT_WINDOWS", "IDEAL"]
+__all__ = ["evaluate_sequence", "summarize_sequences", "fused_against_own", "DEFAULT_WINDOWS", "IDEAL"]
 
 # the fused estimates scored: (frames before, frames after)
 DEFAULT_WINDOWS = {"fused ±2": (2, 2), "fused, past 2 (stream)": (2, 0)}
@@ -142,3 +143,43 @@ def summarize_sequences(rows: list[dict[str, Any]]) -> dict[str, dict[str, dict[
                              losing_frames=sum(c < -LOSING_DB for c in changes))
             out[estimate][model] = stats
     return out
+
+
+def fused_against_own(rows: list[dict[str, Any]], seed: int = 0) -> list[dict[str, Any]]:
+    """Each fused estimate against every frame's own (``"per frame"``), case by case: does fusing help, beyond what
+    the cases can tell?
+
+    A case's frames share its scene, motion and latency, so they are not independent draws: the EDI PSNR change
+    (fused − own) is averaged over each case's frames, and the cases' means over the cases, with a seeded bootstrap
+    95 % interval that resamples cases.
+
+    Returns:
+        one dict per fused estimate and latency model (the ideal events' rows too, as :data:`IDEAL`): ``estimate``,
+        ``model``, ``cases``, ``frames``, ``mean_psnr_change_db``, ``psnr_change_low_db``, ``psnr_change_high_db``,
+        and ``cases_gaining`` / ``cases_losing`` (a case's mean moving more than 0.5 dB).
+
+    Example:
+        >>> rows = [dict(case=c, model="constant", frame=f, estimate=e, psnr_corrected=30.0 + (e != "per frame"))
+        ...         for c in ("a", "b") for f in range(3) for e in ("per frame", "fused ±2")]
+        >>> [(g["cases"], g["frames"], g["mean_psnr_change_db"]) for g in fused_against_own(rows)]
+        [(2, 6, 1.0)]
+    """
+    own = {(r["case"], r["model"], r["frame"]): r["psnr_corrected"] for r in rows if r["estimate"] == "per frame"}
+    groups = []
+    for estimate in dict.fromkeys(r["estimate"] for r in rows if r["estimate"] != "per frame"):
+        for model in dict.fromkeys(r["model"] for r in rows):
+            per_case: dict[str, list[float]] = {}
+            for r in rows:
+                key = (r["case"], r["model"], r["frame"])
+                if r["estimate"] == estimate and r["model"] == model and key in own:
+                    per_case.setdefault(r["case"], []).append(r["psnr_corrected"] - own[key])
+            if not per_case:
+                continue
+            means = [statistics.fmean(changes) for changes in per_case.values()]
+            low, high = bootstrap_interval(means, seed=seed)
+            groups.append({"estimate": estimate, "model": model, "cases": len(means),
+                           "frames": sum(len(changes) for changes in per_case.values()),
+                           "mean_psnr_change_db": statistics.fmean(means), "psnr_change_low_db": low,
+                           "psnr_change_high_db": high, "cases_gaining": sum(m > CLEAR_CHANGE_DB for m in means),
+                           "cases_losing": sum(m < -CLEAR_CHANGE_DB for m in means)})
+    return groups
