@@ -382,7 +382,6 @@ class EventLatencyCorrector(nn.Module):
         return out.replace(blurry=frames.blurry, blurry_next=frames.blurry_next, sharp=frames.sharp,
                            target_frames=frames.target_frames, latent=latent)
 
-
     def _correct(self, frames: EventFrames) -> EventFrames:
         if self.constant is not None:
             return self.constant(frames)
