@@ -109,7 +109,9 @@ def summarize(results: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "median_ideal_estimate_us", "worst_ideal_estimate_us", "ideal_within_150us", "ideal_cases" (the estimates on
         ideal events, whose right answer is 0), "mean_ideal_psnr_change_db", "p10_ideal_psnr_change_db",
         "worst_ideal_psnr_change_db", "ideal_losing_half_db" (the EDI PSNR change of the ideal events corrected by that
-        estimate, and the cases where it loses more than 0.5 dB)}, ...], "spatial_vs_constant": [...], "spread_bands":
+        estimate, and the cases where it loses more than 0.5 dB), "median_abs_error_interval_us",
+        "median_recovery_interval", "median_best_shift_share_interval" (the medians' bootstrap 95 % intervals, ``(low,
+        high)``, NaN from fewer than two cases)}, ...], "spatial_vs_constant": [...], "spread_bands":
         [...], "paired": [[...], ...]}``;
         the second lists, for map cases evaluated by both ``"constant"`` and ``"spatial"``, their
         map errors and whether spatial's is lower; the third, the constant-latency cases in three bands of the
