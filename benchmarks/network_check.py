@@ -20,9 +20,16 @@ _setup.passive_openmp()
 
 import argparse  # noqa: E402
 import time  # noqa: E402
+import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from evlatcorr.benchmark.accuracy import LATENCY_MODELS, corrector_estimator, load_estimator, make_cases  # noqa: E402
+from evlatcorr.benchmark.accuracy import (  # noqa: E402
+    LATENCY_MODELS,
+    corrector_estimator,
+    load_estimator,
+    make_cases,
+    warning_kinds,
+)
 from evlatcorr.benchmark.network_check import check_case, checks_to_markdown  # noqa: E402
 from evlatcorr.restore import build_model  # noqa: E402
 
@@ -51,12 +58,16 @@ def main(argv: list[str] | None = None) -> None:
             name += "'"
         extra[name] = fn
     network = build_model(args.network)
-    rows, skipped = [], []
+    rows, skipped, raised = [], [], []
     t0 = time.perf_counter()
     for i, case in enumerate(cases, 1):
         estimators = {"constant": corrector_estimator("constant", case.threshold), **extra}
         try:
-            rows.append(check_case(case, estimators, network))
+            # the estimators' warnings, counted by kind at the end: one per case would bury the progress lines
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                rows.append(check_case(case, estimators, network))
+            raised.append({"warnings": [str(w.message) for w in caught]})
         except ValueError as err:  # e.g. a case with no events in its window: nothing to estimate
             skipped.append(case.name)
             print(f"[{i}/{len(cases)}] {case.name}: skipped ({err})", flush=True)
@@ -65,9 +76,11 @@ def main(argv: list[str] | None = None) -> None:
         print(f"[{i}/{len(cases)}] {case.name}: {args.network} PSNR ideal {r['psnr_ideal']:.2f} delayed "
               f"{r['psnr_delayed']:.2f}; " + ", ".join(f"{n} {e['latency_us']:.0f} us {e['psnr']:.2f}"
                                                       for n, e in r["estimators"].items()), flush=True)
+    kinds = "".join(f"- {count} of {len(raised)} cases: \"{message}\"\n" for count, message in warning_kinds(raised))
     text = (f"# {args.network} recovery with corrected events ({args.split} split, {len(rows)} cases, "
             f"{time.perf_counter() - t0:.0f} s)\n\n"
             + (f"Skipped (an estimator could not estimate): {', '.join(skipped)}.\n\n" if skipped else "")
+            + (f"Warnings the estimates raised, by kind:\n\n{kinds}\n" if kinds else "")
             + checks_to_markdown(rows, args.network))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
