@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
+import importlib
 import json
+import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
-from PIL import Image
 
 from evlatcorr.benchmark.recording import delay_events, intensity_latency, scenes_from_recording
 from evlatcorr.events import Events
@@ -19,34 +19,19 @@ from evlatcorr.simulate import simulate
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def write_highrev_split(root: Path, sequences: dict[str, object], gamma: float = 1.0) -> None:
-    """A HighREV split folder from simulated sequences: for each frame one event piece over its exposure
-    and one up to the next exposure (dropped from the exposure by the reader), x/y swapped, 8-bit images
-    (encoded for display as ``linear ** (1 / gamma)``)."""
-    for d in ("blur", "sharp", "event"):
-        (root / d).mkdir(parents=True, exist_ok=True)
-    for name, seq in sequences.items():
-        ev = seq.ideal_events
-        for k in range(seq.num_frames):
-            stem = f"{name}_{k:05d}"
-            for folder, image in (("blur", seq.blurry[k]), ("sharp", seq.sharp[k])):
-                array = (image.permute(1, 2, 0).numpy() ** (1 / gamma) * 255).round().astype(np.uint8)
-                Image.fromarray(array).save(root / folder / f"{stem}.png")
-            start, end = float(seq.exposure_start[k]), float(seq.exposure_end[k])
-            stop = float(seq.exposure_start[k + 1]) if k + 1 < seq.num_frames else end + 20000.0
-            for j, (lo, hi) in enumerate([(start, end), (end, stop)]):  # the pieces partition time
-                piece = ev.window(lo, hi)
-                np.savez(root / "event" / f"{stem}_{j:02d}.npz", x=piece.y.numpy()[:, None],
-                         y=piece.x.numpy()[:, None], timestamp=piece.t.numpy()[:, None],
-                         polarity=(piece.p.numpy() > 0).astype(np.uint8)[:, None])
+def _script(name: str):
+    """A script of ``benchmarks/`` as a module (it imports its ``_setup`` from there)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
 
 
 def _highrev_folder(tmp_path_factory, gamma: float = 1.0) -> Path:
     root = tmp_path_factory.mktemp("highrev") / "val"
-    seqs = {name: simulate(name, num_frames=2, height=36, width=52, exposure_us=20000.0,
-                           frame_interval_us=25000.0, latency="none", seed=i)
-            for i, name in enumerate(("camera", "rocket"))}
-    write_highrev_split(root, seqs, gamma)
+    script = _script("display_gamma_table1")  # its writer and scenes: what the benchmark measures, tested here
+    script.write_highrev_split(root, script.simulated_scenes((36, 52)), gamma)
     return root
 
 
@@ -110,12 +95,11 @@ def test_scenes_from_frames_encoded_for_display_are_held_linear(highrev, highrev
         assert (b.true_latency - a.true_latency).abs().median() < 50.0
 
 
-def test_benchmark_on_frames_encoded_for_display(highrev, highrev_encoded, tmp_path):
-    args = ("--methods", "edi", "--num-bins", "100", "--spatial-steps", "3")
-    linear = _run_benchmark("--data", str(highrev), *args, "--out", str(tmp_path / "linear"))
-    read = _run_benchmark("--data", str(highrev_encoded), "--frame-gamma", "2.2", *args,
-                          "--out", str(tmp_path / "read"))
-    as_encoded = _run_benchmark("--data", str(highrev_encoded), *args, "--out", str(tmp_path / "as_encoded"))
+def test_benchmark_on_frames_encoded_for_display(tmp_path, capsys):
+    # benchmarks/display_gamma_table1.py: the same scenes linear, encoded and read as they are, and encoded and read
+    # with --frame-gamma, through run.py --data
+    results = _script("display_gamma_table1").main(["--out", str(tmp_path)])
+    linear, as_encoded, read = results.values()
     # the correctors read the same linear frames, so they estimate the same latencies (to the files' rounding);
     # read as encoded, the estimates are milliseconds off (6599 against 451 us at the time of writing)
     for name in ("W/ corr. const.", "W/ corr. spatial"):
@@ -123,8 +107,9 @@ def test_benchmark_on_frames_encoded_for_display(highrev, highrev_encoded, tmp_p
         assert as_encoded["latency_error"][name]["mae_us"] > read["latency_error"][name]["mae_us"] + 2000.0
     rows = {(r["method"], r["input"]): r for r in read["table"]}
     assert rows[("EDI deblurring", "W/ corr. const.")]["psnr"] > rows[("EDI deblurring", "W/o corr.")]["psnr"]
-    assert "read linear with frame_gamma 2.2" in (tmp_path / "read" / "results.md").read_text()
-    assert read["config"]["frame_gamma"] == 2.2
+    assert "read linear with frame_gamma 2.2" in (tmp_path / "run2" / "results.md").read_text()
+    assert read["config"]["frame_gamma"] == 2.2 and linear["config"]["frame_gamma"] == 1.0
+    assert "| encoded, --frame-gamma 2.2 | " in capsys.readouterr().out
 
 
 def test_recording_without_sharp_frames_is_a_clear_error(highrev, tmp_path):
