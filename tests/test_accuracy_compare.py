@@ -41,6 +41,8 @@ def test_bootstrap_interval_known_answers():
     assert bootstrap_interval([2.0, math.nan, 2.0], statistic="median") == (2.0, 2.0)  # NaN left out
     with pytest.raises(ValueError, match="statistic must be"):
         bootstrap_interval([1.0, 2.0], statistic="mode")
+    with pytest.raises(ValueError, match="resamples must be a whole number >= 1, got 0"):
+        bootstrap_interval([1.0, 2.0], resamples=0)
 
 
 def test_paired_comparison_pairs_cases_and_counts_clear_changes():
@@ -96,6 +98,8 @@ def test_suite_report_compares_each_estimator_with_the_first(tmp_path):
     assert len(rows) == 2
     (same,) = [g for g in compare_runs(rows, rows, "truth", "truth") if g["latency_model"] == "all"]
     assert (same["cases"], same["mean_psnr_change_db"], same["gaining"], same["losing"]) == (1, 0.0, 0, 0)
+    with pytest.raises(ValueError, match="the two runs need two labels"):
+        compare_runs(rows, rows, "truth", "truth", labels=("run", "run"))
     script = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "compare_accuracy.py"), str(tmp_path / "run"),
                              str(tmp_path / "run" / "results.json"), "--estimator", "truth", "--other-estimator",
                              "none"], capture_output=True, text=True, timeout=120)

@@ -38,6 +38,8 @@ def bootstrap_interval(values: Sequence[float], level: float = 0.95, resamples: 
     """
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must lie in (0, 1), got {level}")
+    if isinstance(resamples, bool) or not isinstance(resamples, int) or resamples < 1:
+        raise ValueError(f"resamples must be a whole number >= 1, got {resamples!r}")
     if statistic not in ("mean", "median"):
         raise ValueError(f"statistic must be 'mean' or 'median', got {statistic!r}")
     data = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
