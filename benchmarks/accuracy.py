@@ -118,8 +118,8 @@ def main(argv: list[str] | None = None) -> None:
         name = spec.rpartition(":")[2]
         while name in estimators:
             name += "'"
-        estimators[name] = (lambda case, fn=fn: _given_auto_threshold(fn)) if args.auto_threshold else \
-            (lambda case, fn=fn: fn)
+        fn = _given_auto_threshold(fn) if args.auto_threshold else fn
+        estimators[name] = lambda case, fn=fn: fn
     if not estimators:
         p.error("nothing to evaluate: --mode none needs --estimator")
 
