@@ -90,6 +90,10 @@ def local_contrast(image: Tensor, window: int = DEFAULT_WINDOW) -> Tensor:
     Returns:
         :math:`(B,)`.
 
+    Raises:
+        ValueError: for an even or non-positive ``window``, or an image too small to reflect the box's border
+            (fewer than ``window // 2 + 1`` pixels on a side).
+
     Example:
         >>> img = torch.zeros(1, 1, 9, 9); img[..., ::2] = 1.0
         >>> round(local_contrast(img, window=3).item(), 2)  # stripes: std near 0.47 everywhere
@@ -98,6 +102,10 @@ def local_contrast(image: Tensor, window: int = DEFAULT_WINDOW) -> Tensor:
     if window < 1 or window % 2 == 0:
         raise ValueError(f"window must be a positive odd number of pixels, got {window}")
     grey = _luminance(image)
+    height, width = grey.shape[-2:]
+    if min(height, width) <= window // 2:  # the reflected border needs more pixels than it reaches
+        raise ValueError(f"local contrast with a {window}x{window} box needs images of at least {window // 2 + 1} "
+                         f"pixels on each side, got {height}x{width}: give a smaller window")
     mean = kornia.filters.box_blur(grey, (window, window), border_type="reflect")
     mean_sq = kornia.filters.box_blur(grey * grey, (window, window), border_type="reflect")
     var = (mean_sq - mean * mean).clamp_min(0)

@@ -63,6 +63,18 @@ class TestLocalContrast:
         with pytest.raises(ValueError, match="window"):
             etf.local_contrast(torch.rand(1, 1, 8, 8), 4)
 
+    @pytest.mark.parametrize("size", [(3, 16), (16, 3), (1, 1)])
+    def test_image_smaller_than_the_reflected_box_is_refused(self, size):
+        # a 7x7 box reflects 3 pixels at each border: an image 3 pixels high has no 4th row to reflect
+        with pytest.raises(ValueError, match="at least 4 pixels on each side"):
+            etf.local_contrast(torch.rand(1, 1, *size))
+        with pytest.raises(ValueError, match="smaller window"):
+            etf.EventTemporalFidelity()(torch.rand(2, 3, *size))
+        assert torch.isfinite(etf.local_contrast(torch.rand(1, 1, *size), window=1)).all()
+
+    def test_smallest_image_the_box_takes(self):
+        assert torch.isfinite(etf.local_contrast(torch.rand(1, 1, 4, 4))).all()
+
     def test_module_and_non_contiguous(self):
         img = torch.rand(1, 1, 9, 8).transpose(-1, -2)
         torch.testing.assert_close(etf.LocalContrast(5)(img), etf.local_contrast(img.contiguous(), 5))
