@@ -36,12 +36,20 @@ from evlatcorr.consistency import THRESHOLD_BOUNDS as BOUNDS  # noqa: E402
 MODELS = {"constant": "constant latency", "intensity": "photoreceptor low-pass", "intensity_delay": "per-pixel delay"}
 
 
+def with_interval(value: float, interval: tuple[float, float] | None) -> str:
+    """A share and its 95 % interval, e.g. ``6 % (3-12 %)``; the share alone where there is no interval."""
+    if interval is None or not all(math.isfinite(v) for v in interval):
+        return f"{value:.0%}"
+    return f"{value:.0%} ({interval[0] * 100:.0f}-{interval[1]:.0%})"
+
+
 def to_markdown(rows: list[dict], summaries: dict[str, dict], command: str, seconds: float) -> str:
     lines = [f"`{command}` ({seconds / 60:.1f} min)", "",
-             "| cases | estimated | θ error: median / p90 / worst | within " + " / ".join(f"{c:.0%}" for c in CLOSE)
+             "| cases | estimated | θ error: median (95 % interval) / p90 / worst | within "
+             + " / ".join(f"{c:.0%}" for c in CLOSE)
              + " | estimate / true: lowest / median / highest | EDI PSNR lost to it: median / p90 / worst | "
-             "share of EDI's gain kept: median / p10 / worst | constant latency: median error with the true / "
-             "estimated θ |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "share of EDI's gain kept: median (interval) / p10 / worst | constant latency: median error with the "
+             "true / estimated θ |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for name, s in summaries.items():
         if not s.get("estimated"):
             lines.append(f"| {name} ({s['cases']}) | 0 | | | | | | |")
@@ -49,15 +57,19 @@ def to_markdown(rows: list[dict], summaries: dict[str, dict], command: str, seco
         latency = (f"{s['median_latency_error_true_theta_us']:.0f} / {s['median_latency_error_estimated_theta_us']:.0f}"
                    f" µs ({s['constant_cases']})" if "constant_cases" in s else "")
         lines.append(
-            f"| {name} ({s['cases']}) | {s['estimated']} | {s['median_relative_error']:.0%} / "
+            f"| {name} ({s['cases']}) | {s['estimated']} | "
+            f"{with_interval(s['median_relative_error'], s.get('median_relative_error_interval'))} / "
             f"{s['p90_relative_error']:.0%} / {s['worst_relative_error']:.0%} | "
             + " / ".join(f"{s[f'within_{c:.0%}']:.0%}" for c in CLOSE)
             + f" | {s['lowest_ratio']:.2f} / {s['median_ratio']:.2f} / {s['highest_ratio']:.2f} | "
             f"{s.get('median_psnr_loss_db', math.nan):.2f} / {s.get('p90_psnr_loss_db', math.nan):.2f} / "
             f"{s.get('worst_psnr_loss_db', math.nan):.2f} dB | "
-            + (f"{s['median_gain_kept']:.0%} / {s['p10_gain_kept']:.0%} / {s['worst_gain_kept']:.0%}"
-               if "median_gain_kept" in s else "") + f" | {latency} |")
-    lines += ["", f"θ matters where EDI with the true θ beats the blurry frame by more than {MATTERS_DB} dB (where "
+            + (f"{with_interval(s['median_gain_kept'], s.get('median_gain_kept_interval'))} / "
+               f"{s['p10_gain_kept']:.0%} / {s['worst_gain_kept']:.0%}" if "median_gain_kept" in s else "")
+            + f" | {latency} |")
+    lines += ["", "The intervals: a seeded bootstrap over the recordings (`evlatcorr.benchmark.accuracy_compare."
+              "bootstrap_interval`).", "",
+              f"θ matters where EDI with the true θ beats the blurry frame by more than {MATTERS_DB} dB (where "
               "events are few, any θ gives about the same image and its error says nothing).", "",
               "| case | latency model | true θ | estimate | ratio | EDI PSNR: blurry / the true θ / estimated θ | "
               "gain kept | constant latency: error with the true / estimated θ | time s |",

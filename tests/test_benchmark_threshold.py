@@ -68,6 +68,20 @@ def test_summary_counts_and_quantiles():
     assert summarize_thresholds([rows[-1]]) == {"cases": 1, "estimated": 0}
 
 
+def test_the_medians_come_with_a_bootstrap_interval():
+    errors = [0.02, 0.05, 0.06, 0.1, 0.4, 0.03, 0.08]
+    rows = [dict(threshold=0.2, estimate=0.2 * (1 + e), ratio=1 + e, psnr_loss_db=0.1, gain_kept=1 - e)
+            for e in errors]
+    s = summarize_thresholds(rows)
+    low, high = s["median_relative_error_interval"]
+    assert low <= s["median_relative_error"] <= high and min(errors) <= low and high <= max(errors)
+    low, high = s["median_gain_kept_interval"]
+    assert low <= s["median_gain_kept"] <= high
+    assert summarize_thresholds(rows) == s  # seeded
+    one = summarize_thresholds(rows[:1])
+    assert all(math.isnan(v) for v in one["median_relative_error_interval"] + one["median_gain_kept_interval"])
+
+
 @pytest.mark.slow
 def test_the_script_reports_a_small_split(tmp_path):
     script = Path(__file__).resolve().parents[1] / "benchmarks" / "threshold.py"
@@ -80,4 +94,5 @@ def test_the_script_reports_a_small_split(tmp_path):
     assert results["summary"]["all"]["cases"] == 2
     table = (tmp_path / "out" / "results.md").read_text()
     assert table.startswith("`python benchmarks/threshold.py --split dev --num 2") and "| all (2) |" in table
+    assert "θ error: median (95 % interval)" in table
     assert (tmp_path / "out" / "results.png").stat().st_size > 10_000
