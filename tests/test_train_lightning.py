@@ -115,3 +115,19 @@ def test_the_facades_re_export_the_same_objects():
     assert training.collate_event_frames is new.collate_event_frames
     for module in (train, training):
         assert module.__doc__.splitlines()[0].startswith("Kept for compatibility")
+
+
+def test_a_run_prints_lightnings_messages_but_not_its_adverts(tmp_path):
+    # Lightning's cloud tips, its note on TensorBoard and the "weights_only was not set" line say nothing a user of
+    # the command can act on; what it found (devices) and the run's own lines stay, and last.ckpt stays resumable
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-m", "evlatcorr.lightning", "latency", "--epochs", "1", "--size", "32", "40",
+                          "--max-steps", "1", "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    output = run.stdout + run.stderr
+    assert run.returncode == 0, output
+    assert "GPU available" in output and "saved" in output
+    for noise in ("Tip:", "litlogger", "tensorboardX", "weights_only", "LeafSpec"):
+        assert noise not in output
+    assert "optimizer_states" in torch.load(tmp_path / "last.ckpt", map_location="cpu", weights_only=False)

@@ -3,12 +3,22 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import math
+import re
 import sys
+import warnings
 from collections.abc import Callable
 from typing import Any, NoReturn
 
-__all__ = ["CommandParser", "parse_devices", "threshold_argument", "exit_bad_input", "trainer_or_exit"]
+__all__ = ["CommandParser", "parse_devices", "threshold_argument", "exit_bad_input", "trainer_or_exit",
+           "quiet_lightning"]
+
+#: Lightning's messages that tell a user of these commands nothing they can act on: adverts for its cloud services,
+#: where its default logger writes when TensorBoard is not installed (the commands say where their runs are written),
+#: and a deprecation inside Lightning's own code
+_LIGHTNING_NOISE = ("💡 Tip:", "Starting from v1.9.0, `tensorboardX` has been removed",
+                    "`isinstance(treespec, LeafSpec)` is deprecated")
 
 
 class CommandParser(argparse.ArgumentParser):
@@ -58,7 +68,23 @@ def trainer_or_exit(label: str, make: Callable[[], Any]) -> Any:
     machine without one, an unknown ``--strategy``) is bad input: one line and exit code 2, not a traceback."""
     from lightning.fabric.utilities.exceptions import MisconfigurationException
 
+    quiet_lightning()
     try:
         return make()
     except (MisconfigurationException, ValueError) as exc:  # an unknown strategy name is a ValueError
         exit_bad_input(label, exc)
+
+
+class _DropLightningNoise(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith(_LIGHTNING_NOISE)
+
+
+def quiet_lightning() -> None:
+    """Leave out :data:`_LIGHTNING_NOISE` from a training command's output; Lightning's other messages and warnings
+    (devices found, a loader with too few workers, ...) stay. Calling it again adds nothing."""
+    for text in _LIGHTNING_NOISE[1:]:
+        warnings.filterwarnings("ignore", message=f".*{re.escape(text)}")
+    log = logging.getLogger("lightning.pytorch.utilities.rank_zero")  # where rank_zero_info logs
+    if not any(isinstance(f, _DropLightningNoise) for f in log.filters):
+        log.addFilter(_DropLightningNoise())

@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> None:
                                      decay_epochs=max(0, args.epochs - args.constant_epochs))
     trainer.fit(module, EventFramesDataModule(frames, val or None, seed=args.seed))
     args.out.mkdir(parents=True, exist_ok=True)
-    trainer.save_checkpoint(args.out / "last.ckpt")  # every rank: it synchronises
+    trainer.save_checkpoint(args.out / "last.ckpt", weights_only=False)  # every rank: it synchronises; resumable
     if trainer.is_global_zero:
         save_curve(module.latency_model, args.out / "curve.pt", world_size=trainer.world_size,
                    scenes=[str(args.data)] if args.data is not None else list(args.scenes), threshold=theta)

@@ -408,7 +408,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     seconds = time.perf_counter() - start
     final = trainer.validate(module, data, verbose=False)[0] if has_val else {}
     if args.data is not None:
-        trainer.save_checkpoint(args.out / "checkpoints" / "last.ckpt")  # every rank: it synchronises
+        # every rank: it synchronises; with the optimiser and loops, resumable
+        trainer.save_checkpoint(args.out / "checkpoints" / "last.ckpt", weights_only=False)
     card = _card(args, trainer, info, seconds, before, final)
     if trainer.is_global_zero:
         _save(args, card, module, info, len(data.val_samples) if args.data is not None else 0, seconds,
