@@ -370,6 +370,10 @@ class EventLatencyCorrector(nn.Module):
         return (f"mode={self.mode}, threshold={self.threshold}, num_bins={self.num_bins}, "
                 f"search_range={self.search_range}, num_candidates={self.num_candidates}{gamma}")
 
+    # opaque to TorchDynamo: the search reads events of data-dependent sizes and runs passes of its own, so tracing
+    # it breaks the graph at every step and recompiles (benchmarks/compile.py); torch.compile of a whole pipeline
+    # then compiles the network behind it and runs this as it is
+    @torch.compiler.disable
     def forward(self, frames: EventFrames) -> EventFrames:
         if not isinstance(frames, EventFrames):
             raise ValueError(f"EventLatencyCorrector takes an EventFrames batch, got {type(frames).__name__}")

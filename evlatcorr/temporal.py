@@ -297,6 +297,7 @@ class StreamingLatencyCorrector(nn.Module):
     def extra_repr(self) -> str:
         return f"before={self.before}"
 
+    @torch.compiler.disable  # as the corrector's: a compiled pipeline compiles the network behind it
     def forward(self, frames: EventFrames) -> EventFrames:
         first, last = frames.exposure_start[[0, -1]].tolist()  # one read of the device
         if self._last_start is not None and first < self._last_start:

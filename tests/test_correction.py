@@ -521,3 +521,24 @@ def test_any_small_batch_gives_a_finite_map_in_range_or_a_clear_error(height, wi
     assert out.latency.shape == (batch, 1, height, width)
     assert bool(torch.isfinite(out.latency).all()) and bool(torch.isfinite(out.latent).all())
     assert float(out.latency.min()) >= 0.0 and float(out.latency.max()) <= exposure + 1e-3
+
+
+def test_a_compiled_pipeline_runs_the_corrector_as_it_is():
+    # torch.compile of nn.Sequential(corrector, network) compiles the network; Dynamo does not trace the corrector
+    # (its search reads events of data-dependent sizes: traced, it breaks the graph at every step, recompiles, and
+    # on some backends fails inside Dynamo), so it gives the eager corrector's output and no graph of its own
+    from torch._dynamo.utils import counters
+
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    frames = simulate("camera", num_frames=2, height=32, width=48, latency_us=3000.0, seed=0).frames("delayed")
+    expected = EventLatencyCorrector(threshold=0.2)(frames).latency
+    for corrector in (EventLatencyCorrector(threshold=0.2), StreamingLatencyCorrector(threshold=0.2)):
+        torch.compiler.reset()
+        counters.clear()
+        out = torch.compile(nn.Sequential(corrector, nn.Identity()), backend="eager")(frames)
+        assert counters["stats"].get("unique_graphs", 0) == 0
+        if isinstance(corrector, EventLatencyCorrector):
+            torch.testing.assert_close(out.latency, expected, rtol=0, atol=0)
+        assert torch.isfinite(out.latent).all()
+    torch.compiler.reset()
