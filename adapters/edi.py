@@ -45,6 +45,7 @@ class EDIAdapter(NetworkAdapter):
     def extra_repr(self) -> str:
         return f"mode={self.mode}, threshold={self.threshold}, num_bins={self.num_bins}"
 
+    @torch.compiler.disable  # EDI reads events of data-dependent sizes: traced, it breaks the graph at every step
     def forward(self, frames: EventFrames) -> EventFrames:
         self.check_frames(frames, image=False)  # edi_deblur / edi_interpolate check the frames themselves
         events = self.input_events(frames)

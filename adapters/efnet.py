@@ -454,6 +454,7 @@ class EFNetAdapter(NetworkAdapter):
     def extra_repr(self) -> str:
         return f"use_mask={self.use_mask}, clamp={self.clamp}, pad={self.pad}"
 
+    @torch.compiler.disable  # events of data-dependent sizes: torch.compile compiles the network, not this
     def representation(self, frames: EventFrames) -> tuple[Tensor, Tensor | None]:
         """The network's event input: SCER :math:`(B, 6, H, W)` and mask :math:`(B, 1, H, W)` (or None)."""
         voxel = efnet_scer(self.input_events(frames), frames.exposure_start, frames.exposure_end, self.num_bins,

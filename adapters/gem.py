@@ -462,6 +462,7 @@ class GEMAdapter(NetworkAdapter):
             return frames.target_times[:, 0]
         return frames.exposure_start + self.predict_ts * (frames.exposure_end - frames.exposure_start)
 
+    @torch.compiler.disable  # events of data-dependent sizes: torch.compile compiles the network, not this
     def representation(self, frames: EventFrames) -> Tensor:
         """The network's event input: EGER :math:`(B, 96, H // s, W // s)` for the target time."""
         ts = self.target_time(frames)

@@ -386,12 +386,17 @@ class REFIDAdapter(NetworkAdapter):
         return (f"mode={self.mode}, m={self.m}, n={self.n}, frame_offset={self.frame_offset}, "
                 f"normalize={self.normalize}, pad={self.pad}, select={self.select}")
 
+    @torch.compiler.disable  # events of data-dependent sizes: torch.compile compiles the network, not this
+    def representation(self, frames: EventFrames) -> tuple[Tensor, Tensor]:
+        """The network's inputs: the blurry frames and the events' voxel grids (:func:`refid_inputs`)."""
+        return refid_inputs(frames, self.m, self.n, self.mode, self.frame_offset, self.normalize)
+
     def forward(self, frames: EventFrames) -> EventFrames:
         self.check_frames(frames, image=False)
         padding = self.padding(*frames.sensor_size, 2 ** self.net.num_encoders)
         if self.select == "nearest" and frames.target_times is None:
             raise ValueError("select='nearest' needs frames.target_times (B, T) in us")
-        x, event = refid_inputs(frames, self.m, self.n, self.mode, self.frame_offset, self.normalize)
+        x, event = self.representation(frames)
         times = refid_output_times(frames, self.m, self.n, self.mode, self.frame_offset)
         param = next(self.net.parameters())
         x, event = self.pad_inputs(padding, x.to(param), event.to(param))

@@ -2,7 +2,8 @@
 
 The corrector is opaque to TorchDynamo (``torch.compiler.disable`` on its ``forward``): its search reads the events
 with data-dependent shapes and runs its own compiled passes, so tracing it only breaks the graph again and again and
-recompiles. A compiled pipeline therefore compiles the network and runs the corrector as it is. This script times
+recompiles. The adapters' event representations are opaque for the same reason. A compiled pipeline therefore
+compiles the network and runs the corrector and the events' representation as they are. This script times
 the pipeline eager, compiled with the corrector traced (the same corrector with the plain ``forward``) and compiled as
 shipped, in one run: the first call (the compile, with Inductor's caches off, as on a first run) and the median of
 the calls after it, and checks that the outputs agree with the eager pipeline.

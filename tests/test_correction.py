@@ -542,3 +542,23 @@ def test_a_compiled_pipeline_runs_the_corrector_as_it_is():
             torch.testing.assert_close(out.latency, expected, rtol=0, atol=0)
         assert torch.isfinite(out.latent).all()
     torch.compiler.reset()
+
+
+def test_a_compiled_adapter_compiles_its_network_and_reads_the_events_as_it_is():
+    # the events' representation (and EDI) are opaque to Dynamo like the corrector: EDI makes no graph, and a
+    # network behind its representation gives what it gives uncompiled
+    from torch._dynamo.utils import counters
+
+    from evlatcorr.adapters import EDIAdapter, GEMAdapter
+
+    frames = EventLatencyCorrector(threshold=0.2)(
+        simulate("camera", num_frames=2, height=32, width=48, latency_us=3000.0, seed=0).frames("delayed"))
+    for adapter, graphs in ((EDIAdapter(num_bins=50), 0), (GEMAdapter().eval(), None)):
+        torch.compiler.reset()
+        counters.clear()
+        with torch.no_grad():
+            out = torch.compile(adapter, backend="eager")(frames).output
+            torch.testing.assert_close(out, adapter(frames).output)
+        if graphs is not None:
+            assert counters["stats"].get("unique_graphs", 0) == graphs
+    torch.compiler.reset()
