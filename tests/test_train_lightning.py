@@ -77,6 +77,19 @@ class TestCommandLine:
         ([], "python -m evlatcorr.lightning: error: the following arguments are required: COMMAND"),
         (["restore", "--model", "unet"], "python -m evlatcorr.lightning restore: error: argument --model"),
         (["restore", "--model", "efnet", "--max-steps", "0"], "--max-steps, --batch-size and --val-every"),
+        # latency: what used to be a traceback, or a curve saved without a step of training
+        (["latency", "--epochs", "0"], "nothing would be trained"),
+        (["latency", "--max-steps", "0"], "nothing would be trained"),
+        (["latency", "--order", "-1"], "--order and --constant-epochs must be >= 0"),
+        (["latency", "--num-bins", "1"], "--num-bins >= 2"),
+        (["latency", "--lr", "nan"], "--lr must be a positive number"),
+        (["latency", "--data", "x.aedat4", "--threshold", "-1"], "argument --threshold: must be a positive number"),
+        (["latency", "--data", "x.aedat4", "--val-every", "-1"], "--val-every must be >= 0"),
+        (["latency", "--data", "x.aedat4", "--crop", "4", "4"], "--crop must be at least 8 8"),
+        (["latency", "--crop", "16", "16", "--threshold", "0.3"], "--crop, --threshold apply to --data"),
+        (["latency", "--frame-gamma", "2.2"], "--frame-gamma applies to --data"),
+        (["latency", "--scenes", "nosuch"], "unknown --scenes ['nosuch']"),
+        (["latency", "--size", "3", "3"], "--size must be at least 8 8"),
     ])
     def test_bad_arguments_one_line_exit_2(self, argv, message, capsys):
         with pytest.raises(SystemExit) as exc:

@@ -3,20 +3,25 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
-from typing import Any
 
 import lightning as L
 
 from evlatcorr.frames import EventFrames
 from evlatcorr.gamma import frame_gamma_argument
-from evlatcorr.lightning.arguments import exit_bad_input, parse_devices, trainer_or_exit
+from evlatcorr.lightning.arguments import exit_bad_input, parse_devices, threshold_argument, trainer_or_exit
 from evlatcorr.lightning.data import EventFramesDataModule
 from evlatcorr.lightning.latency import LatencyCorrectionModule
 from evlatcorr.lightning.latency_data import recording_training_frames, simulated_training_frames
 from evlatcorr.spatial import save_curve
 
 __all__ = ["SUMMARY", "DESCRIPTION", "add_arguments", "check", "run"]
+
+#: --val-every's default with --data
+DEFAULT_VAL_EVERY = 5
+#: the smallest simulated frame or --data crop a training step takes (the search and the ETF filter 7x7 boxes)
+MIN_SIZE = 8
 
 SUMMARY = "train the latency polynomial self-supervised (no ground truth)"
 
@@ -63,17 +68,49 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                              "simulated scenes")
     p.add_argument("--crop", type=int, nargs=2, metavar=("H", "W"), help="--data: tiles of this size (default: "
                                                                           "whole frames)")
-    p.add_argument("--threshold", default="auto", help="--data: contrast threshold, or 'auto' (default): one θ "
-                                                       "for the recording")
-    p.add_argument("--val-every", type=int, default=5, help="--data: every N-th frame is held out (0: none)")
-    p.add_argument("--frame-gamma", type=frame_gamma_argument, default=1.0, metavar="G",
+    p.add_argument("--threshold", type=threshold_argument, default=None,
+                   help="--data: contrast threshold, or 'auto' (default): one θ for the recording (simulated scenes "
+                        "have theirs)")
+    p.add_argument("--val-every", type=int, default=None,
+                   help=f"--data: every N-th frame is held out (0: none; default {DEFAULT_VAL_EVERY})")
+    p.add_argument("--frame-gamma", type=frame_gamma_argument, default=None, metavar="G",
                    help="--data: raise the frames to G as they are read (default 1; 2.2 for frames encoded for "
                         "display), as the curve will read them (evlatcorr --frame-gamma)")
     p.add_argument("--max-steps", type=int, default=-1, help="stop after this many steps (default: --epochs only)")
 
 
 def check(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
-    """Nothing beyond argparse's own checks (kept for the subcommand protocol of :mod:`evlatcorr.lightning.cli`)."""
+    """Refuse what would fail later with a traceback, or train nothing and save a curve anyway (one line, exit 2)."""
+    from evlatcorr.simulation.photographs import PHOTOGRAPHS_TEST, PHOTOGRAPHS_TRAIN
+
+    if args.epochs < 1 or args.max_steps == 0 or args.max_steps < -1:
+        parser.error(f"--epochs must be >= 1 and --max-steps >= 1 (or -1: --epochs only), got {args.epochs} and "
+                     f"{args.max_steps}: nothing would be trained")
+    if args.order < 0 or args.constant_epochs < 0 or args.num_bins < 2:
+        parser.error(f"--order and --constant-epochs must be >= 0 and --num-bins >= 2, got {args.order}, "
+                     f"{args.constant_epochs} and {args.num_bins}")
+    if not (math.isfinite(args.lr) and args.lr > 0):
+        parser.error(f"--lr must be a positive number, got {args.lr}")
+    given = {"--crop": args.crop, "--threshold": args.threshold, "--val-every": args.val_every,
+             "--frame-gamma": args.frame_gamma}
+    data_only = [flag for flag, value in given.items() if value is not None]
+    if args.data is None and data_only:
+        verb = "applies" if len(data_only) == 1 else "apply"
+        parser.error(f"{', '.join(data_only)} {verb} to --data (a recording); simulated scenes take --size and "
+                     "--scenes")
+    if args.data is None:
+        unknown = sorted(set(args.scenes) - set(PHOTOGRAPHS_TRAIN) - set(PHOTOGRAPHS_TEST))
+        if unknown:
+            parser.error(f"unknown --scenes {unknown}; the training photographs are {list(PHOTOGRAPHS_TRAIN)}")
+        if min(args.size) < MIN_SIZE:
+            parser.error(f"--size must be at least {MIN_SIZE} {MIN_SIZE}, got {list(args.size)}")
+    if args.crop is not None and min(args.crop) < MIN_SIZE:
+        parser.error(f"--crop must be at least {MIN_SIZE} {MIN_SIZE}, got {list(args.crop)}")
+    if args.val_every is not None and args.val_every < 0:
+        parser.error(f"--val-every must be >= 0 (0: no validation), got {args.val_every}")
+    args.threshold = "auto" if args.threshold is None else args.threshold
+    args.val_every = DEFAULT_VAL_EVERY if args.val_every is None else args.val_every
+    args.frame_gamma = 1.0 if args.frame_gamma is None else args.frame_gamma
 
 
 def run(args: argparse.Namespace) -> None:
@@ -88,9 +125,8 @@ def run(args: argparse.Namespace) -> None:
     theta = 0.2
     if args.data is not None:
         try:
-            threshold: Any = args.threshold if args.threshold == "auto" else float(args.threshold)
             frames, val, theta = recording_training_frames(args.data, tuple(args.crop) if args.crop else None,
-                                                           threshold, val_every=args.val_every,
+                                                           args.threshold, val_every=args.val_every,
                                                            frame_gamma=args.frame_gamma)
         except (ValueError, OSError) as exc:  # bad input: one line and exit code 2, as the evlatcorr command
             exit_bad_input(args.error_label, exc)
