@@ -90,6 +90,12 @@ class TestCommandLine:
         (["latency", "--frame-gamma", "2.2"], "--frame-gamma applies to --data"),
         (["latency", "--scenes", "nosuch"], "unknown --scenes ['nosuch']"),
         (["latency", "--size", "3", "3"], "--size must be at least 8 8"),
+        (["restore", "--model", "efnet", "--lr", "nan"], "--lr must be a positive number"),
+        (["restore", "--model", "efnet", "--gradient-clip", "-1"], "--gradient-clip must be a positive number"),
+        (["restore", "--model", "efnet", "--sequences", "0"], "--sequences, --num-frames and --size must be >= 1"),
+        (["restore", "--model", "efnet", "--num-workers", "-1"], "--num-workers must be >= 0"),
+        (["restore", "--model", "refid", "--refid-layout", "0", "1"], "--refid-layout M N needs M >= 1"),
+        (["restore", "--model", "efnet", "--photographs", "nosuch"], "unknown --photographs ['nosuch']"),
     ])
     def test_bad_arguments_one_line_exit_2(self, argv, message, capsys):
         with pytest.raises(SystemExit) as exc:
@@ -144,3 +150,24 @@ def test_a_run_prints_lightnings_messages_but_not_its_adverts(tmp_path):
     for noise in ("Tip:", "litlogger", "tensorboardX", "weights_only", "LeafSpec"):
         assert noise not in output
     assert "optimizer_states" in torch.load(tmp_path / "last.ckpt", map_location="cpu", weights_only=False)
+
+
+@pytest.mark.parametrize("command", [["latency"], ["restore", "--model", "efnet"]])
+def test_an_output_folder_that_cannot_be_written_is_refused_before_training(command, tmp_path, capsys):
+    # a file where the folder should be: found before the first step, not when the trained weights are saved
+    (tmp_path / "taken").write_text("")
+    for flag in ("--out", "--export") if command[0] == "restore" else ("--out",):
+        out = [] if flag == "--out" else ["--out", str(tmp_path / "out")]
+        with pytest.raises(SystemExit) as exc:
+            main([*command, *out, flag, str(tmp_path / "taken" / "run")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert exc.value.code == 2 and len(err) == 1 and f"{flag}: " in err[0] and "cannot be written" in err[0]
+
+
+def test_output_folder_problem_makes_the_folder_and_leaves_it_empty(tmp_path):
+    from evlatcorr.lightning.arguments import output_folder_problem
+
+    assert output_folder_problem(tmp_path / "a" / "b") is None
+    assert (tmp_path / "a" / "b").is_dir() and not any((tmp_path / "a" / "b").iterdir())
+    (tmp_path / "file").write_text("")
+    assert "cannot be written" in output_folder_problem(tmp_path / "file")

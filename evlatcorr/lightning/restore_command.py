@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 import warnings
 from pathlib import Path
@@ -20,7 +21,13 @@ from torch import Tensor, nn
 
 from evlatcorr.frames import EventFrames
 from evlatcorr.gamma import frame_gamma_argument
-from evlatcorr.lightning.arguments import exit_bad_input, parse_devices, threshold_argument, trainer_or_exit
+from evlatcorr.lightning.arguments import (
+    exit_bad_input,
+    output_folder_problem,
+    parse_devices,
+    threshold_argument,
+    trainer_or_exit,
+)
 from evlatcorr.lightning.export import export_network
 from evlatcorr.lightning.networks import MODELS, build_adapter, checkpoint_name
 from evlatcorr.lightning.restoration import CorrectedRestorationModule, RestorationModule
@@ -130,13 +137,27 @@ def check(args: argparse.Namespace, p: argparse.ArgumentParser) -> None:
         p.error(f"--holdout must be >= 0 (0: no validation), got {args.holdout}")
     if args.max_frames is not None and args.max_frames < 1:
         p.error(f"--max-frames must be >= 1, got {args.max_frames}")
+    if args.lr is not None and not (math.isfinite(args.lr) and args.lr > 0):
+        p.error(f"--lr must be a positive number, got {args.lr}")
+    if args.gradient_clip is not None and not (math.isfinite(args.gradient_clip) and args.gradient_clip > 0):
+        p.error(f"--gradient-clip must be a positive number, got {args.gradient_clip}")
+    if args.warmup_steps < 0 or args.num_workers < 0:
+        p.error(f"--warmup-steps and --num-workers must be >= 0, got {args.warmup_steps} and {args.num_workers}")
+    if args.sequences < 1 or args.num_frames < 1 or min(args.size) < 1:
+        p.error(f"--sequences, --num-frames and --size must be >= 1, got {args.sequences}, {args.num_frames} and "
+                f"{list(args.size)}")
+    if args.refid_layout[0] < 1 or args.refid_layout[1] < 0:
+        p.error(f"--refid-layout M N needs M >= 1 and N >= 0, got {list(args.refid_layout)}")
     if args.finetune is None:
         args.finetune = "spatial" if args.data is not None else "none"
     if args.data is not None and (args.photographs or args.events):
         p.error("--photographs and --events choose simulated data; --data trains on the recording's events as "
                 "stamped")
-    from evlatcorr.simulate import PHOTOGRAPHS_TEST
+    from evlatcorr.simulation.photographs import PHOTOGRAPHS_TEST, PHOTOGRAPHS_TRAIN
 
+    unknown = sorted(set(args.photographs or ()) - set(PHOTOGRAPHS_TRAIN) - set(PHOTOGRAPHS_TEST))
+    if unknown:
+        p.error(f"unknown --photographs {unknown}; the training photographs are {list(PHOTOGRAPHS_TRAIN)}")
     leaked = sorted(set(args.photographs or ()) & set(PHOTOGRAPHS_TEST))
     if leaked and not args.allow_test_photographs:
         p.error(f"{leaked} belong to the benchmark's test split; training on them would inflate its scores")
@@ -144,6 +165,11 @@ def check(args: argparse.Namespace, p: argparse.ArgumentParser) -> None:
         p.error("--freeze-network needs --finetune spatial (otherwise nothing is trained)")
     if args.curve is not None and args.finetune != "spatial":
         p.error("--curve needs --finetune spatial (the polynomial it starts)")
+    # last: the folders are made
+    for flag, folder in (("--out", args.out), ("--export", args.export)):
+        problem = None if folder is None else output_folder_problem(folder)
+        if problem:
+            p.error(f"{flag}: {problem}")
 
 
 def _precision(args: argparse.Namespace) -> str:
