@@ -73,6 +73,11 @@ def test_ddp_on_two_cpu_processes_gives_the_same_table(tmp_path):
     (["--data", "/no/such/recording"], "--data /no/such/recording: no such file or directory"),
     (["--frame-gamma", "0"], "argument --frame-gamma: must be a finite number > 0, got '0'"),
     (["--frame-gamma", "2.2"], "--frame-gamma is for --data recordings whose frames are encoded for display"),
+    (["--scenes", "9"], "--scenes must be between 1 and 8"),  # given beside --quick, it wins
+    (["--num-bins", "1"], "--num-bins >= 2"),
+    (["--ckpt", "efnet"], "--ckpt takes NAME=PATH"),
+    (["--ckpt", "efnet=/no/such.pth"], "--ckpt efnet=/no/such.pth: no such file"),
+    (["--lpips-backbone", "/no/such.pth"], "--lpips-backbone /no/such.pth: no such file"),
 ] + ([] if torch.cuda.is_available() else
      [(["--device", "cuda"], "--device cuda: CUDA is not available on this machine")]))
 def test_bad_options_are_refused_before_any_scene(argv, message, capsys, tmp_path):
@@ -84,3 +89,16 @@ def test_bad_options_are_refused_before_any_scene(argv, message, capsys, tmp_pat
     assert exit_.value.code == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_options_given_beside_quick_win_and_an_unwritable_out_is_refused(tmp_path, capsys):
+    from evlatcorr.benchmark.table1 import main, parse_args
+
+    args = parse_args(["--quick", "--num-bins", "40", "--out", str(tmp_path / "a")])
+    assert (args.scenes, tuple(args.size), args.num_bins, args.spatial_steps) == (2, (64, 80), 40, 10)
+    args = parse_args(["--out", str(tmp_path / "b")])
+    assert (args.scenes, tuple(args.size), args.num_bins, args.spatial_steps) == (3, (256, 336), 500, 30)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(SystemExit) as exit_:
+        main(["--quick", "--out", str(tmp_path / "file" / "out")])
+    assert exit_.value.code == 2 and "--out: " in capsys.readouterr().err

@@ -164,10 +164,11 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_training(comm
         assert exc.value.code == 2 and len(err) == 1 and f"{flag}: " in err[0] and "cannot be written" in err[0]
 
 
-def test_output_folder_problem_makes_the_folder_and_leaves_it_empty(tmp_path):
-    from evlatcorr.lightning.arguments import output_folder_problem
+def test_check_writable_folder_makes_the_folder_and_leaves_it_empty(tmp_path):
+    from evlatcorr.io.outputs import check_writable_folder
 
-    assert output_folder_problem(tmp_path / "a" / "b") is None
+    check_writable_folder(tmp_path / "a" / "b")
     assert (tmp_path / "a" / "b").is_dir() and not any((tmp_path / "a" / "b").iterdir())
     (tmp_path / "file").write_text("")
-    assert "cannot be written" in output_folder_problem(tmp_path / "file")
+    with pytest.raises(ValueError, match="cannot be written"):
+        check_writable_folder(tmp_path / "file")

@@ -47,6 +47,8 @@ from evlatcorr.cli.common import parse_cpu_or_cuda
 from evlatcorr.correction import EventLatencyCorrector
 from evlatcorr.gamma import frame_gamma_argument
 from evlatcorr.io import read_sequence
+from evlatcorr.io.outputs import check_writable_folder
+from evlatcorr.lightning.arguments import trainer_or_exit
 from evlatcorr.simulate import PHOTOGRAPHS_TEST
 from evlatcorr.simulation.latency import MAX_LATENCY_US
 
@@ -59,6 +61,15 @@ METHODS = {
     "edi-interp": ("EDI interpolation", "interpolation"),
     "refid": ("REFID", "interpolation"),
 }
+
+
+#: the default run, and --quick's (CI-sized); the scenes' default depends on --data (below)
+FULL: dict[str, Any] = {"size": (256, 336), "num_bins": 500, "spatial_steps": 30}
+QUICK: dict[str, Any] = {"scenes": 2, "size": (64, 80), "num_bins": 100, "spatial_steps": 10}
+#: the rows whose weights --ckpt gives
+CHECKPOINT_METHODS = ("efnet", "gem", "refid")
+#: the smallest simulated frame the run takes (the search and the ETF filter 7x7 boxes)
+MIN_SIZE = 8
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -84,20 +95,36 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--scenes", type=int, default=None, help=f"scenes scored: test photographs (1-"
                    f"{len(PHOTOGRAPHS_TEST)}, default 3, which keeps the run under 10 minutes on 2 CPU cores), "
                    "or the first sequences of --data (default all)")
-    p.add_argument("--size", type=int, nargs=2, default=(256, 336), metavar=("H", "W"))
-    p.add_argument("--num-bins", type=int, default=500)
+    p.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
+                   help=f"simulated test set's size (default: {' '.join(map(str, FULL['size']))})")
+    p.add_argument("--num-bins", type=int, default=None, help=f"EDI sub-intervals (default: {FULL['num_bins']})")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--devices", default="1")
     p.add_argument("--strategy", default="auto")
     p.add_argument("--out", type=Path, default=Path("outputs/benchmark"))
-    p.add_argument("--quick", action="store_true", help="2 scenes at 64x80, 100 bins: a CI-sized run")
+    p.add_argument("--quick", action="store_true", help="2 scenes at 64x80, 100 bins, 10 spatial steps: a CI-sized "
+                   "run (the options given beside it win)")
     p.add_argument("--lpips-backbone", type=Path, help="AlexNet features for LPIPS (else torch hub cache / "
                                                         "$EVLATCORR_LPIPS_BACKBONE)")
-    p.add_argument("--spatial-steps", type=int, default=30, help="test-time fitting steps of the spatial corrector")
+    p.add_argument("--spatial-steps", type=int, default=None,
+                   help=f"test-time fitting steps of the spatial corrector (default: {FULL['spatial_steps']})")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
-    if args.quick:
-        args.scenes, args.size, args.num_bins, args.spatial_steps = 2, (64, 80), 100, 10
+    preset = QUICK if args.quick else FULL
+    for name, value in preset.items():  # what is given explicitly wins over --quick
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+    if min(args.size) < MIN_SIZE or args.num_bins < 2 or args.spatial_steps < 0 or args.refid_n < 0:
+        p.error(f"--size must be at least {MIN_SIZE} {MIN_SIZE}, --num-bins >= 2, --spatial-steps and --refid-n "
+                f">= 0; got {list(args.size)}, {args.num_bins}, {args.spatial_steps} and {args.refid_n}")
+    for item in args.ckpt:
+        name, _, path = item.partition("=")
+        if name not in CHECKPOINT_METHODS or not path:
+            p.error(f"--ckpt takes NAME=PATH with NAME one of {', '.join(CHECKPOINT_METHODS)}, got {item!r}")
+        if path != "default" and not Path(path).exists():
+            p.error(f"--ckpt {item}: no such file")
+    if args.lpips_backbone is not None and not args.lpips_backbone.is_file():
+        p.error(f"--lpips-backbone {args.lpips_backbone}: no such file")
     if args.data is None:
         args.scenes = 3 if args.scenes is None else args.scenes
         if not 1 <= args.scenes <= len(PHOTOGRAPHS_TEST):
@@ -120,6 +147,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     unknown = set(args.methods.split(",")) - set(METHODS)
     if unknown:
         p.error(f"unknown methods {sorted(unknown)}; choose from {sorted(METHODS)}")
+    try:  # last, once everything else holds: it makes the folder
+        check_writable_folder(args.out)
+    except ValueError as exc:
+        p.error(f"--out: {exc}")
     return args
 
 
@@ -169,6 +200,7 @@ def build_methods(args: argparse.Namespace) -> tuple[list[Method], dict[str, str
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and write ``results.md``, ``results.csv``, ``results.json`` and the figures."""
     args = parse_args(argv)
+    trainer = _trainer(args)
     t0 = time.perf_counter()
     warnings.filterwarnings("ignore", module="lightning")
     stages: dict[str, float] = {}
@@ -187,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     figures = Figures()
     module = BenchmarkModule(methods, correctors, lpips_net, on_scene=figures)
     unreadable: dict[str, str] = {}
-    trainer = _test(args, module, files, unreadable, stages)
+    _test(trainer, module, files, unreadable, stages)
     results = module.results()  # on every rank: computing the metrics syncs them across processes
     if not trainer.is_global_zero:
         return 0
@@ -206,8 +238,18 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _test(args: argparse.Namespace, module: BenchmarkModule, files: list[Any], unreadable: dict[str, str],
-          stages: dict[str, float]) -> L.Trainer:
+def _trainer(args: argparse.Namespace) -> L.Trainer:
+    """The test loop's Trainer, made first: a setting Lightning refuses (``--devices 0``, an unknown ``--strategy``)
+    is one line and exit code 2 before any scene is simulated or model loaded."""
+    devices: int | str = int(args.devices) if args.devices.isdigit() else args.devices
+    return trainer_or_exit("run.py", lambda: L.Trainer(
+        accelerator=args.device if args.device != "cuda" else "gpu", devices=devices, strategy=args.strategy,
+        logger=False, enable_model_summary=False, enable_progress_bar=True,
+        use_distributed_sampler=False))  # scenes split by rank
+
+
+def _test(trainer: L.Trainer, module: BenchmarkModule, files: list[Any], unreadable: dict[str, str],
+          stages: dict[str, float]) -> None:
     """The Lightning test loop over the scenes; a scene that cannot be read is skipped and noted."""
 
     def load(i: int) -> BenchmarkScene | None:
@@ -221,10 +263,6 @@ def _test(args: argparse.Namespace, module: BenchmarkModule, files: list[Any], u
             unreadable[f"{path}:{index}"] = str(exc)
             return None
 
-    devices: int | str = int(args.devices) if args.devices.isdigit() else args.devices
-    trainer = L.Trainer(accelerator=args.device if args.device != "cuda" else "gpu", devices=devices,
-                        strategy=args.strategy, logger=False, enable_model_summary=False,
-                        enable_progress_bar=True, use_distributed_sampler=False)  # scenes split by rank
     if trainer.is_global_zero:
         print(f"scoring {len(files)} scenes: {', '.join(m.name for m in module.methods)} x "
               f"{', '.join(module.inputs)} (one progress step per scene)", flush=True)
@@ -233,7 +271,6 @@ def _test(args: argparse.Namespace, module: BenchmarkModule, files: list[Any], u
     loop = time.perf_counter() - start
     stages.update({f"test loop: {k}": v for k, v in module.stage_seconds.items()})
     stages["test loop: other (reading scenes, Lightning)"] = loop - sum(module.stage_seconds.values())
-    return trainer
 
 
 def _markdown(args: argparse.Namespace, results: dict[str, Any], files: list[Any], unreadable: dict[str, str],

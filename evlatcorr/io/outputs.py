@@ -20,7 +20,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["check_outputs", "check_hdf5_name", "atomic_dir", "default_file_mode"]
+__all__ = ["check_outputs", "check_hdf5_name", "check_writable_folder", "atomic_dir", "default_file_mode"]
 
 # names an HDF5 file goes by
 HDF5_SUFFIXES = (".h5", ".hdf5", ".hdf", ".he5")
@@ -122,6 +122,29 @@ def check_outputs(inputs: Iterable[str | Path], files: Iterable[str | Path] = ()
             raise ValueError(f"cannot write {out}: {folder} is not a folder")
         if not os.access(folder, os.W_OK | os.X_OK):
             raise ValueError(f"cannot write {out}: the folder {folder} is not writable")
+
+
+def check_writable_folder(path: str | Path) -> None:
+    """Make the folder ``path`` (a run would make it anyway) and write and remove a scratch file in it: for a long run
+    that writes there only at its end, checked before it starts, so that a typo in a path does not lose it. Unlike a
+    permission check this also holds for root and for file systems that refuse writes.
+
+    Raises:
+        ValueError: naming the path and why it cannot be written.
+
+    Example:
+        >>> check_writable_folder("/proc/no/such/folder")
+        Traceback (most recent call last):
+        ...
+        ValueError: /proc/no/such/folder cannot be written: No such file or directory
+    """
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        raise ValueError(f"{path} cannot be written: {exc.strerror or exc}") from None
 
 
 @contextmanager

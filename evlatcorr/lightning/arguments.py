@@ -7,14 +7,12 @@ import logging
 import math
 import re
 import sys
-import tempfile
 import warnings
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any, NoReturn
 
 __all__ = ["CommandParser", "parse_devices", "threshold_argument", "exit_bad_input", "trainer_or_exit",
-           "quiet_lightning", "output_folder_problem"]
+           "quiet_lightning"]
 
 #: Lightning's messages that tell a user of these commands nothing they can act on: adverts for its cloud services,
 #: where its default logger writes when TensorBoard is not installed (the commands say where their runs are written),
@@ -56,24 +54,6 @@ def threshold_argument(text: str) -> float | str:
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a positive number or 'auto', got {text!r}")
     return value
-
-
-def output_folder_problem(path: Path) -> str | None:
-    """Why a run could not write into the folder ``path``, or None. The folder is made (the run would make it
-    anyway) and a scratch file written and removed in it: checked before training, so that hours of it are not lost
-    to a typo in a path.
-
-    Example:
-        >>> output_folder_problem(Path("/proc/no/such/folder")) is not None
-        True
-    """
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=path):
-            pass
-    except OSError as exc:
-        return f"{path} cannot be written: {exc.strerror or exc}"
-    return None
 
 
 def exit_bad_input(label: str, exc: BaseException) -> NoReturn:

@@ -10,9 +10,9 @@ import lightning as L
 
 from evlatcorr.frames import EventFrames
 from evlatcorr.gamma import frame_gamma_argument
+from evlatcorr.io.outputs import check_writable_folder
 from evlatcorr.lightning.arguments import (
     exit_bad_input,
-    output_folder_problem,
     parse_devices,
     threshold_argument,
     trainer_or_exit,
@@ -114,9 +114,10 @@ def check(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
         parser.error(f"--crop must be at least {MIN_SIZE} {MIN_SIZE}, got {list(args.crop)}")
     if args.val_every is not None and args.val_every < 0:
         parser.error(f"--val-every must be >= 0 (0: no validation), got {args.val_every}")
-    problem = output_folder_problem(args.out)
-    if problem:
-        parser.error(f"--out: {problem}")
+    try:
+        check_writable_folder(args.out)
+    except ValueError as exc:
+        parser.error(f"--out: {exc}")
     args.threshold = "auto" if args.threshold is None else args.threshold
     args.val_every = DEFAULT_VAL_EVERY if args.val_every is None else args.val_every
     args.frame_gamma = 1.0 if args.frame_gamma is None else args.frame_gamma

@@ -21,9 +21,9 @@ from torch import Tensor, nn
 
 from evlatcorr.frames import EventFrames
 from evlatcorr.gamma import frame_gamma_argument
+from evlatcorr.io.outputs import check_writable_folder
 from evlatcorr.lightning.arguments import (
     exit_bad_input,
-    output_folder_problem,
     parse_devices,
     threshold_argument,
     trainer_or_exit,
@@ -167,9 +167,11 @@ def check(args: argparse.Namespace, p: argparse.ArgumentParser) -> None:
         p.error("--curve needs --finetune spatial (the polynomial it starts)")
     # last: the folders are made
     for flag, folder in (("--out", args.out), ("--export", args.export)):
-        problem = None if folder is None else output_folder_problem(folder)
-        if problem:
-            p.error(f"{flag}: {problem}")
+        try:
+            if folder is not None:
+                check_writable_folder(folder)
+        except ValueError as exc:
+            p.error(f"{flag}: {exc}")
 
 
 def _precision(args: argparse.Namespace) -> str:
