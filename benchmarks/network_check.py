@@ -44,6 +44,7 @@ def main(argv: list[str] | None = None) -> None:
                    help="an estimator f(frames) -> latency map besides the default corrector; repeatable")
     p.add_argument("--out", type=Path, default=Path("outputs/network_check.md"))
     args = p.parse_args(argv)
+    _setup.check_case_options(p, args, args.out.parent)
     cases = [c for c in make_cases(args.split, args.num, tuple(args.size)) if c.latency_model in args.models]
     if not cases:
         p.error(f"no case of split {args.split} with latency models {args.models}")

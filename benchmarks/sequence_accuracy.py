@@ -104,6 +104,7 @@ def main(argv: list[str] | None = None) -> None:
     _setup.add_exposure_option(p)
     p.add_argument("--out", type=Path, default=Path("outputs/sequences"))
     args = p.parse_args(argv)
+    _setup.check_case_options(p, args, args.out)
     if args.frames < 1:
         p.error(f"--frames must be at least 1, got {args.frames}")
     if any(not 0 <= share < 1 for share in args.no_latency_mass):

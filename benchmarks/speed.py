@@ -148,6 +148,14 @@ def main() -> None:
     args = parser.parse_args()
     if min(args.batch_sizes) < 1:
         parser.error("--batch-sizes must be positive")
+    counts = {"--repeats": args.repeats, "--naive-repeats": args.naive_repeats, "--rounds": args.rounds,
+              "--candidates": args.candidates, "--events": args.events}
+    problems = [f"{flag} must be >= 1, got {value}" for flag, value in counts.items() if value < 1]
+    problems += ["--bins must be >= 2"] * (args.bins < 2)
+    problems += ["sizes must be >= 16 pixels"] * (min(args.height, args.width, *args.adapter_size) < 16)
+    problems += ["--exposure-us must be > 0"] * (not args.exposure_us > 0)
+    if problems:
+        parser.error("; ".join(problems))
     devices = args.device or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
     for name in devices:
         try:

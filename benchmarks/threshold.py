@@ -128,8 +128,7 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     if args.frames < 2:
         p.error(f"--frames must be at least 2 (θ is estimated from pairs of frames), got {args.frames}")
-    if args.num is not None and args.num < 1:
-        p.error(f"--num must be at least 1, got {args.num}")
+    _setup.check_case_options(p, args, args.out)
     splits = {"tuning": ("dev", "dev_wide")}.get(args.split, (args.split,))
     cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size))]
     cases = _setup.cases_at_exposure(p, cases, args.exposure_us)
