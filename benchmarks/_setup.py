@@ -46,20 +46,23 @@ def add_case_options(parser: argparse.ArgumentParser, default_split: str, splits
     parser.add_argument("--size", type=int, nargs=2, default=DEFAULT_SIZE, metavar=("H", "W"))
 
 
-def check_case_options(parser: argparse.ArgumentParser, args: argparse.Namespace, out_folder: Path | None) -> None:
-    """The options of :func:`add_case_options` in range, and the folder the results go to writable (made now): a
-    usage error before the first case, not a traceback, or a run lost when its results are written."""
-    from evlatcorr.io.outputs import check_writable_folder
-
+def check_case_options(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """The options of :func:`add_case_options` in range: a usage error before the first case, not a traceback."""
     if args.num is not None and args.num < 1:
         parser.error(f"--num must be at least 1, got {args.num}")
     if min(args.size) < 16:
         parser.error(f"--size must be at least 16 16 (the suite's scenes), got {list(args.size)}")
-    if out_folder is not None:
-        try:
-            check_writable_folder(out_folder)
-        except ValueError as exc:
-            parser.error(f"--out: {exc}")
+
+
+def check_out_folder(parser: argparse.ArgumentParser, folder: Path) -> None:
+    """``--out``'s folder made and written to, last of a script's checks: a usage error, not a run lost when its
+    results are written at its end."""
+    from evlatcorr.io.outputs import check_writable_folder
+
+    try:
+        check_writable_folder(folder)
+    except ValueError as exc:
+        parser.error(f"--out: {exc}")
 
 
 def add_exposure_option(parser: argparse.ArgumentParser) -> None:

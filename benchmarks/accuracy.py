@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     p.add_argument("--out", type=Path, default=Path("outputs/accuracy"))
     args = p.parse_args(argv)
-    _setup.check_case_options(p, args, args.out)
+    _setup.check_case_options(p, args)
     if args.threads is not None:
         if args.threads < 1:
             p.error(f"--threads must be >= 1, got {args.threads}")
@@ -123,6 +123,7 @@ def main(argv: list[str] | None = None) -> None:
         estimators[name] = lambda case, fn=fn: fn
     if not estimators:
         p.error("nothing to evaluate: --mode none needs --estimator")
+    _setup.check_out_folder(p, args.out)
 
     print(f"{len(cases)} cases ({', '.join(splits)}), {args.size[0]}x{args.size[1]}, estimators: "
           f"{', '.join(estimators)}; torch threads {torch.get_num_threads()}", flush=True)

@@ -26,6 +26,8 @@ def main() -> None:
     parser.add_argument("--size", type=int, nargs=2, default=(260, 346), metavar=("H", "W"))
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    if min(args.size) < 16:
+        parser.error(f"--size must be at least 16 16, got {list(args.size)}")
 
     t0 = time.perf_counter()
     try:

@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> None:
                    help="an estimator f(frames) -> latency map besides the default corrector; repeatable")
     p.add_argument("--out", type=Path, default=Path("outputs/network_check.md"))
     args = p.parse_args(argv)
-    _setup.check_case_options(p, args, args.out.parent)
+    _setup.check_case_options(p, args)
     cases = [c for c in make_cases(args.split, args.num, tuple(args.size)) if c.latency_model in args.models]
     if not cases:
         p.error(f"no case of split {args.split} with latency models {args.models}")
@@ -58,6 +58,7 @@ def main(argv: list[str] | None = None) -> None:
         while name in extra or name == "constant":  # two estimators of one module each keep their column
             name += "'"
         extra[name] = fn
+    _setup.check_out_folder(p, args.out.parent)
     network = build_model(args.network)
     rows, skipped, raised = [], [], []
     t0 = time.perf_counter()

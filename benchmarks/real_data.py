@@ -66,10 +66,18 @@ def main() -> None:
     args = parser.parse_args()
     if args.threshold is not None and not (math.isfinite(args.threshold) and args.threshold > 0):
         parser.error(f"--threshold must be a positive number, got {args.threshold}")
+    if not args.recording.exists():
+        parser.error(f"{args.recording}: no such file")
+    if not args.frames or min(args.frames) < 0:
+        parser.error(f"--frames takes frame numbers >= 0, got {args.frames}")
     torch.set_num_threads(max(1, torch.get_num_threads()))
 
-    args.out.mkdir(parents=True, exist_ok=True)
     rec = open_recording(args.recording)
+    shown = [i for i in args.frames if i < len(rec)]
+    if not shown:
+        parser.error(f"--frames {args.frames}: the recording has {len(rec)} frames (0-{len(rec) - 1})")
+    args.frames = shown
+    _setup.check_out_folder(parser, args.out)
     t0 = time.perf_counter()
     theta = args.threshold if args.threshold is not None else recording_threshold(rec)
     print(f"contrast threshold {theta:.3f} ({'given' if args.threshold else 'estimated'}, "

@@ -30,10 +30,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--scores", nargs="+", choices=CHECKED_SCORES, default=list(CHECKED_SCORES))
     p.add_argument("--out", type=Path, default=Path("outputs/score_check.md"))
     args = p.parse_args(argv)
-    _setup.check_case_options(p, args, args.out.parent)
+    _setup.check_case_options(p, args)
     cases = [c for c in make_cases(args.split, args.num, tuple(args.size)) if c.latency_model in MAP_MODELS]
     if not cases:
         p.error(f"no per-pixel latency case among the first {args.num} of split {args.split}")
+    _setup.check_out_folder(p, args.out.parent)
     rows = []
     for i, case in enumerate(cases, 1):
         rows.append(check_case(case, scores=tuple(args.scores)))

@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> None:
     _setup.add_exposure_option(p)
     p.add_argument("--out", type=Path, default=Path("outputs/sequences"))
     args = p.parse_args(argv)
-    _setup.check_case_options(p, args, args.out)
+    _setup.check_case_options(p, args)
     if args.frames < 1:
         p.error(f"--frames must be at least 1, got {args.frames}")
     if any(not 0 <= share < 1 for share in args.no_latency_mass):
@@ -115,6 +115,7 @@ def main(argv: list[str] | None = None) -> None:
     splits = {"tuning": ("dev", "dev_wide")}.get(args.split, (args.split,))
     cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size)) if c.latency_model in args.models]
     cases = _setup.cases_at_exposure(p, cases, args.exposure_us)
+    _setup.check_out_folder(p, args.out)
     t0 = time.perf_counter()
     per_case, unsimulated = _setup.each_simulated(
         cases, lambda case: evaluate_sequence(case, args.frames, windows, ideal=not args.no_ideal), "sequences")

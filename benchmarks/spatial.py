@@ -27,6 +27,7 @@ import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU page
 # isort: split
 
 import argparse
+import math
 import time
 import warnings
 from pathlib import Path
@@ -150,6 +151,10 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("outputs/spatial"))
     args = p.parse_args()
+    if min(args.size) < 16 or args.epochs < 1 or args.order < 0 or args.train_bins < 2 or args.fit_steps < 1:
+        p.error("--size must be at least 16 16, --epochs and --fit-steps >= 1, --order >= 0 and --train-bins >= 2")
+    if not (math.isfinite(args.lr) and args.lr > 0 and math.isfinite(args.eta) and args.eta >= 0):
+        p.error(f"--lr must be a positive number and --eta >= 0, got {args.lr} and {args.eta}")
     warnings.filterwarnings("ignore", module="lightning")
     warnings.filterwarnings("ignore", message=".*does not have many workers.*")
     args.out.mkdir(parents=True, exist_ok=True)

@@ -128,11 +128,11 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     if args.frames < 2:
         p.error(f"--frames must be at least 2 (θ is estimated from pairs of frames), got {args.frames}")
-    _setup.check_case_options(p, args, args.out)
+    _setup.check_case_options(p, args)
     splits = {"tuning": ("dev", "dev_wide")}.get(args.split, (args.split,))
     cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size))]
     cases = _setup.cases_at_exposure(p, cases, args.exposure_us)
-    args.out.mkdir(parents=True, exist_ok=True)
+    _setup.check_out_folder(p, args.out)
     t0 = time.perf_counter()
     rows, unsimulated = _setup.each_simulated(cases, lambda case: evaluate_threshold(case, args.frames), "recordings")
     seconds = time.perf_counter() - t0

@@ -132,6 +132,8 @@ def main() -> None:
                         help="train without these training photographs' frames (how the reader does on photographs "
                              "it never saw)")
     args = parser.parse_args()
+    if min(args.members, args.epochs, args.channels, args.layers) < 1 or args.ideal_frames < 0:
+        parser.error("--members, --epochs, --channels and --layers must be >= 1 and --ideal-frames >= 0")
     t0 = time.perf_counter()
     data = extract(args.cache, args.before_us)
     if args.leave_out:

@@ -92,8 +92,9 @@ def main() -> None:
     parser.add_argument("--epochs", type=int, default=300)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    if args.workers < 1:
-        raise SystemExit(f"--workers must be at least 1, got {args.workers}")
+    if min(args.workers, args.members, args.epochs) < 1:
+        parser.error(f"--workers, --members and --epochs must be >= 1, got {args.workers}, {args.members} and "
+                     f"{args.epochs}")
     t0 = time.perf_counter()
     data = extract(args.cache, known_targets(args.targets_from), args.workers)
     print(f"{len(data['targets'])} training frames in {time.perf_counter() - t0:.0f} s", flush=True)

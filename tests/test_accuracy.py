@@ -381,26 +381,3 @@ def test_warning_kinds_counts_the_estimates_raising_each_kind_and_refuses_rows_w
     with pytest.raises(ValueError, match="row 1"):
         warning_kinds([{"warnings": []}, {"error": ""}])
 
-
-@pytest.mark.parametrize("script, argv, message", [
-    ("accuracy.py", ["--num", "0"], "--num must be at least 1"),
-    ("accuracy.py", ["--size", "3", "3"], "--size must be at least 16 16"),
-    ("sequence_accuracy.py", ["--out", "{file}/out"], "--out: "),
-    ("threshold.py", ["--num", "0"], "--num must be at least 1"),
-    ("network_check.py", ["--out", "{file}/out/table.md"], "--out: "),
-    ("speed.py", ["--repeats", "0"], "--repeats must be >= 1"),
-])
-def test_the_suite_scripts_refuse_bad_options_before_the_first_case(script, argv, message, tmp_path):
-    # one usage line and exit 2, where there were tracebacks (an empty case list, a size the scenes refuse) or a
-    # run lost when its results could not be written at its end
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    (tmp_path / "file").write_text("")
-    root = Path(__file__).resolve().parents[1]
-    argv = [a.format(file=tmp_path / "file") for a in argv]
-    run = subprocess.run([sys.executable, str(root / "benchmarks" / script), *argv], capture_output=True, text=True,
-                         cwd=tmp_path, timeout=120)
-    lines = run.stderr.strip().splitlines()
-    assert run.returncode == 2 and lines[-1].startswith(f"{script}: error: ") and message in lines[-1], run.stderr
