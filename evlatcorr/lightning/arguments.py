@@ -15,8 +15,8 @@ __all__ = ["CommandParser", "parse_devices", "threshold_argument", "exit_bad_inp
            "quiet_lightning"]
 
 #: Lightning's messages that tell a user of these commands nothing they can act on: adverts for its cloud services,
-#: where its default logger writes when TensorBoard is not installed (the commands say where their runs are written),
-#: and a deprecation inside Lightning's own code
+#: a note that without TensorBoard its default logger writes CSV files (under --out, where the commands write their
+#: runs), and a deprecation inside Lightning's own code
 _LIGHTNING_NOISE = ("💡 Tip:", "Starting from v1.9.0, `tensorboardX` has been removed",
                     "`isinstance(treespec, LeafSpec)` is deprecated")
 
