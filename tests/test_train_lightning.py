@@ -89,6 +89,7 @@ class TestCommandLine:
         (["latency", "--crop", "16", "16", "--threshold", "0.3"], "--crop, --threshold apply to --data"),
         (["latency", "--frame-gamma", "2.2"], "--frame-gamma applies to --data"),
         (["latency", "--scenes", "nosuch"], "unknown --scenes ['nosuch']"),
+        (["latency", "--scenes", "moon", "camera"], "['camera'] belong to the benchmark's test split"),
         (["latency", "--size", "3", "3"], "--size must be at least 8 8"),
         (["restore", "--model", "efnet", "--lr", "nan"], "--lr must be a positive number"),
         (["restore", "--model", "efnet", "--gradient-clip", "-1"], "--gradient-clip must be a positive number"),

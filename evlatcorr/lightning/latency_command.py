@@ -83,6 +83,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--data: raise the frames to G as they are read (default 1; 2.2 for frames encoded for "
                         "display), as the curve will read them (evlatcorr --frame-gamma)")
     p.add_argument("--max-steps", type=int, default=-1, help="stop after this many steps (default: --epochs only)")
+    p.add_argument("--allow-test-photographs", action="store_true", help=argparse.SUPPRESS)
 
 
 def check(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
@@ -108,6 +109,9 @@ def check(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
         unknown = sorted(set(args.scenes) - set(PHOTOGRAPHS_TRAIN) - set(PHOTOGRAPHS_TEST))
         if unknown:
             parser.error(f"unknown --scenes {unknown}; the training photographs are {list(PHOTOGRAPHS_TRAIN)}")
+        leaked = sorted(set(args.scenes) & set(PHOTOGRAPHS_TEST))
+        if leaked and not args.allow_test_photographs:  # as restore: run.py's spatial rows read this curve
+            parser.error(f"{leaked} belong to the benchmark's test split; training on them would inflate its scores")
         if min(args.size) < MIN_SIZE:
             parser.error(f"--size must be at least {MIN_SIZE} {MIN_SIZE}, got {list(args.size)}")
     if args.crop is not None and min(args.crop) < MIN_SIZE:
