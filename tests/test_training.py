@@ -107,7 +107,7 @@ def test_short_training_lowers_latency_error(tmp_path):
 @pytest.mark.slow
 def test_ddp_two_cpu_processes(tmp_path):
     r = subprocess.run(
-        [sys.executable, "-m", "evlatcorr.training", "--scenes", "camera", "coffee", "--size", "24", "32",
+        [sys.executable, "-m", "evlatcorr.training", "--scenes", "motorcycle_left", "coins", "--size", "24", "32",
          "--epochs", "1", "--devices", "2", "--strategy", "ddp", "--accelerator", "cpu", "--num-bins", "30",
          "--out", str(tmp_path / "run")],
         capture_output=True, text=True, timeout=600, cwd=tmp_path)
