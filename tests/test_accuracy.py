@@ -335,14 +335,10 @@ def test_load_estimator_from_a_file(tmp_path):
 
 
 def test_the_accuracy_script_writes_its_tables_and_groups_its_warnings(tmp_path):
-    import subprocess
-    import sys
-    from pathlib import Path
+    from tests.commands import run_script
 
-    root = Path(__file__).resolve().parents[1]
-    run = subprocess.run([sys.executable, str(root / "benchmarks" / "accuracy.py"), "--split", "dev", "--num", "2",
-                          "--size", "32", "40", "--mode", "constant", "--out", str(tmp_path)],
-                         capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    run = run_script("accuracy.py", "--split", "dev", "--num", "2", "--size", "32", "40", "--mode", "constant",
+                     "--out", str(tmp_path), cwd=tmp_path)
     assert run.returncode == 0, run.stderr
     table = (tmp_path / "results.md").read_text()
     assert "## Summary" in table and (tmp_path / "results.csv").is_file()
@@ -354,9 +350,7 @@ def test_the_accuracy_script_writes_its_tables_and_groups_its_warnings(tmp_path)
 
 @pytest.mark.parametrize(("flags", "expected"), [([], "number"), (["--auto-threshold"], "auto")])
 def test_an_extra_estimator_is_handed_auto_as_the_threshold_with_auto_threshold(tmp_path, flags, expected):
-    import subprocess
-    import sys
-    from pathlib import Path
+    from tests.commands import run_script
 
     # the estimator fails its case unless it sees the threshold it is promised: the error lands in the csv
     path = tmp_path / "threshold_check.py"
@@ -364,10 +358,8 @@ def test_an_extra_estimator_is_handed_auto_as_the_threshold_with_auto_threshold(
                     "    seen = 'auto' if frames.meta['threshold'] == 'auto' else 'number'\n"
                     f"    assert seen == {expected!r}, seen\n"
                     "    return torch.zeros(frames.batch_size)\n")
-    root = Path(__file__).resolve().parents[1]
-    run = subprocess.run([sys.executable, str(root / "benchmarks" / "accuracy.py"), "--split", "dev", "--num", "1",
-                          "--size", "32", "40", "--mode", "none", "--estimator", f"{path}:estimate", *flags,
-                          "--out", str(tmp_path)], capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    run = run_script("accuracy.py", "--split", "dev", "--num", "1", "--size", "32", "40", "--mode", "none",
+                     "--estimator", f"{path}:estimate", *flags, "--out", str(tmp_path), cwd=tmp_path)
     assert run.returncode == 0, run.stderr
     assert "the estimator failed" not in run.stdout
 

@@ -2,9 +2,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
@@ -16,8 +13,7 @@ from evlatcorr.benchmark.accuracy_compare import (
     load_results,
     paired_comparison,
 )
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.commands import run_script
 
 
 def row(estimator: str, name: str, psnr: float, model: str = "constant", error_us: float = 100.0, **extra) -> dict:
@@ -100,14 +96,12 @@ def test_suite_report_compares_each_estimator_with_the_first(tmp_path):
     assert (same["cases"], same["mean_psnr_change_db"], same["gaining"], same["losing"]) == (1, 0.0, 0, 0)
     with pytest.raises(ValueError, match="the two runs need two labels"):
         compare_runs(rows, rows, "truth", "truth", labels=("run", "run"))
-    script = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "compare_accuracy.py"), str(tmp_path / "run"),
-                             str(tmp_path / "run" / "results.json"), "--estimator", "truth", "--other-estimator",
-                             "none"], capture_output=True, text=True, timeout=120)
+    script = run_script("compare_accuracy.py", str(tmp_path / "run"), str(tmp_path / "run" / "results.json"),
+                        "--estimator", "truth", "--other-estimator", "none", cwd=tmp_path)
     assert script.returncode == 0, script.stderr
     assert "case by case" in script.stdout and "| all | 1 |" in script.stdout
     # two estimators, none chosen, and no "constant" among them: the script asks which
-    script = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "compare_accuracy.py"), str(tmp_path / "run"),
-                             str(tmp_path / "run")], capture_output=True, text=True, timeout=120)
+    script = run_script("compare_accuracy.py", str(tmp_path / "run"), str(tmp_path / "run"), cwd=tmp_path)
     assert script.returncode == 2 and "choose one with --estimator" in script.stderr
 
 

@@ -3,9 +3,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
@@ -18,6 +15,7 @@ from evlatcorr.benchmark.threshold import (
     evaluate_threshold,
     summarize_thresholds,
 )
+from tests.commands import run_script
 from tests.test_accuracy import tiny_case
 
 
@@ -84,10 +82,8 @@ def test_the_medians_come_with_a_bootstrap_interval():
 
 @pytest.mark.slow
 def test_the_script_reports_a_small_split(tmp_path):
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "threshold.py"
-    run = subprocess.run([sys.executable, str(script), "--split", "dev", "--num", "2", "--size", "32", "40",
-                          "--frames", "3", "--out", str(tmp_path / "out")], capture_output=True, text=True,
-                         timeout=600)
+    run = run_script("threshold.py", "--split", "dev", "--num", "2", "--size", "32", "40", "--frames", "3",
+                     "--out", str(tmp_path / "out"), cwd=tmp_path)
     assert run.returncode == 0, run.stderr
     results = json.loads((tmp_path / "out" / "results.json").read_text())
     assert [r["case"] for r in results["rows"]] == [c.name for c in make_cases("dev", 2, (32, 40))]

@@ -19,13 +19,14 @@ from PIL import Image
 
 from evlatcorr.io import H5Recording, write_sequence
 from evlatcorr.simulate import simulate
+from tests.commands import run_command
 
 DAVIS = Path(__file__).resolve().parents[2] / "shared" / "data" / "davis346"
 
 
 def run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "evlatcorr", *args], cwd=cwd, capture_output=True, text=True,
-                          timeout=300)
+    """``evlatcorr ARGS``, in this process (``test_help`` and the signal tests start real ones)."""
+    return run_command(*args, cwd=cwd)
 
 
 @pytest.fixture(scope="module")

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import csv
 import re
-import subprocess
-import sys
 import warnings
 
 import numpy as np
@@ -16,6 +14,7 @@ import torch
 from evlatcorr.io import RecordingError, RosbagRecording, open_recording
 from evlatcorr.io.rosbag import decode_event_array
 from evlatcorr.simulate import simulate
+from tests.commands import run_command
 
 EPOCH_NS = 1_600_000_000 * 10**9  # the bag's clock: ROS time since the Unix epoch
 PACKET_US = 1000.0  # the driver publishes the events in messages of about this span
@@ -141,11 +140,9 @@ def test_several_event_topics_need_a_choice(tmp_path, seq):
                                              "choose one with events_topic"):
         open_recording(path)
     assert RosbagRecording(path, events_topic="/dvs/events_right").events_topic == "/dvs/events_right"
-    cli = [sys.executable, "-m", "evlatcorr", "info", str(path)]
-    r = subprocess.run(cli, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    r = run_command("info", str(path), cwd=tmp_path)
     assert r.returncode == 2 and "choose one with events_topic" in r.stderr
-    r = subprocess.run([*cli, "--events-topic", "/dvs/events_right"], capture_output=True, text=True, timeout=120,
-                       cwd=tmp_path)
+    r = run_command("info", str(path), "--events-topic", "/dvs/events_right", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     with pytest.raises(RecordingError, match="events_topic='/dvs/image_raw' is not a dvs_msgs/EventArray topic"):
         RosbagRecording(path, events_topic="/dvs/image_raw")
@@ -185,23 +182,20 @@ def test_a_cut_off_or_garbled_bag_is_refused_with_a_message(tmp_path, bag):
 
 def test_the_command_line_corrects_a_bag(tmp_path, bag):
     out = tmp_path / "corrected.h5"
-    r = subprocess.run([sys.executable, "-m", "evlatcorr", "correct", str(bag), str(out), "--num-bins", "100"],
-                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    r = run_command("correct", str(bag), str(out), "--num-bins", "100", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     rows = list(csv.DictReader(open(out.with_suffix(".csv"))))
     assert len(rows) == 3 and all(row["latency_us"] for row in rows)
-    info = subprocess.run([sys.executable, "-m", "evlatcorr", "info", str(bag)], capture_output=True, text=True,
-                          timeout=120, cwd=tmp_path)
+    info = run_command("info", str(bag), cwd=tmp_path)
     assert info.returncode == 0 and "rosbag1" in info.stdout
     assert re.search(r"events_topic +/dvs/events\n", info.stdout) and "exposure_topic" in info.stdout
 
 
 def test_the_command_line_s_exposure_reaches_a_bag_without_the_exposure_topic(tmp_path, seq):
     path = write_bag(tmp_path / "noexp.bag", seq, exposure=False)
-    cli = [sys.executable, "-m", "evlatcorr", "info", str(path)]
-    r = subprocess.run(cli, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    r = run_command("info", str(path), cwd=tmp_path)
     assert r.returncode == 2 and "pass exposure_us (--exposure-us)" in r.stderr
-    r = subprocess.run([*cli, "--exposure-us", "4000"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    r = run_command("info", str(path), "--exposure-us", "4000", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert "(4000.0, 4000.0)" in r.stdout  # exposure_us (min, max)
 

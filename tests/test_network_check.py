@@ -39,25 +39,20 @@ def test_an_estimator_with_a_wrong_shape_is_refused():
 
 
 def test_the_script_skips_a_case_it_cannot_estimate_and_keeps_every_estimator(tmp_path):
-    import subprocess
-    import sys
-    from pathlib import Path
+    from tests.commands import ROOT, run_script
 
-    root = Path(__file__).resolve().parents[1]
     module = tmp_path / "refuses.py"
     module.write_text("def estimate(frames):\n    raise ValueError('no events in its window')\n\n\n"
                       "def none(frames):\n    return 0.0\n")
     out = tmp_path / "check.md"
-    script = [sys.executable, str(root / "benchmarks" / "network_check.py"), "--split", "dev", "--size", "32", "40"]
-    run = subprocess.run([*script, "--num", "1", "--estimator", f"{module}:estimate", "--out", str(out)],
-                         capture_output=True, text=True, cwd=root, timeout=300)
+    script = ["network_check.py", "--split", "dev", "--size", "32", "40"]
+    run = run_script(*script, "--num", "1", "--estimator", f"{module}:estimate", "--out", str(out), cwd=ROOT)
     assert run.returncode == 0, run.stderr
     assert "skipped (no events in its window)" in run.stdout
     assert "Skipped (an estimator could not estimate): dev-00-" in out.read_text()
     # two estimators from one module each keep their own column
-    run = subprocess.run([*script, "--num", "2", "--models", "intensity", "--estimator", f"{module}:none",
-                          "--estimator", f"{module}:none", "--out", str(out)],
-                         capture_output=True, text=True, cwd=root, timeout=300)
+    run = run_script(*script, "--num", "2", "--models", "intensity", "--estimator", f"{module}:none",
+                     "--estimator", f"{module}:none", "--out", str(out), cwd=ROOT)
     assert run.returncode == 0, run.stderr
     assert "| refuses: µs / PSNR / recovery | refuses': µs / PSNR / recovery |" in out.read_text()
     # the suite's streams stop 15 ms after the exposure, which the corrector warns of on every case: one line per

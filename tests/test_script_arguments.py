@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.commands import ROOT, run_script
 
 
 @pytest.mark.parametrize("script, args, message", [
@@ -34,8 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
     ("real_data.py", ["--frames", "99"], "--frames [99]: the recording has 13 frames"),
 ])
 def test_bad_arguments_exit_2_with_one_line(script, args, message, tmp_path):
-    run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args], capture_output=True, text=True,
-                         cwd=tmp_path, timeout=300)
+    run = run_script(script, *args, cwd=tmp_path)
     assert run.returncode == 2, run.stderr
     assert message in run.stderr and "Traceback" not in run.stderr
     assert not list(tmp_path.iterdir())  # nothing written
@@ -50,7 +48,14 @@ def test_bad_arguments_exit_2_with_one_line(script, args, message, tmp_path):
 def test_an_out_folder_that_cannot_be_written_is_refused_before_the_first_case(script, args, tmp_path):
     # found at the start, not when the results are written at the end of the run
     (tmp_path / "file").write_text("")
-    run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args, "--out",
-                          str(tmp_path / "file" / "out")], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    run = run_script(script, *args, "--out", str(tmp_path / "file" / "out"), cwd=tmp_path)
     assert run.returncode == 2, run.stderr
     assert f"{script}: error: --out: " in run.stderr and "cannot be written" in run.stderr
+
+
+def test_a_script_run_from_the_shell_exits_2_with_one_line(tmp_path):
+    # the tests above run the scripts in this process; this one starts Python as a user's shell does
+    run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "accuracy.py"), "--num", "0"],
+                         capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert run.returncode == 2 and "--num must be at least 1" in run.stderr and "Traceback" not in run.stderr
+    assert not list(tmp_path.iterdir())

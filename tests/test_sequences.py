@@ -88,15 +88,12 @@ def test_a_sequence_needs_at_least_one_frame():
 
 def test_the_script_writes_its_table(tmp_path):
     import json
-    import subprocess
-    import sys
-    from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
-    script = [sys.executable, str(root / "benchmarks" / "sequence_accuracy.py"), "--split", "dev", "--num", "6",
-              "--size", "32", "40", "--frames", "2", "--models", "constant", "--no-latency-mass", "0.3",
-              "--out", str(tmp_path)]
-    run = subprocess.run(script, capture_output=True, text=True, cwd=root, timeout=300)
+    from tests.commands import ROOT, run_script
+
+    script = ["sequence_accuracy.py", "--split", "dev", "--num", "6", "--size", "32", "40", "--frames", "2",
+              "--models", "constant", "--no-latency-mass", "0.3", "--out", str(tmp_path)]
+    run = run_script(*script, cwd=ROOT)
     assert run.returncode == 0, run.stderr
     table = (tmp_path / "results.md").read_text()
     for estimate in ("per frame", "fused ±2", "fused, past 2 (stream)", "fused ±2, 0 where p(0) > 0.3"):
@@ -111,24 +108,18 @@ def test_the_script_writes_its_table(tmp_path):
     assert {(g["estimate"], g["model"], g["cases"], g["frames"]) for g in paired} >= {
         ("fused ±2", "constant", 1, 2), ("fused ±2", IDEAL, 1, 2)}
     assert "| fused ±2 | constant latency | 1 (2) |" in table and "(– to –)" in table
-    bad = subprocess.run([*script[:-2], "--frames", "0"], capture_output=True, text=True, cwd=root, timeout=300)
+    bad = run_script(*script[:-2], "--frames", "0", cwd=ROOT)
     assert bad.returncode == 2 and "--frames must be at least 1" in bad.stderr
-    bad = subprocess.run([*script[:-2], "--no-latency-mass", "1"], capture_output=True, text=True, cwd=root,
-                         timeout=300)
+    bad = run_script(*script[:-2], "--no-latency-mass", "1", cwd=ROOT)
     assert bad.returncode == 2 and "--no-latency-mass must be in [0, 1)" in bad.stderr
 
 
 def test_a_case_the_simulator_refuses_is_left_out_and_named(tmp_path):
-    import subprocess
-    import sys
-    from pathlib import Path
+    from tests.commands import ROOT, run_script
 
     # at 40 ms, six frames of dev-13's zoom compound past any photograph: that case is named, the others reported
-    root = Path(__file__).resolve().parents[1]
-    run = subprocess.run([sys.executable, str(root / "benchmarks" / "sequence_accuracy.py"), "--split", "dev", "--num",
-                          "14", "--size", "32", "40", "--frames", "6", "--models", "constant", "--no-ideal",
-                          "--exposure-us", "40000", "--out", str(tmp_path)], capture_output=True, text=True, cwd=root,
-                         timeout=300)
+    run = run_script("sequence_accuracy.py", "--split", "dev", "--num", "14", "--size", "32", "40", "--frames", "6",
+                     "--models", "constant", "--no-ideal", "--exposure-us", "40000", "--out", str(tmp_path), cwd=ROOT)
     assert run.returncode == 0, run.stderr
     table = (tmp_path / "results.md").read_text()
     assert "1 case(s) not simulated, left out: dev-13-proc-gradient-dark-b0.14-zoom3.2-const9000-e40ms (the motion" \

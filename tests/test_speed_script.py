@@ -3,43 +3,32 @@
 from __future__ import annotations
 
 import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "benchmarks" / "speed.py"
+from tests.commands import ROOT, run_script
 
 pytestmark = pytest.mark.skipif(not (ROOT / ".git").exists(), reason="needs a git checkout (it reads a revision)")
 
 
 def run_speed(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(SCRIPT), "--part", "against", *args], capture_output=True, text=True,
-                          cwd=ROOT, timeout=300)
+    return run_script("speed.py", "--part", "against", *args, cwd=ROOT)
 
 
-def test_against_a_revision_times_both_in_turn_and_prints_the_ratio():
-    run = run_speed("--against", "HEAD", "--height", "24", "--width", "32", "--repeats", "1", "--rounds", "2")
+def test_against_a_revision_times_both_in_turn_with_one_score_and_prints_the_ratio():
+    # each round starts a process for each side: one run checks the order, the score given to both, and the ratio
+    run = run_speed("--against", "HEAD", "--height", "24", "--width", "32", "--repeats", "1", "--rounds", "2",
+                    "--score", "consensus")
     assert run.returncode == 0, run.stderr
     lines = run.stdout.splitlines()
     assert [line.split(":")[0] for line in lines if line.startswith("[cpu] round")] == [
         "[cpu] round 1, this checkout", "[cpu] round 1, HEAD", "[cpu] round 2, this checkout", "[cpu] round 2, HEAD"]
     summary = next(line for line in lines if "medians of 2 calls" in line)
+    assert summary.startswith("[cpu] search with score='consensus': this checkout")
     # HEAD's search is this checkout's (the tests do not change it): the same estimate on the same frame
     estimates = summary.split("estimates ")[1].split(" us")[0].split(" and ")
     assert estimates[0] == estimates[1]
     assert float(lines[-1].split("speed-up against HEAD: ")[1].rstrip("x")) > 0
-
-
-def test_against_a_revision_with_one_score_for_both():
-    run = run_speed("--against", "HEAD", "--height", "24", "--width", "32", "--repeats", "1", "--rounds", "1",
-                    "--score", "consensus")
-    assert run.returncode == 0, run.stderr
-    summary = next(line for line in run.stdout.splitlines() if "medians of 1 calls" in line)
-    assert summary.startswith("[cpu] search with score='consensus': this checkout")
-    estimates = summary.split("estimates ")[1].split(" us")[0].split(" and ")
-    assert estimates[0] == estimates[1]
 
 
 @pytest.mark.parametrize("args, code, message", [
@@ -53,8 +42,8 @@ def test_against_bad_arguments_exit_with_one_clear_line(args, code, message):
 
 
 def test_stages_add_up_to_the_whole_search_compiled_and_eager_with_and_without_the_tiles():
-    run = subprocess.run([sys.executable, str(SCRIPT), "--part", "stages", "--height", "24", "--width", "32",
-                          "--repeats", "1"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    run = run_script("speed.py", "--part", "stages", "--height", "24", "--width", "32",
+                          "--repeats", "1", cwd=ROOT)
     assert run.returncode == 0, run.stderr
     lines = run.stdout.splitlines()
     headers = [k for k, line in enumerate(lines) if " by stage" in line]
@@ -77,9 +66,8 @@ def test_stages_add_up_to_the_whole_search_compiled_and_eager_with_and_without_t
 
 
 def test_batch_part_times_each_batch_size_against_one_frame():
-    run = subprocess.run([sys.executable, str(SCRIPT), "--part", "batch", "--height", "24", "--width", "32",
-                          "--repeats", "1", "--batch-sizes", "3", "1", "2", "--device", "cpu"], capture_output=True,
-                         text=True, cwd=ROOT, timeout=300)
+    run = run_script("speed.py", "--part", "batch", "--height", "24", "--width", "32",
+                          "--repeats", "1", "--batch-sizes", "3", "1", "2", "--device", "cpu", cwd=ROOT)
     assert run.returncode == 0, run.stderr
     lines = [line for line in run.stdout.splitlines() if line.startswith("[cpu]")]
     assert "one frame" in lines[0] and "frames/s" in lines[0]
@@ -88,14 +76,13 @@ def test_batch_part_times_each_batch_size_against_one_frame():
 
 
 def test_batch_sizes_must_be_positive():
-    run = subprocess.run([sys.executable, str(SCRIPT), "--part", "batch", "--batch-sizes", "0"], capture_output=True,
-                         text=True, cwd=ROOT, timeout=300)
+    run = run_script("speed.py", "--part", "batch", "--batch-sizes", "0", cwd=ROOT)
     assert run.returncode == 2 and "--batch-sizes must be positive" in run.stderr
 
 
 def test_stream_part_times_the_streaming_corrector_against_the_corrector_alone():
-    run = subprocess.run([sys.executable, str(SCRIPT), "--part", "stream", "--adapter-size", "24", "32", "--repeats",
-                          "1", "--device", "cpu"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    run = run_script("speed.py", "--part", "stream", "--adapter-size", "24", "32", "--repeats",
+                          "1", "--device", "cpu", cwd=ROOT)
     assert run.returncode == 0, run.stderr
     line = next(line for line in run.stdout.splitlines() if line.startswith("[cpu] stream of 8 frames at 32x24"))
     assert float(line.split("stream/alone: ")[1]) > 0
@@ -107,24 +94,21 @@ def test_recording_times_the_corrector_compiled_and_eager(tmp_path):
 
     recording = tmp_path / "rec.h5"
     write_sequence(recording, simulate("camera", num_frames=2, height=24, width=32, latency_us=2000.0, seed=1))
-    args = [sys.executable, str(SCRIPT), "--part", "recording", "--recording"]
-    run = subprocess.run([*args, str(recording), "--threshold", "0.2", "--repeats", "1"], capture_output=True,
-                         text=True, cwd=ROOT, timeout=300)
+    args = ["--part", "recording", "--recording"]
+    run = run_script("speed.py", *args, str(recording), "--threshold", "0.2", "--repeats", "1", cwd=ROOT)
     assert run.returncode == 0, run.stderr
     lines = run.stdout.splitlines()
     assert lines[0].startswith("[cpu] rec.h5: 2 frames 32x24")
     assert "compiled passes: " in lines[1] and "ms per frame; eager: " in lines[1] and "speed-up" in lines[1]
     assert float(lines[2].split(": ")[1].split(" us")[0]) < 1.0  # the same latencies either way
     assert lines[3].startswith("[cpu] the recording's θ") and lines[3].endswith(" s (once)")
-    missing = subprocess.run([*args, str(tmp_path / "no.h5")], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    missing = run_script("speed.py", *args, str(tmp_path / "no.h5"), cwd=ROOT)
     assert missing.returncode == 1 and "no such file" in missing.stderr
 
 
 def test_profile_lists_the_search_operators_on_a_cpu():
-    script = ROOT / "benchmarks" / "profile_search.py"
-    run = subprocess.run([sys.executable, str(script), "--device", "cpu", "--height", "24", "--width", "32",
-                          "--calls", "1", "--rows", "5", "--by-line"], capture_output=True, text=True, cwd=ROOT,
-                         timeout=300)
+    run = run_script("profile_search.py", "--device", "cpu", "--height", "24", "--width", "32",
+                          "--calls", "1", "--rows", "5", "--by-line", cwd=ROOT)
     assert run.returncode == 0, run.stderr
     head = next(line for line in run.stdout.splitlines() if line.startswith("[cpu] default search"))
     assert "1 frame(s) per call" in head and "24x32" in head and "ms per call" in head
@@ -136,9 +120,7 @@ def test_profile_lists_the_search_operators_on_a_cpu():
 
 
 def test_profile_counts_the_reductions_kernels_as_a_gpu_takes_them_without_one():
-    script = ROOT / "benchmarks" / "profile_search.py"
-    run = subprocess.run([sys.executable, str(script), "--reductions", "--height", "36", "--width", "48"],
-                         capture_output=True, text=True, cwd=ROOT, timeout=300)
+    run = run_script("profile_search.py", "--reductions", "--height", "36", "--width", "48", cwd=ROOT)
     assert run.returncode == 0, run.stderr
     assert "1 frame(s) of 36x48, 101 candidates" in run.stdout and "meta tensors" in run.stdout
     counts = {line.split(":")[0].strip(): int(line.split(":")[1]) for line in run.stdout.splitlines()[1:]}
