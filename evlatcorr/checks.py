@@ -275,11 +275,14 @@ def check_search_size(size: Sequence[int], name: str = "frames") -> None:
                          f"{MIN_SEARCH_SIZE}x{MIN_SEARCH_SIZE} (its image filters reach 3 pixels); crop less")
 
 
-def check_has_events(frames: Any) -> None:
+def check_has_events(frames: Any) -> Tensor:
     """Every sample of an ``EventFrames`` batch needs events in ``[exposure_start, exposure_end + exposure time)``.
 
     That is the window the latency is estimated from (exposure plus the default search range);
     without events there is nothing to estimate a latency from, in constant or spatial mode.
+
+    Returns:
+        each sample's events in that window :math:`(B,)`, int64 (on the host).
     """
     ev = frames.events
     start = frames.exposure_start.to(ev.device, torch.float64)
@@ -287,7 +290,7 @@ def check_has_events(frames: Any) -> None:
     # events are sorted by sample, then time: two binary searches per sample, no pass over the events
     bounds = ev.sample_bounds().tolist()
     counts = torch.stack([torch.searchsorted(ev.t[lo:hi], torch.stack([start[i], end[i]])).diff()[0]
-                          for i, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))])
+                          for i, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))]).cpu()
     if bool((counts == 0).any()):
         i = int(torch.nonzero(counts == 0)[0, 0])
         exposure = float(frames.exposure_time[i])
@@ -304,6 +307,7 @@ def check_has_events(frames: Any) -> None:
                                f"[{_time_us(float(frames.exposure_start[i]))}, "
                                f"{_time_us(float(frames.exposure_end[i] + frames.exposure_time[i]))}) us{units}: "
                                f"latency cannot be estimated without events{elsewhere}")
+    return counts
 
 
 class NoEventsError(ValueError):

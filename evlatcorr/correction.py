@@ -23,6 +23,12 @@ __all__ = ["EventLatencyCorrector", "ConstantLatencyCorrector", "correct_constan
 
 _MODES = ("constant", "spatial")
 
+#: below this many events in a frame's exposure and search window, its events do not tell its latency: on the
+#: accuracy suite's tuning cases with their events thinned at random, such frames' estimates missed by a median 3.0 ms,
+#: as much as a guess that knows only the cases' typical latency (``python benchmarks/few_events.py``,
+#: docs/accuracy.md); a warning names them
+FEW_EVENTS = 100
+
 
 def correct_constant_latency(
     frames: EventFrames,
@@ -84,7 +90,7 @@ def correct_constant_latency(
     theta_vector = None if isinstance(threshold, str) else check_threshold(threshold, b)
     previous = None if previous_latency is None else check_batch_vector(previous_latency, b, "previous_latency")
     check_search_size(frames.sensor_size)
-    check_has_events(frames)
+    counts = check_has_events(frames)
     _warn_if_short(frames, config)
     theta: float | Tensor = threshold
     # θ and the latency are picked by searches, which no gradient flows through: no graph over their candidates
@@ -96,6 +102,7 @@ def correct_constant_latency(
         result = _search_constant_latency(frames.blurry, frames.events, frames.exposure_start, frames.exposure_end,
                                           theta_vector, config, previous, history=history)
     _warn_about_samples(result, config)
+    _warn_if_few_events(result, counts)
     height, width = frames.sensor_size
     latency = result.latency.to(frames.device, torch.float32).view(-1, 1, 1, 1).expand(-1, 1, height, width)
     corrected = frames.events.shift(result.latency)
@@ -117,6 +124,7 @@ def correct_constant_latency(
     meta["latency_spread_us"] = result.latency_spread
     meta["latency_log_probability"] = result.log_probability
     meta["latency_outside_range_us"] = result.outside_range
+    meta["events_in_window"] = counts
     if result.own_latency is not None:
         meta["frame_latency_us"] = result.own_latency
     return frames.with_outputs(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
@@ -158,6 +166,21 @@ def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> N
             f"({_microseconds(result.latency, which)}); widen the range if the latency may lie there",
             f"the learned reader finds the latency likelier outside search_range {span}: the "
             "estimate is held at the range's edge"), stacklevel=3)
+
+
+def _warn_if_few_events(result: ConstantSearchResult, counts: Tensor) -> None:
+    """Name the samples with fewer than :data:`FEW_EVENTS` events in their window: their latency is a guess (a
+    sample the search did not score, e.g. a blank frame, was named already)."""
+    few = [i for i, n in enumerate(counts.tolist())
+           if n < FEW_EVENTS and (result.source is None or result.source[i] not in (*BLANK_KINDS, "fallback"))]
+    if few:
+        numbers = ", ".join(str(int(counts[i])) for i in few)
+        warnings.warn(SampleWarning(
+            "few_events", few, f"{{which}}: only {numbers} event(s) in {{its}} exposure and search window, too few "
+            f"(under {FEW_EVENTS}) to tell a latency from: the estimate ({_microseconds(result.latency, few)}) is "
+            "little better than a guess, and moves only those events",
+            f"under {FEW_EVENTS} events in the exposure and search window, too few to tell a latency from: the "
+            "estimate is little better than a guess, and moves only those events"), stacklevel=3)
 
 
 def _range_text(low: float, high: float) -> str:

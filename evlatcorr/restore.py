@@ -182,7 +182,7 @@ def recording_threshold(rec, search_range: tuple[float, float] | None = None, nu
     """
     from evlatcorr.blank_frames import blank_pairs
     from evlatcorr.consistency import THRESHOLD_BOUNDS, estimate_recording_threshold
-    from evlatcorr.correction import EventLatencyCorrector
+    from evlatcorr.correction import FEW_EVENTS, EventLatencyCorrector
 
     saved = rec.after_us
     rec.after_us = pair_reach_us(rec, None if search_range is None else search_range[1])
@@ -197,14 +197,19 @@ def recording_threshold(rec, search_range: tuple[float, float] | None = None, nu
         rec.after_us = saved
     candidates.sort(key=lambda c: -c[0])
     corrector = EventLatencyCorrector(threshold=0.2, num_bins=num_bins, search_range=search_range)
-    thetas = []
+    thetas, most_events = [], 0
     for _, pair in candidates[:max_pairs]:
         pair = pair.to(device)
-        latency = corrector(pair).latency.mean(dim=(1, 2, 3))
-        thetas.append(estimate_recording_threshold(pair, latency=latency, num_bins=num_bins))
+        found = corrector(pair)
+        most_events = max(most_events, int(found.meta["events_in_window"].max()))
+        thetas.append(estimate_recording_threshold(pair, latency=found.latency.mean(dim=(1, 2, 3)), num_bins=num_bins))
     if not thetas:
         return None
     theta = sorted(thetas)[len(thetas) // 2]
+    if most_events < FEW_EVENTS:
+        warnings.warn(f"the recording's contrast threshold {theta:.3f} is estimated from frames with at most "
+                      f"{most_events} events in their exposure and search window (under {FEW_EVENTS}): too few to "
+                      "tell it; give the camera's threshold if you know it (--threshold, threshold=)", stacklevel=2)
     low, high = THRESHOLD_BOUNDS
     if not low * 1.02 < theta < high / 1.02:  # the golden-section search ends within a hair of a bound it ran into
         edge = "low" if theta <= low * 1.02 else "high"

@@ -206,6 +206,25 @@ def _first_frame_empty(folder: Path, num_frames: int, seed: int) -> Path:
     return path
 
 
+def test_a_recording_with_too_few_events_to_tell_a_latency_or_threshold_says_so(tmp_path):
+    # a still scene: a few dozen events a frame (the static DAVIS346 street recording has about 30)
+    seq = simulate("coffee", num_frames=3, height=32, width=48, latency_us=2000.0, seed=3)
+    ev = seq.delayed_events
+    keep = torch.rand(len(ev), generator=torch.Generator().manual_seed(0)) < 0.004
+    seq.delayed_events = type(ev)(ev.x[keep], ev.y[keep], ev.t[keep], ev.p[keep], sensor_size=ev.sensor_size)
+    write_sequence(tmp_path / "still.h5", seq)
+    r = run("correct", str(tmp_path / "still.h5"), str(tmp_path / "out.h5"), "--no-figure", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert re.search(r"the recording's contrast threshold \d\.\d+ is estimated from frames with at most \d+ events "
+                     r"in their exposure and search window \(under 100\): too few to tell it", r.stderr), r.stderr
+    first = re.findall(r"frame (\d+): only (\d+) event\(s\) in its exposure and search window, too few \(under 100\)",
+                       r.stderr)
+    assert len(first) == 1 and int(first[0][1]) < 100, r.stderr
+    rest = re.findall(r"(\d+) more frames? \(([\d, -]+)\): under 100 events in the exposure and search window", r.stderr)
+    assert len(rest) == 1 and int(rest[0][0]) == 2, r.stderr  # each frame named once, the others in one line
+    assert len(list(csv.DictReader(open(tmp_path / "out.csv")))) == 3
+
+
 @pytest.fixture(scope="module")
 def first_frame_empty(tmp_path_factory):
     return _first_frame_empty(tmp_path_factory.mktemp("empty"), 3, seed=3)

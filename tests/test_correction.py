@@ -157,6 +157,34 @@ def test_frames_that_require_grad_get_the_same_latency_and_a_differentiable_late
     assert blurry.grad is not None and bool(blurry.grad.abs().sum() > 0)
 
 
+def test_frames_with_too_few_events_to_tell_a_latency_are_named_with_their_counts():
+    from evlatcorr.correction import FEW_EVENTS
+
+    frames = simulate("coffee", num_frames=2, latency="constant", latency_us=3000.0, seed=1, height=32,
+                      width=40).frames("delayed")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        full = EventLatencyCorrector()(frames)
+    counts = full.meta["events_in_window"]
+    assert counts.shape == (2,) and bool((counts >= FEW_EVENTS).all())
+    assert not [w for w in caught if getattr(w.message, "kind", "") == "few_events"]
+    # the second frame thinned at random to 40 events in its window: it alone is named, with its count and estimate
+    ev = frames.events
+    end = frames.exposure_end + frames.exposure_time
+    inside = (ev.t >= frames.exposure_start[ev.batch]) & (ev.t < end[ev.batch])
+    second = torch.nonzero(inside & (ev.batch == 1)).flatten()
+    drop = torch.zeros(len(ev), dtype=torch.bool)
+    drop[second[torch.randperm(len(second), generator=torch.Generator().manual_seed(0))[40:]]] = True
+    with pytest.warns(UserWarning) as record:
+        thin = EventLatencyCorrector()(frames.replace(events=ev.select(~drop)))
+    assert thin.meta["events_in_window"].tolist() == [int(counts[0]), 40]
+    (few,) = [w.message for w in record if getattr(w.message, "kind", "") == "few_events"]
+    assert few.samples == (1,)
+    assert str(few).startswith(f"sample 1: only 40 event(s) in its exposure and search window, too few (under "
+                               f"{FEW_EVENTS}) to tell a latency from: the estimate ({float(thin.latency[1].mean()):.0f}"
+                               " us) is little better than a guess")
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("latency_us", [1000.0, 4000.0, 8000.0])
 def test_corrector_recovers_injected_constant_latency(latency_us):

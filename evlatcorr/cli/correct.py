@@ -112,7 +112,7 @@ def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: tor
     kept = _CorrectedFrames([], [], [], [], [], [math.inf, -math.inf])
     fused = ("; the latency written is fused with the frames either side (--fuse-frames; frame_latency_us keeps "
              "this one)") if args.mode == "constant" and args.fuse_frames > 0 else ""
-    frame_warnings = FrameWarnings({"fallback": fused, "clipped": fused, "flat": fused})
+    frame_warnings = FrameWarnings({"fallback": fused, "clipped": fused, "flat": fused, "few_events": fused})
     pending: list[Any] = []  # frames with events not yet corrected, searched in one call (frames_per_call)
 
     def record(batch, out, seconds: float, skipped: str = "") -> None:
