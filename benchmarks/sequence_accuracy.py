@@ -105,8 +105,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--out", type=Path, default=Path("outputs/sequences"))
     args = p.parse_args(argv)
     _setup.check_case_options(p, args)
-    if args.frames < 1:
-        p.error(f"--frames must be at least 1, got {args.frames}")
+    if args.frames < 2:  # one frame has no neighbours: its fused estimates would be its own
+        p.error(f"--frames must be at least 2 (fusing needs a frame's neighbours), got {args.frames}")
     if any(not 0 <= share < 1 for share in args.no_latency_mass):
         p.error(f"--no-latency-mass must be in [0, 1), got {args.no_latency_mass}")
     windows = dict(DEFAULT_WINDOWS) | {

@@ -220,7 +220,8 @@ def test_a_recording_with_too_few_events_to_tell_a_latency_or_threshold_says_so(
     first = re.findall(r"frame (\d+): only (\d+) event\(s\) in its exposure and search window, too few \(under 100\)",
                        r.stderr)
     assert len(first) == 1 and int(first[0][1]) < 100, r.stderr
-    rest = re.findall(r"(\d+) more frames? \(([\d, -]+)\): under 100 events in the exposure and search window", r.stderr)
+    rest = re.findall(r"(\d+) more frames? \(([\d, -]+)\): under 100 events in the exposure and search window",
+                      r.stderr)
     assert len(rest) == 1 and int(rest[0][0]) == 2, r.stderr  # each frame named once, the others in one line
     assert len(list(csv.DictReader(open(tmp_path / "out.csv")))) == 3
 

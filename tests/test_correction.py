@@ -180,9 +180,10 @@ def test_frames_with_too_few_events_to_tell_a_latency_are_named_with_their_count
     assert thin.meta["events_in_window"].tolist() == [int(counts[0]), 40]
     (few,) = [w.message for w in record if getattr(w.message, "kind", "") == "few_events"]
     assert few.samples == (1,)
+    estimate = float(thin.latency[1].mean())
     assert str(few).startswith(f"sample 1: only 40 event(s) in its exposure and search window, too few (under "
-                               f"{FEW_EVENTS}) to tell a latency from: the estimate ({float(thin.latency[1].mean()):.0f}"
-                               " us) is little better than a guess")
+                               f"{FEW_EVENTS}) to tell a latency from: the estimate ({estimate:.0f} us) is little "
+                               "better than a guess")
 
 
 @pytest.mark.slow

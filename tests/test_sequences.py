@@ -108,8 +108,9 @@ def test_the_script_writes_its_table(tmp_path):
     assert {(g["estimate"], g["model"], g["cases"], g["frames"]) for g in paired} >= {
         ("fused ±2", "constant", 1, 2), ("fused ±2", IDEAL, 1, 2)}
     assert "| fused ±2 | constant latency | 1 (2) |" in table and "(– to –)" in table
-    bad = run_script(*script[:-2], "--frames", "0", cwd=ROOT)
-    assert bad.returncode == 2 and "--frames must be at least 1" in bad.stderr
+    bad = run_script(*script[:-2], "--frames", "1", cwd=ROOT)
+    assert bad.returncode == 2
+    assert "--frames must be at least 2 (fusing needs a frame's neighbours), got 1" in bad.stderr
     bad = run_script(*script[:-2], "--no-latency-mass", "1", cwd=ROOT)
     assert bad.returncode == 2 and "--no-latency-mass must be in [0, 1)" in bad.stderr
 

@@ -48,7 +48,7 @@ from evlatcorr.correction import EventLatencyCorrector
 from evlatcorr.gamma import frame_gamma_argument
 from evlatcorr.io import read_sequence
 from evlatcorr.io.outputs import check_writable_folder
-from evlatcorr.lightning.arguments import trainer_or_exit
+from evlatcorr.lightning.arguments import MIN_FRAME_SIZE, trainer_or_exit
 from evlatcorr.simulate import PHOTOGRAPHS_TEST
 from evlatcorr.simulation.latency import MAX_LATENCY_US
 
@@ -68,8 +68,6 @@ FULL: dict[str, Any] = {"size": (256, 336), "num_bins": 500, "spatial_steps": 30
 QUICK: dict[str, Any] = {"scenes": 2, "size": (64, 80), "num_bins": 100, "spatial_steps": 10}
 #: the rows whose weights --ckpt gives
 CHECKPOINT_METHODS = ("efnet", "gem", "refid")
-#: the smallest simulated frame the run takes (the search and the ETF filter 7x7 boxes)
-MIN_SIZE = 8
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -114,9 +112,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     for name, value in preset.items():  # what is given explicitly wins over --quick
         if getattr(args, name) is None:
             setattr(args, name, value)
-    if min(args.size) < MIN_SIZE or args.num_bins < 2 or args.spatial_steps < 0 or args.refid_n < 0:
-        p.error(f"--size must be at least {MIN_SIZE} {MIN_SIZE}, --num-bins >= 2, --spatial-steps and --refid-n "
-                f">= 0; got {list(args.size)}, {args.num_bins}, {args.spatial_steps} and {args.refid_n}")
+    if min(args.size) < MIN_FRAME_SIZE or args.num_bins < 2 or args.spatial_steps < 0 or args.refid_n < 0:
+        p.error(f"--size must be at least {MIN_FRAME_SIZE} {MIN_FRAME_SIZE}, --num-bins >= 2, --spatial-steps and "
+                f"--refid-n >= 0; got {list(args.size)}, {args.num_bins}, {args.spatial_steps} and {args.refid_n}")
     for item in args.ckpt:
         name, _, path = item.partition("=")
         if name not in CHECKPOINT_METHODS or not path:

@@ -12,7 +12,11 @@ from collections.abc import Callable
 from typing import Any, NoReturn
 
 __all__ = ["CommandParser", "parse_devices", "threshold_argument", "exit_bad_input", "trainer_or_exit",
-           "quiet_lightning"]
+           "quiet_lightning", "MIN_FRAME_SIZE"]
+
+#: the smallest simulated frame or --data crop the commands that train the latency curve take (the latency command,
+#: and run.py, whose spatial rows train one): the search and the ETF filter 7x7 boxes
+MIN_FRAME_SIZE = 8
 
 #: Lightning's messages that tell a user of these commands nothing they can act on: adverts for its cloud services,
 #: a note that without TensorBoard its default logger writes CSV files (under --out, where the commands write their

@@ -12,6 +12,7 @@ from evlatcorr.frames import EventFrames
 from evlatcorr.gamma import frame_gamma_argument
 from evlatcorr.io.outputs import check_writable_folder
 from evlatcorr.lightning.arguments import (
+    MIN_FRAME_SIZE,
     exit_bad_input,
     parse_devices,
     threshold_argument,
@@ -26,8 +27,6 @@ __all__ = ["SUMMARY", "DESCRIPTION", "add_arguments", "check", "run"]
 
 #: --val-every's default with --data
 DEFAULT_VAL_EVERY = 5
-#: the smallest simulated frame or --data crop a training step takes (the search and the ETF filter 7x7 boxes)
-MIN_SIZE = 8
 
 SUMMARY = "train the latency polynomial self-supervised (no ground truth)"
 
@@ -112,10 +111,10 @@ def check(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
         leaked = sorted(set(args.scenes) & set(PHOTOGRAPHS_TEST))
         if leaked and not args.allow_test_photographs:  # as restore: run.py's spatial rows read this curve
             parser.error(f"{leaked} belong to the benchmark's test split; training on them would inflate its scores")
-        if min(args.size) < MIN_SIZE:
-            parser.error(f"--size must be at least {MIN_SIZE} {MIN_SIZE}, got {list(args.size)}")
-    if args.crop is not None and min(args.crop) < MIN_SIZE:
-        parser.error(f"--crop must be at least {MIN_SIZE} {MIN_SIZE}, got {list(args.crop)}")
+        if min(args.size) < MIN_FRAME_SIZE:
+            parser.error(f"--size must be at least {MIN_FRAME_SIZE} {MIN_FRAME_SIZE}, got {list(args.size)}")
+    if args.crop is not None and min(args.crop) < MIN_FRAME_SIZE:
+        parser.error(f"--crop must be at least {MIN_FRAME_SIZE} {MIN_FRAME_SIZE}, got {list(args.crop)}")
     if args.val_every is not None and args.val_every < 0:
         parser.error(f"--val-every must be >= 0 (0: no validation), got {args.val_every}")
     try:
