@@ -76,7 +76,9 @@ def correct_constant_latency(
         share their latency, and :func:`evlatcorr.temporal.fuse_latencies` combines their evidence.
         ``meta["latency_outside_range_us"]`` :math:`(B,)`: with a ``search_range`` and the learned reader, where the
         reader puts more than half its probability outside the range, its likeliest latency there (the estimate is
-        held at the range's edge; a warning names the frames), NaN elsewhere.
+        held at the range's edge; a warning names the frames), NaN elsewhere. ``meta["events_in_window"]``
+        :math:`(B,)` int64 on the host: each frame's events in ``[exposure_start, exposure_end + exposure time)``;
+        under :data:`FEW_EVENTS` a warning names the frame (its events do not tell its latency).
 
     Raises:
         ValueError: when a sample has no events in ``[exposure_start, exposure_end + exposure time)``
