@@ -119,7 +119,7 @@ def main() -> None:
         w.writeheader()
         w.writerows(rows)
     summary = summarize(rows, args.recording.name, theta)
-    (args.out / "real_data.md").write_text(summary)
+    (args.out / "real_data.md").write_text(_page_header(args) + summary)
     print(summary)
     plot(shown, args, theta)
     print(f"wrote {args.out / 'real_data.png'}, {args.out / 'real_data.md'} and {args.out / 'real_data_latency.csv'}")
@@ -139,6 +139,18 @@ def add_fused(rows: list[dict], evidence: dict, theta: float) -> None:
         row["fused_latency_us"] = round(latency, 1)
         if pair is not None:
             row["disagreement_fused"] = round(float(pair_disagreement(pair, theta, latency)), 5)
+
+
+def _page_header(args: argparse.Namespace) -> str:
+    """What ``real_data.md`` holds, and the command that wrote it."""
+    command = ("python benchmarks/real_data.py" + ("" if args.recording == DEFAULT else f" {args.recording}")
+               + ("" if args.threshold is None else f" --threshold {args.threshold:g}"))
+    return (f"# Latency correction on a real recording: {args.recording.name}\n\n"
+            f"Written by `{command}`. A real recording has no sharp frame to score "
+            "against: each pair of consecutive frames is scored by how much their EDI reconstructions disagree at the "
+            "middle of the gap between the two exposures (`evlatcorr.consistency.pair_disagreement`: the mean "
+            "absolute difference of their log intensities; lower is more consistent), with the events as stamped and "
+            "corrected by the frame's latency. `real_data_latency.csv` beside it has every frame's figures.\n\n")
 
 
 def summarize(rows: list[dict], name: str, theta: float) -> str:
