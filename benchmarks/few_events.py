@@ -3,7 +3,7 @@
 Each case's events are kept with each share of ``--shares`` and the default corrector estimates the latency from what
 is left; the errors are grouped by the events left in the frame's exposure and search window, beside the error of a
 guess that knows only the cases' typical latency. See :mod:`evlatcorr.benchmark.few_events`;
-:data:`evlatcorr.correction.FEW_EVENTS` comes from this table.
+:data:`evlatcorr.checks.FEW_EVENTS` comes from this table.
 
     python benchmarks/few_events.py                  # the 80 constant-latency tuning cases, about 2 minutes
     python benchmarks/few_events.py --split dev --num 10

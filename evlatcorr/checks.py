@@ -31,6 +31,7 @@ __all__ = [
     "check_search_range",
     "check_memory",
     "check_has_events",
+    "FEW_EVENTS",
     "check_search_size",
     "MIN_SEARCH_SIZE",
     "NoEventsError",
@@ -273,6 +274,13 @@ def check_search_size(size: Sequence[int], name: str = "frames") -> None:
     if min(height, width) < MIN_SEARCH_SIZE:
         raise ValueError(f"{name} of {height}x{width} pixels are too small for the latency search: it needs at least "
                          f"{MIN_SEARCH_SIZE}x{MIN_SEARCH_SIZE} (its image filters reach 3 pixels); crop less")
+
+
+#: below this many events in a frame's exposure and search window, its events do not tell its latency: on the
+#: accuracy suite's tuning cases with their events thinned at random, such frames' estimates missed by a median 3.0 ms,
+#: as much as a guess that knows only the cases' typical latency (``python benchmarks/few_events.py``,
+#: docs/accuracy.md); the corrector and ``evlatcorr info`` name them
+FEW_EVENTS = 100
 
 
 def check_has_events(frames: Any) -> Tensor:

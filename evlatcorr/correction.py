@@ -9,7 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from evlatcorr.blank_frames import BLANK_KINDS, blank_pairs
-from evlatcorr.checks import check_batch_vector, check_has_events, check_search_size, check_threshold
+from evlatcorr.checks import FEW_EVENTS, check_batch_vector, check_has_events, check_search_size, check_threshold
 from evlatcorr.config import DEFAULT_GHOST_CONFIDENCE, DEFAULT_SCORE, SearchConfig
 from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
@@ -22,12 +22,6 @@ from evlatcorr.temporal import LatencyHistory
 __all__ = ["EventLatencyCorrector", "ConstantLatencyCorrector", "correct_constant_latency", "SearchConfig"]
 
 _MODES = ("constant", "spatial")
-
-#: below this many events in a frame's exposure and search window, its events do not tell its latency: on the
-#: accuracy suite's tuning cases with their events thinned at random, such frames' estimates missed by a median 3.0 ms,
-#: as much as a guess that knows only the cases' typical latency (``python benchmarks/few_events.py``,
-#: docs/accuracy.md); a warning names them
-FEW_EVENTS = 100
 
 
 def correct_constant_latency(

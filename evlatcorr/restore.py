@@ -181,8 +181,9 @@ def recording_threshold(rec, search_range: tuple[float, float] | None = None, nu
         leaves the frames about as blurred as they are.
     """
     from evlatcorr.blank_frames import blank_pairs
+    from evlatcorr.checks import FEW_EVENTS
     from evlatcorr.consistency import THRESHOLD_BOUNDS, estimate_recording_threshold
-    from evlatcorr.correction import FEW_EVENTS, EventLatencyCorrector
+    from evlatcorr.correction import EventLatencyCorrector
 
     saved = rec.after_us
     rec.after_us = pair_reach_us(rec, None if search_range is None else search_range[1])

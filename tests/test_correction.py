@@ -158,7 +158,7 @@ def test_frames_that_require_grad_get_the_same_latency_and_a_differentiable_late
 
 
 def test_frames_with_too_few_events_to_tell_a_latency_are_named_with_their_counts():
-    from evlatcorr.correction import FEW_EVENTS
+    from evlatcorr.checks import FEW_EVENTS
 
     frames = simulate("coffee", num_frames=2, latency="constant", latency_us=3000.0, seed=1, height=32,
                       width=40).frames("delayed")

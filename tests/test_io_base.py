@@ -207,6 +207,9 @@ def test_info():
     # events inside each exposure [start, end): 2, 3, 4 and 6; chunks of 3 split the windows
     assert info["events in each exposure (min, median, max)"] == (1, 2, 3)
     assert info["frames without events in their exposure"] == "0 of 2"
+    # and up to one exposure time after it, where the latency is searched: [2, 8) holds 2-7, [6, 8) holds 6 and 7
+    assert info["events in each exposure and search window (min, median, max)"] == (2, 4, 6)
+    assert info["frames under 100 events there (too few to tell a latency)"] == "2 of 2"
 
 
 def test_info_counts_each_segments_events_in_its_own_frames():
@@ -216,6 +219,8 @@ def test_info_counts_each_segments_events_in_its_own_frames():
     info = MemoryRecording([([(10.0, 20.0), (30.0, 40.0), (60.0, 70.0)], a), ([(5.0, 8.0)], b)], chunk=6).info()
     assert info["events in each exposure (min, median, max)"] == (0, 6, 10)  # 10, 10, 0 and 3: median 6.5
     assert info["frames without events in their exposure"] == "1 of 4"
+    # [10, 30), [30, 50), [60, 80) of the first segment (20, 20, 0) and [5, 11) of the second (6)
+    assert info["events in each exposure and search window (min, median, max)"] == (0, 13, 20)
 
 
 # bad input: clear errors and warnings that name the file and the frame ----------------------

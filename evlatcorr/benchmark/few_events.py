@@ -5,7 +5,7 @@ case's delayed events are kept at random with a share ``f`` (one uniform draw pe
 keeps a subset of a larger one's events), the default corrector estimates the latency from what is left, and its
 error is grouped by the events left in the frame's exposure and search window. Where the median error reaches what a
 guess that knows only the cases' typical latency makes, the events no longer tell the latency:
-:data:`evlatcorr.correction.FEW_EVENTS` is set from this table.
+:data:`evlatcorr.checks.FEW_EVENTS` is set from this table.
 
 Thinning keeps the contrast threshold θ of the case, so each event left stands for the same step of log intensity
 as before: the frame reads as a scene with fewer and weaker changes, as a still or dark one is.

@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from evlatcorr.checks import FEW_EVENTS
+
 __all__ = ["event_summary", "frame_summary"]
 
 
@@ -14,7 +16,9 @@ def event_summary(chunks: Iterable[Any], times: list[tuple[float, float, int]] |
     """Count, ON fraction and time span (µs) of the events of ``chunks``, one chunk in memory at a time.
 
     With ``times`` (each frame's exposure start, end and segment, as ``Recording.frame_times``), also the events
-    inside each frame's exposure (lowest, median, highest) and the frames with none: where a scene is still or dark,
+    inside each frame's exposure (lowest, median, highest) and the frames with none, and the events of each frame's
+    exposure and default search window (the exposure and one exposure time after it, what the latency is estimated
+    from) with the frames that hold under :data:`~evlatcorr.checks.FEW_EVENTS` there: where a scene is still or dark,
     latency has little to go on. The chunks then come in time order within each segment, with any other object (a
     segment's end marker) between segments.
 
@@ -24,12 +28,18 @@ def event_summary(chunks: Iterable[Any], times: list[tuple[float, float, int]] |
         >>> summary = event_summary([chunk], [(0.0, 10.0, 0), (10.0, 20.0, 0), (20.0, 30.0, 0)])
         >>> summary["events in each exposure (min, median, max)"], summary["frames without events in their exposure"]
         ((0, 1, 2), '1 of 3')
+        >>> summary["events in each exposure and search window (min, median, max)"]
+        (0, 2, 3)
+        >>> summary["frames under 100 events there (too few to tell a latency)"]
+        '3 of 3'
     """
     count, first, last, on = 0, None, None, 0
     segments = np.array([segment for _, _, segment in times or []], dtype=np.int64)
     starts = np.array([start for start, _, _ in times or []], dtype=np.float64)
     ends = np.array([end for _, end, _ in times or []], dtype=np.float64)
+    reach = ends + (ends - starts)  # the default search range: up to one exposure time late
     inside = np.zeros(len(segments), dtype=np.int64)
+    searched = np.zeros(len(segments), dtype=np.int64)
     segment = 0
     for chunk in chunks:
         if not isinstance(chunk, np.ndarray):  # the end of a segment: the next chunks are the next segment's
@@ -43,13 +53,19 @@ def event_summary(chunks: Iterable[Any], times: list[tuple[float, float, int]] |
             if len(inside):  # each frame's share of this chunk, from its sorted times: one pass over the events
                 mine = segments == segment
                 t = chunk["t"]
-                inside[mine] += np.searchsorted(t, ends[mine]) - np.searchsorted(t, starts[mine])
+                from_start = np.searchsorted(t, starts[mine])
+                inside[mine] += np.searchsorted(t, ends[mine]) - from_start
+                searched[mine] += np.searchsorted(t, reach[mine]) - from_start
     summary = {"events": count, "on_fraction": on / count if count else None,
                "event_time_us (first, last)": (first, last)}
     if len(inside):
         summary["events in each exposure (min, median, max)"] = (int(inside.min()), int(np.median(inside)),
                                                                  int(inside.max()))
         summary["frames without events in their exposure"] = f"{int((inside == 0).sum())} of {len(inside)}"
+        summary["events in each exposure and search window (min, median, max)"] = (
+            int(searched.min()), int(np.median(searched)), int(searched.max()))
+        summary[f"frames under {FEW_EVENTS} events there (too few to tell a latency)"] = (
+            f"{int((searched < FEW_EVENTS).sum())} of {len(searched)}")
     return summary
 
 
