@@ -11,23 +11,25 @@ from evlatcorr.benchmark.few_events import few_events_markdown, few_events_summa
 from tests.commands import ROOT, run_script
 
 
-def _row(share, events, truth, estimate):
+def _row(share, events, truth, estimate, spread=500.0):
     return {"case": "c", "share": share, "events": events, "truth_us": truth, "estimate_us": estimate,
-            "abs_error_us": abs(estimate - truth)}
+            "abs_error_us": abs(estimate - truth), "spread_us": spread}
 
 
 def test_the_summary_groups_by_events_and_sets_the_guess_from_the_full_frames():
     rows = [_row(1.0, 5000, 1000.0, 1100.0), _row(1.0, 8000, 3000.0, 3500.0), _row(1.0, 9000, 5000.0, 5200.0),
-            _row(0.01, 50, 1000.0, 9000.0), _row(0.01, 80, 5000.0, 3000.0)]
+            _row(0.01, 50, 1000.0, 9000.0, math.nan), _row(0.01, 80, 5000.0, 3000.0, 3000.0)]
     groups = few_events_summary(rows, bins=(0, 100, math.inf))
     assert [g["events"] for g in groups] == [(0, 100), (100, math.inf)]
     few, many = groups
     assert (few["frames"], few["median_abs_error_us"], few["within_1ms"]) == (2, 5000.0, 0.0)
     # the guess answers the full frames' median truth, 3000 us: off by 2000 us on both thinned frames
     assert few["guess_median_abs_error_us"] == 2000.0
+    assert few["median_spread_us"] == 3000.0  # the frame the reader did not read (NaN) is left out
     assert (many["frames"], many["median_abs_error_us"], many["within_1ms"]) == (3, 200.0, 1.0)
     table = few_events_markdown(groups)
-    assert "| 0-99 | 2 | 5000 us | 0 % | 2000 us |" in table and "| 100 or more | 3 | 200 us | 100 % |" in table
+    assert "| 0-99 | 2 | 5000 us | 0 % | 2000 us | 3000 us |" in table
+    assert "| 100 or more | 3 | 200 us | 100 % | 2000 us | 500 us |" in table
     assert few_events_summary([]) == []
 
 
@@ -50,7 +52,8 @@ def test_the_script_writes_its_table(tmp_path):
     assert run.returncode == 0, run.stderr
     table = (tmp_path / "results.md").read_text()
     assert "| events in the window | frames |" in table and "shares kept 1, 0.01" in table
-    assert (tmp_path / "results.csv").read_text().startswith("case,share,events,truth_us,estimate_us,abs_error_us")
+    assert (tmp_path / "results.csv").read_text().startswith(
+        "case,share,events,truth_us,estimate_us,abs_error_us,spread_us")
     bad = run_script("few_events.py", "--shares", "2", cwd=tmp_path)
     assert bad.returncode == 2 and "--shares must lie in (0, 1], got [2.0]" in bad.stderr
     assert not list(tmp_path.glob("outputs"))

@@ -35,7 +35,8 @@ def thinned_estimates(case: Case, shares: Sequence[float] = DEFAULT_SHARES, seed
 
     Returns:
         one row per share with events left: ``case``, ``share``, ``events`` (in ``[exposure_start, exposure_end +
-        exposure time)``, the window the search reads), ``truth_us``, ``estimate_us``, ``abs_error_us``.
+        exposure time)``, the window the search reads), ``truth_us``, ``estimate_us``, ``abs_error_us`` and the
+        learned reader's ``spread_us`` (how unsure it is; NaN where it did not read the frame).
 
     Example:
         >>> from evlatcorr.benchmark.accuracy import make_cases
@@ -64,15 +65,18 @@ def thinned_estimates(case: Case, shares: Sequence[float] = DEFAULT_SHARES, seed
             continue
         with warnings.catch_warnings():  # the few-events warning is what this measures
             warnings.simplefilter("ignore")
-            estimate = float(corrector(delayed.replace(events=kept)).latency.mean())
+            out = corrector(delayed.replace(events=kept))
+        estimate = float(out.latency.mean())
         rows.append({"case": case.name, "share": share, "events": in_window, "truth_us": truth,
-                     "estimate_us": estimate, "abs_error_us": abs(estimate - truth)})
+                     "estimate_us": estimate, "abs_error_us": abs(estimate - truth),
+                     "spread_us": float(out.meta["latency_spread_us"][0])})
     return rows
 
 
 def few_events_summary(rows: list[dict], bins: Sequence[float] = EVENT_BINS) -> list[dict]:
     """The rows grouped by events in the window: the estimates' median absolute error, their share within 1 ms,
-    and the median error of the guess that answers every frame with the median true latency of all the cases."""
+    the median error of the guess that answers every frame with the median true latency of all the cases, and the
+    reader's median spread (over the frames it read)."""
     if not rows:
         return []
     guess = statistics.median(row["truth_us"] for row in rows if row["share"] == max(r["share"] for r in rows))
@@ -84,17 +88,24 @@ def few_events_summary(rows: list[dict], bins: Sequence[float] = EVENT_BINS) -> 
                            "median_abs_error_us": statistics.median(row["abs_error_us"] for row in group),
                            "within_1ms": sum(row["abs_error_us"] < 1000.0 for row in group) / len(group),
                            "guess_median_abs_error_us": statistics.median(abs(row["truth_us"] - guess)
-                                                                          for row in group)})
+                                                                          for row in group),
+                           "median_spread_us": _median_of_numbers([row.get("spread_us", math.nan)
+                                                                   for row in group])})
     return groups
+
+
+def _median_of_numbers(values: list[float]) -> float:
+    numbers = [v for v in values if not math.isnan(v)]
+    return statistics.median(numbers) if numbers else math.nan
 
 
 def few_events_markdown(groups: list[dict]) -> str:
     """:func:`few_events_summary`'s groups as a markdown table."""
     lines = ["| events in the window | frames | median abs. error | within 1 ms | the typical-latency guess's median "
-             "abs. error |", "| --- | --- | --- | --- | --- |"]
+             "abs. error | the reader's spread, median |", "| --- | --- | --- | --- | --- | --- |"]
     for g in groups:
         low, high = g["events"]
         span = f"{low:g} or more" if math.isinf(high) else f"{low:g}-{high - 1:g}"
         lines.append(f"| {span} | {g['frames']} | {g['median_abs_error_us']:.0f} us | {100 * g['within_1ms']:.0f} % "
-                     f"| {g['guess_median_abs_error_us']:.0f} us |")
+                     f"| {g['guess_median_abs_error_us']:.0f} us | {g['median_spread_us']:.0f} us |")
     return "\n".join(lines) + "\n"
