@@ -40,7 +40,8 @@ def correct_constant_latency(
         threshold: contrast threshold θ, or ``"auto"``: for pairs (``blurry_next`` set) one θ for the batch
             that makes both frames' reconstructions agree
             (:func:`~evlatcorr.consistency.estimate_recording_threshold`), else per frame by
-            :func:`~evlatcorr.edi.estimate_threshold`; both at the latency found with θ = 0.2.
+            :func:`~evlatcorr.edi.estimate_threshold` (a black, saturated or flat frame, which has nothing to deblur,
+            gets 0.2, as a batch of blank pairs does); both at the latency found with θ = 0.2.
         config: the search settings (:class:`~evlatcorr.config.SearchConfig`: bins, range, candidates,
             refinement, score); default ``SearchConfig()``.
         previous_latency: ``l'`` :math:`(B,)` µs for the temporal prior (e.g. the previous frame's).
@@ -232,7 +233,14 @@ def _auto_threshold(frames: EventFrames, config: SearchConfig, previous: Tensor 
                   "or frame pairs (blurry_next) for the two-frame estimate", stacklevel=3)
     start = frames.exposure_start.to(frames.events.device)
     end = frames.exposure_end.to(frames.events.device)
-    return _estimate_threshold(frames.blurry, frames.events, start, end, first.latency, config.num_bins)
+    theta = _estimate_threshold(frames.blurry, frames.events, start, end, first.latency, config.num_bins)
+    # a blank frame (black, saturated or flat) has nothing to deblur for its θ to be told from: 0.2, as pairs of
+    # blank frames get (its latency is the fallback too)
+    blank = [i for i, source in enumerate(first.source or []) if source in BLANK_KINDS]
+    if blank:
+        theta = theta.clone()
+        theta[blank] = 0.2
+    return theta
 
 
 def _threshold_vector(theta: float | Tensor, batch_size: int) -> Tensor:

@@ -466,6 +466,24 @@ def test_a_flat_frame_is_not_searched_and_is_named(monkeypatch):
     assert float(outs[1].latency.mean()) == pytest.approx(float(outs[0].latency.mean()), abs=1e-3)
 
 
+def test_auto_threshold_on_single_frames_gives_a_blank_frame_the_default_theta():
+    # a flat frame has nothing to deblur for its θ to be told from: 0.2, as pairs of blank frames get; the frame
+    # with a scene gets its own estimate, as alone
+    frames = simulate("camera", num_frames=2, height=32, width=40, threshold=0.5, latency_us=3000.0,
+                      seed=0).frames("delayed")
+    g = torch.Generator().manual_seed(0)
+    noisy_grey = (0.5 + 0.01 * torch.randn(frames.blurry[:1].shape, generator=g)).clamp(0, 1)
+    corrector = EventLatencyCorrector(threshold="auto")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = corrector(frames.replace(blurry=torch.cat([frames.blurry[:1], noisy_grey])))
+        alone = corrector(frames.split()[0])
+    assert out.meta["latency_source"][1] == "flat"
+    theta = out.meta["threshold"]
+    assert float(theta[1]) == 0.2
+    assert float(theta[0]) == pytest.approx(float(alone.meta["threshold"][0]), rel=1e-6) and float(theta[0]) != 0.2
+
+
 @pytest.mark.parametrize("value", [0.4, 0.0], ids=["flat", "black"])
 def test_auto_threshold_on_pairs_leaves_out_a_pair_with_a_blank_frame(value):
     seq = simulate("camera", num_frames=4, height=48, width=64, threshold=0.5, latency_us=2000.0, seed=0)
