@@ -40,13 +40,14 @@ import torch
 from torch import Tensor, nn
 
 from evlatcorr.blank_frames import BLANK_KINDS, blank_kinds
-from evlatcorr.checks import check_has_events, check_search_size, check_threshold, resolve_memory_budget
+from evlatcorr.checks import FEW_EVENTS, check_has_events, check_search_size, check_threshold, resolve_memory_budget
 from evlatcorr.config import SearchConfig
 from evlatcorr.edi import _check_grid, _edi_deblur
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf_loss
 from evlatcorr.event_grid import EventGrid, _event_grid, _event_grid_bytes
 from evlatcorr.frames import EventFrames
 from evlatcorr.latency_table import LatencyTable
+from evlatcorr.sample_warnings import SampleWarning
 from evlatcorr.search import _search_constant_latency, fallback_warning
 
 __all__ = ["PolynomialLatency", "LossWeights", "spatial_objective", "fit_spatial_latency",
@@ -424,7 +425,7 @@ class SpatialLatencyCorrector(nn.Module):
 
     def forward(self, frames: EventFrames, threshold: float | Tensor | None = None) -> EventFrames:
         check_search_size(frames.sensor_size)
-        check_has_events(frames)  # as the constant mode: no latency without events
+        counts = check_has_events(frames)  # as the constant mode: no latency without events
         # the frames were checked when made, the settings in __init__: the work below checks nothing again
         if threshold is None:
             theta = torch.full((frames.batch_size,), self.threshold, dtype=torch.float64)
@@ -438,6 +439,8 @@ class SpatialLatencyCorrector(nn.Module):
             blank = _blank_frames(frames)
             model, fell_back = self._fit(frames, theta, blank)
         skipped = [c is not None or f for c, f in zip(blank, fell_back)]
+        if self.model is None:  # a trained curve reads the frame's intensities; a fit reads its events
+            _warn_if_few_events(counts, skipped)
         with torch.no_grad():  # the map inside the search range, as a constant estimate is
             low, high = (bound.to(frames.blurry).view(-1, 1, 1, 1)
                          for bound in _latency_bounds(frames, self.config.search_range))
@@ -452,6 +455,7 @@ class SpatialLatencyCorrector(nn.Module):
         meta["threshold"] = self.threshold if threshold is None else threshold
         meta["latency_curve"] = model.coefficients.detach().cpu()
         meta["latency_fallback"] = torch.tensor(skipped, dtype=torch.bool, device=frames.device)
+        meta["events_in_window"] = counts
         meta["latency_source"] = [c or ("fallback" if f else "fit" if self.model is None else "curve")
                                   for c, f in zip(blank, fell_back)]
         return frames.with_outputs(latency=latency.float().contiguous(), corrected=corrected, latent=latent, meta=meta)
@@ -492,6 +496,21 @@ class SpatialLatencyCorrector(nn.Module):
                                             theta[:fitted.batch_size], config, self.weights, self.progress, True,
                                             "table", l_const.clone())
         return model, fell_back
+
+
+def _warn_if_few_events(counts: Tensor, skipped: list[bool]) -> None:
+    """Name the fitted frames when they hold under :data:`~evlatcorr.checks.FEW_EVENTS` events in their windows
+    together, as constant mode names a frame: one polynomial is fitted to all their events, and so few cannot tell
+    a latency (a skipped frame was named already)."""
+    fitted = [i for i, skip in enumerate(skipped) if not skip]
+    total = sum(int(counts[i]) for i in fitted)
+    if fitted and total < FEW_EVENTS:
+        warnings.warn(SampleWarning(
+            "few_events", fitted, f"{{which}}: only {total} event(s) in {{its}} exposure and search window"
+            f"{' together' if len(fitted) > 1 else ''}, too few (under {FEW_EVENTS}) to tell a latency from: the "
+            "map fitted to them is little better than a guess, and moves only those events",
+            f"under {FEW_EVENTS} events in the exposure and search window, too few to tell a latency from: the map "
+            "fitted to them is little better than a guess, and moves only those events"), stacklevel=3)
 
 
 def _select(frames: EventFrames, which: list[int]) -> EventFrames:

@@ -245,6 +245,33 @@ def test_a_flat_frame_is_left_out_of_the_fit_and_a_trained_curve_still_reads_it(
     assert float(read.latency[0].mean()) == pytest.approx(2000.0, rel=1e-4)
 
 
+def test_a_fit_to_too_few_events_is_named_and_a_trained_curve_is_not(tmp_path):
+    frame = simulate("camera", num_frames=1, height=32, width=40, latency_us=3000.0, seed=0).frames("delayed")
+    ev = frame.events
+    keep = torch.zeros(len(ev), dtype=torch.bool)
+    keep[torch.randperm(len(ev), generator=torch.Generator().manual_seed(0))[:60]] = True
+    thin = frame.replace(events=ev.select(keep))
+    corrector = EventLatencyCorrector(mode="spatial", threshold=0.2, steps=5)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = corrector(thin)
+    (few,) = [w.message for w in caught if getattr(w.message, "kind", "") == "few_events"]
+    n = int(out.meta["events_in_window"][0])
+    assert 0 < n <= 60 and str(few).startswith(f"sample 0: only {n} event(s) in its exposure and search window, "
+                                              "too few (under 100) to tell a latency from: the map fitted")
+    # with all its events the frame is not named, and a trained curve reads intensities, not events
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        corrector(frame)
+    assert not [w for w in caught if getattr(w.message, "kind", "") == "few_events"]
+    save_curve(PolynomialLatency(order=1), tmp_path / "curve.pt")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read = EventLatencyCorrector(mode="spatial", threshold=0.2, curve=tmp_path / "curve.pt")(thin)
+    assert read.meta["latency_source"] == ["curve"]
+    assert not [w for w in caught if getattr(w.message, "kind", "") == "few_events"]
+
+
 def test_a_frame_without_a_latency_minimum_is_left_out_of_the_fit_with_a_warning():
     # events that stop at the exposure's end (a recording's last frame) leave the constant search nothing to score:
     # the fit used to anchor that frame's map at the search's fallback, silently (the CSV said nothing)
