@@ -223,7 +223,9 @@ def test_a_recording_with_too_few_events_to_tell_a_latency_or_threshold_says_so(
     rest = re.findall(r"(\d+) more frames? \(([\d, -]+)\): under 100 events in the exposure and search window",
                       r.stderr)
     assert len(rest) == 1 and int(rest[0][0]) == 2, r.stderr  # each frame named once, the others in one line
-    assert len(list(csv.DictReader(open(tmp_path / "out.csv")))) == 3
+    rows = list(csv.DictReader(open(tmp_path / "out.csv")))
+    assert len(rows) == 3 and all(int(row["events_in_window"]) < 100 for row in rows)
+    assert "3 with under 100 events in the window: their latency is a guess" in r.stdout
 
 
 @pytest.fixture(scope="module")

@@ -278,8 +278,11 @@ def latency_row(batch, out, theta, seconds: float, skipped: str = "") -> dict:
         row.update(latency_us="", latency_min_us="", latency_max_us="", score="", confidence="", fallback="",
                    source="", spread_us="", hot_pixels="")
     theta = float(theta.flatten()[0]) if isinstance(theta, torch.Tensor) else theta
+    # the events the latency was estimated from (the exposure and search window) where the corrector counted them
+    counted = out.meta.get("events_in_window") if out is not None else None
     row.update(threshold=f"{theta:.4f}" if isinstance(theta, float) else str(theta),
-               events_in_window=len(batch.events), skipped=skipped, time_s=f"{seconds:.3f}")
+               events_in_window=int(counted[0]) if counted is not None else len(batch.events), skipped=skipped,
+               time_s=f"{seconds:.3f}")
     return row
 
 

@@ -15,6 +15,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
+from evlatcorr.checks import FEW_EVENTS
 from evlatcorr.cli.common import (
     EXIT_OK,
     FrameWarnings,
@@ -80,10 +81,12 @@ def cmd_correct(args: argparse.Namespace) -> int:
     # the figure last: the corrected recording and its report are written whatever becomes of it
     drawn = None if figure is None else write_figure_or_warn(rows, figure, args.input.name)
     skipped = sum(bool(r["skipped"]) for r in rows)
+    few = sum(not r["skipped"] and int(r["events_in_window"]) < FEW_EVENTS for r in rows)
     written = [str(p) for p in (args.output, report, drawn) if p is not None]
     print(f"wrote {', '.join(written[:-1])} and {written[-1]} ({len(rows)} frames, median latency "
           f"{np.median([float(r['latency_us']) for r in rows]):.0f} us"
-          + (f", {skipped} without events kept the previous latency" if skipped else "") + ")")
+          + (f", {skipped} without events kept the previous latency" if skipped else "")
+          + (f", {few} with under {FEW_EVENTS} events in the window: their latency is a guess" if few else "") + ")")
     return EXIT_OK
 
 
