@@ -15,7 +15,7 @@ from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
 from evlatcorr.sample_warnings import SampleWarning
-from evlatcorr.search import ConstantSearchResult, _search_constant_latency, fallback_warning
+from evlatcorr.search import ConstantSearchResult, _search_constant_latency, fallback_warning, few_events_warning
 from evlatcorr.search_candidates import HOT_PIXEL_LOG_RANGE
 from evlatcorr.temporal import LatencyHistory
 
@@ -172,12 +172,8 @@ def _warn_if_few_events(result: ConstantSearchResult, counts: Tensor) -> None:
            if n < FEW_EVENTS and (result.source is None or result.source[i] not in (*BLANK_KINDS, "fallback"))]
     if few:
         numbers = ", ".join(str(int(counts[i])) for i in few)
-        warnings.warn(SampleWarning(
-            "few_events", few, f"{{which}}: only {numbers} event(s) in {{its}} exposure and search window, too few "
-            f"(under {FEW_EVENTS}) to tell a latency from: the estimate ({_microseconds(result.latency, few)}) is "
-            "little better than a guess, and moves only those events",
-            f"under {FEW_EVENTS} events in the exposure and search window, too few to tell a latency from: the "
-            "estimate is little better than a guess, and moves only those events"), stacklevel=3)
+        warnings.warn(few_events_warning(few, numbers, "the estimate", f" ({_microseconds(result.latency, few)})"),
+                      stacklevel=3)
 
 
 def _range_text(low: float, high: float) -> str:

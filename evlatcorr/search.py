@@ -31,6 +31,7 @@ from torch import Tensor
 
 from evlatcorr.blank_frames import BLANK_KINDS, MIN_STRUCTURE_RATIO, MIN_UNCLIPPED_SHARE, blank_codes
 from evlatcorr.checks import (
+    FEW_EVENTS,
     check_batch_vector,
     check_exposure,
     check_image,
@@ -63,7 +64,8 @@ from evlatcorr.sharpness import sharpness_score, sharpness_scores
 from evlatcorr.temporal import LatencyHistory
 
 __all__ = ["ConstantSearchResult", "search_constant_latency", "default_search_range", "sharpness_score",
-           "sharpness_scores", "candidate_curves", "SCORES", "DEFAULT_SCORE", "SearchConfig", "fallback_warning"]
+           "sharpness_scores", "candidate_curves", "SCORES", "DEFAULT_SCORE", "SearchConfig", "fallback_warning",
+           "few_events_warning"]
 
 _SPARSITY = SPARSITY_SCORES
 
@@ -276,6 +278,26 @@ def fallback_warning(kind: str, samples: list[int], outcome: str) -> SampleWarni
     else:
         raise ValueError(f"kind must be 'clipped', 'flat' or 'fallback', got {kind!r}")
     return SampleWarning(kind, samples, f"{{which}}: {why}; {outcome}", summary)
+
+
+def few_events_warning(samples: list[int], counted: str, guess: str, figures: str = "",
+                       together: bool = False) -> SampleWarning:
+    """The warning of samples with under :data:`~evlatcorr.checks.FEW_EVENTS` events in their exposure and search
+    window, in the constant and the spatial mode alike: ``counted`` says how many (e.g. ``"30, 37"``; ``together``:
+    one count of all the samples' windows), ``guess`` what their events cannot tell (``"the estimate"``),
+    ``figures`` follows it in the samples' own message.
+
+    Example:
+        >>> str(few_events_warning([1], "30", "the estimate", " (16 us)"))[:62]
+        'sample 1: only 30 event(s) in its exposure and search window, '
+    """
+    return SampleWarning(
+        "few_events", samples, f"{{which}}: only {counted} event(s) in {{its}} exposure and search window"
+        f"{' together' if together else ''}, too few "
+        f"(under {FEW_EVENTS}) to tell a latency from: {guess}{figures} is little better than a guess, and moves only "
+        "those events",
+        f"under {FEW_EVENTS} events in the exposure and search window, too few to tell a latency from: {guess} is "
+        "little better than a guess, and moves only those events")
 
 
 def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Tensor, exposure_end: Tensor,

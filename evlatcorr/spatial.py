@@ -47,8 +47,7 @@ from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf
 from evlatcorr.event_grid import EventGrid, _event_grid, _event_grid_bytes
 from evlatcorr.frames import EventFrames
 from evlatcorr.latency_table import LatencyTable
-from evlatcorr.sample_warnings import SampleWarning
-from evlatcorr.search import _search_constant_latency, fallback_warning
+from evlatcorr.search import _search_constant_latency, fallback_warning, few_events_warning
 
 __all__ = ["PolynomialLatency", "LossWeights", "spatial_objective", "fit_spatial_latency",
            "SpatialLatencyCorrector", "save_curve", "load_curve"]
@@ -505,12 +504,8 @@ def _warn_if_few_events(counts: Tensor, skipped: list[bool]) -> None:
     fitted = [i for i, skip in enumerate(skipped) if not skip]
     total = sum(int(counts[i]) for i in fitted)
     if fitted and total < FEW_EVENTS:
-        warnings.warn(SampleWarning(
-            "few_events", fitted, f"{{which}}: only {total} event(s) in {{its}} exposure and search window"
-            f"{' together' if len(fitted) > 1 else ''}, too few (under {FEW_EVENTS}) to tell a latency from: the "
-            "map fitted to them is little better than a guess, and moves only those events",
-            f"under {FEW_EVENTS} events in the exposure and search window, too few to tell a latency from: the map "
-            "fitted to them is little better than a guess, and moves only those events"), stacklevel=3)
+        warnings.warn(few_events_warning(fitted, str(total), "the map fitted to them", together=len(fitted) > 1),
+                      stacklevel=3)
 
 
 def _select(frames: EventFrames, which: list[int]) -> EventFrames:
