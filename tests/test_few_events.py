@@ -31,6 +31,9 @@ def test_the_summary_groups_by_events_and_sets_the_guess_from_the_full_frames():
     assert "| 0-99 | 2 | 5000 us | 0 % | 2000 us | 3000 us |" in table
     assert "| 100 or more | 3 | 200 us | 100 % | 2000 us | 500 us |" in table
     assert few_events_summary([]) == []
+    for bins in ((100,), (0, 100, 100), (10, 0)):
+        with pytest.raises(ValueError, match="bins must be at least two increasing bounds"):
+            few_events_summary(rows, bins=bins)
 
 
 def test_thinned_estimates_keep_fewer_events_at_a_smaller_share_and_refuse_other_cases():

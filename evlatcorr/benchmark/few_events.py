@@ -76,7 +76,13 @@ def thinned_estimates(case: Case, shares: Sequence[float] = DEFAULT_SHARES, seed
 def few_events_summary(rows: list[dict], bins: Sequence[float] = EVENT_BINS) -> list[dict]:
     """The rows grouped by events in the window: the estimates' median absolute error, their share within 1 ms,
     the median error of the guess that answers every frame with the median true latency of all the cases, and the
-    reader's median spread (over the frames it read)."""
+    reader's median spread (over the frames it read).
+
+    Raises:
+        ValueError: when ``bins`` are not at least two increasing bounds.
+    """
+    if len(bins) < 2 or any(not low < high for low, high in zip(bins[:-1], bins[1:])):
+        raise ValueError(f"bins must be at least two increasing bounds, got {list(bins)}")
     if not rows:
         return []
     guess = statistics.median(row["truth_us"] for row in rows if row["share"] == max(r["share"] for r in rows))
