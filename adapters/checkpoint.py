@@ -50,6 +50,7 @@ from evlatcorr.adapters.checkpoint_files import (
     verify_listed_sha256,
 )
 from evlatcorr.locations import checkpoint_dirs
+from evlatcorr.sample_warnings import user_stacklevel
 
 __all__ = ["card_sha256", "checkpoint_dirs", "file_sha256", "load_state_dict_file", "load_weights",
            "resolve_checkpoint", "save_weights"]
@@ -192,7 +193,7 @@ def _torch_load(path: Path) -> object:
     except pickle.UnpicklingError as exc:
         warnings.warn(f"{path} holds more than tensors ({str(exc).splitlines()[0]}); loading it with "
                       "weights_only=False, which runs its pickled code: only load checkpoints you trust",
-                      stacklevel=3)
+                      stacklevel=user_stacklevel())
         try:
             return torch.load(path, map_location="cpu", weights_only=False)
         except Exception as exc2:  # a corrupt pickle raises anything (KeyError, EOFError, ...)

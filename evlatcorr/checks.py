@@ -19,6 +19,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from evlatcorr.sample_warnings import user_stacklevel
+
 __all__ = [
     "MEMORY_BUDGET_BYTES",
     "check_int",
@@ -135,10 +137,10 @@ def check_threshold(threshold: object, batch_size: int) -> Tensor:
     return theta
 
 
-def warn_if_coarse_times(t: Tensor | np.ndarray, name: str, stacklevel: int = 2) -> None:
+def warn_if_coarse_times(t: Tensor | np.ndarray, name: str) -> None:
     """Warn where times in µs come in a floating type too coarse for them (float32 absolute times, which round a
     camera's timestamps by minutes): the events' order, the exposures and the latency search need µs, and what was
-    rounded away cannot be recovered. ``stacklevel`` as :func:`warnings.warn`'s in the caller (2: the caller's caller).
+    rounded away cannot be recovered. The warning points at the user's line.
 
     Example:
         >>> warn_if_coarse_times(torch.tensor([0.0, 20_000.0], dtype=torch.float32), "t")  # 2 ms of resolution: fine
@@ -157,7 +159,7 @@ def warn_if_coarse_times(t: Tensor | np.ndarray, name: str, stacklevel: int = 2)
         warnings.warn(f"{name} is {str(t.dtype).removeprefix('torch.')} with times up to {largest:.6g} us, "
                       f"where it resolves only about {resolution:.3g} us: the times are already rounded; "
                       "pass int64 or float64 microseconds (e.g. times relative to the recording's start)",
-                      stacklevel=stacklevel + 1)
+                      stacklevel=user_stacklevel())
 
 
 # No camera exposes a frame for less than a microsecond: every exposure below it means times in other units
@@ -187,7 +189,7 @@ def check_exposure(start: Tensor, end: Tensor) -> None:
         warnings.warn(f"every exposure is shorter than {SHORTEST_EXPOSURE_US:g} us (the longest {longest:.3g} us): "
                       "evlatcorr takes times in microseconds; times in seconds or milliseconds give latencies in "
                       "the same units and miss its defaults (the search's reach, the reader's training)",
-                      stacklevel=3)
+                      stacklevel=user_stacklevel())
 
 
 def check_search_range(search_range: object, name: str = "search_range") -> tuple[float, float] | None:

@@ -14,7 +14,7 @@ from evlatcorr.config import DEFAULT_GHOST_CONFIDENCE, DEFAULT_SCORE, SearchConf
 from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
-from evlatcorr.sample_warnings import SampleWarning
+from evlatcorr.sample_warnings import SampleWarning, user_stacklevel
 from evlatcorr.search import ConstantSearchResult, _search_constant_latency, fallback_warning, few_events_warning
 from evlatcorr.search_candidates import HOT_PIXEL_LOG_RANGE
 from evlatcorr.temporal import LatencyHistory
@@ -136,7 +136,7 @@ def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> N
         frames = [i for i, source in enumerate(result.source or []) if source == kind]
         if frames:
             warnings.warn(fallback_warning(kind, frames, "{its} latency is the fallback "
-                                           f"{_microseconds(result.latency, frames)}"), stacklevel=3)
+                                           f"{_microseconds(result.latency, frames)}"), stacklevel=user_stacklevel())
         blank += frames
     if result.fallback is not None and bool(result.fallback.any()):
         which = [i for i in torch.nonzero(result.fallback).flatten().tolist() if i not in blank]
@@ -144,14 +144,15 @@ def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> N
         which = []
     if which:
         warnings.warn(fallback_warning("fallback", which, "{its} latency is the fallback "
-                                       f"{_microseconds(result.latency, which)}"), stacklevel=3)
+                                       f"{_microseconds(result.latency, which)}"), stacklevel=user_stacklevel())
     if result.ignored_pixels and any(result.ignored_pixels):
         which = [i for i, n in enumerate(result.ignored_pixels) if n]
         counts = [result.ignored_pixels[i] for i in which]
         warnings.warn(SampleWarning(
             "hot_pixels", which, f"{{which}}: hot pixels (events spanning more than e^{HOT_PIXEL_LOG_RANGE:.0f} of "
             f"intensity, which no scene does) left out of the latency search: {', '.join(map(str, counts))}; "
-            "their events are corrected like the others", "hot pixels left out of the latency search"), stacklevel=3)
+            "their events are corrected like the others", "hot pixels left out of the latency search"),
+            stacklevel=user_stacklevel())
     if result.outside_range is not None and bool(torch.isfinite(result.outside_range).any()):
         which = torch.nonzero(torch.isfinite(result.outside_range)).flatten().tolist()
         span = _range_text(*config.search_range)
@@ -162,7 +163,7 @@ def _warn_about_samples(result: ConstantSearchResult, config: SearchConfig) -> N
             f"(more than half its probability lies outside): the estimate is held at the range's edge "
             f"({_microseconds(result.latency, which)}); widen the range if the latency may lie there",
             f"the learned reader finds the latency likelier outside search_range {span}: the "
-            "estimate is held at the range's edge"), stacklevel=3)
+            "estimate is held at the range's edge"), stacklevel=user_stacklevel())
 
 
 def _warn_if_few_events(result: ConstantSearchResult, counts: Tensor) -> None:
@@ -173,7 +174,7 @@ def _warn_if_few_events(result: ConstantSearchResult, counts: Tensor) -> None:
     if few:
         numbers = ", ".join(str(int(counts[i])) for i in few)
         warnings.warn(few_events_warning(few, numbers, "the estimate", f" ({_microseconds(result.latency, few)})"),
-                      stacklevel=3)
+                      stacklevel=user_stacklevel())
 
 
 def _range_text(low: float, high: float) -> str:
@@ -226,7 +227,7 @@ def _auto_threshold(frames: EventFrames, config: SearchConfig, previous: Tensor 
     warnings.warn("threshold='auto' on single frames estimates θ from each frame alone, which the accuracy suite "
                   "measures as worse than a guess 1.4x off (tuning cases: median latency error 616 against 480 us "
                   "with the true θ, 488 us with 1.4x it): give the camera's θ (threshold=, --threshold) or a guess, "
-                  "or frame pairs (blurry_next) for the two-frame estimate", stacklevel=3)
+                  "or frame pairs (blurry_next) for the two-frame estimate", stacklevel=user_stacklevel())
     start = frames.exposure_start.to(frames.events.device)
     end = frames.exposure_end.to(frames.events.device)
     theta = _estimate_threshold(frames.blurry, frames.events, start, end, first.latency, config.num_bins)
@@ -440,5 +441,5 @@ def _warn_if_short(frames: EventFrames, config: SearchConfig) -> None:
             "past the last event); pass events further past exposure_end to search them",
             "events end before the latency search's reach: the latencies whose window runs past the last event are "
             "not searched"),
-            stacklevel=3,
+            stacklevel=user_stacklevel(),
         )

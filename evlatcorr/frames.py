@@ -159,7 +159,7 @@ class EventFrames:
         """``exposure_start{suffix}``, ``exposure_end{suffix}`` as float64 :math:`(B,)` on the frames' device."""
         b, device = self.blurry.shape[0], self.blurry.device
         for times, name in ((start, "exposure_start"), (end, "exposure_end")):
-            warn_if_coarse_times(times, name + suffix, stacklevel=4)  # the line calling EventFrames(...)
+            warn_if_coarse_times(times, name + suffix)
         start = check_batch_vector(start, b, f"exposure_start{suffix}").to(device, torch.float64)
         end = check_batch_vector(end, b, f"exposure_end{suffix}").to(device, torch.float64)
         check_exposure(start, end)

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from evlatcorr.frames import EventFrames
+from evlatcorr.sample_warnings import user_stacklevel
 
 __all__ = ["MODELS", "INTERPOLATION_MODELS", "build_model", "needs_pairs", "pair_frames", "between_times",
            "has_events", "pair_reach_us", "pair_lead_us", "recording_threshold", "to_uint8", "side_by_side"]
@@ -210,7 +211,8 @@ def recording_threshold(rec, search_range: tuple[float, float] | None = None, nu
     if most_events < FEW_EVENTS:
         warnings.warn(f"the recording's contrast threshold {theta:.3f} is estimated from frames with at most "
                       f"{most_events} events in their exposure and search window (under {FEW_EVENTS}): too few to "
-                      "tell it; give the camera's threshold if you know it (--threshold, threshold=)", stacklevel=2)
+                      "tell it; give the camera's threshold if you know it (--threshold, threshold=)",
+                      stacklevel=user_stacklevel())
     low, high = THRESHOLD_BOUNDS
     if not low * 1.02 < theta < high / 1.02:  # the golden-section search ends within a hair of a bound it ran into
         edge = "low" if theta <= low * 1.02 else "high"
@@ -219,7 +221,7 @@ def recording_threshold(rec, search_range: tuple[float, float] | None = None, nu
                   if edge == "low" else "EDI with it may overshoot every change")
         warnings.warn(f"the recording's contrast threshold estimate {theta:.3f} lies at the {edge} end of its search "
                       f"range {low:g}-{high:g}: {effect}; give the camera's threshold if you know it (--threshold, "
-                      "threshold=)", stacklevel=2)
+                      "threshold=)", stacklevel=user_stacklevel())
     return theta
 
 

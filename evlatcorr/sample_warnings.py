@@ -10,9 +10,49 @@ not one line a frame.
 
 from __future__ import annotations
 
+import os
+import sys
 from collections.abc import Sequence
+from types import FrameType
 
-__all__ = ["FrameWarning", "SampleWarning"]
+import torch
+
+__all__ = ["FrameWarning", "SampleWarning", "user_stacklevel"]
+
+# frames inside these folders are not the user's: a warning raised deep in a corrector's call (under nn.Module's
+# __call__, torch.compiler.disable's wrapper, an adapter) points at the first frame outside them
+_PACKAGE = os.path.dirname(os.path.abspath(__file__))
+_LIBRARY_PACKAGES = ("evlatcorr", "adapters", "torch")
+_LIBRARY_DIRS = tuple(os.path.join(folder, "") for folder in
+                      (_PACKAGE, os.path.join(os.path.dirname(_PACKAGE), "adapters"), os.path.dirname(torch.__file__)))
+
+
+def user_stacklevel() -> int:
+    """The ``stacklevel`` of :func:`warnings.warn`, called from the function that warns, that points at the first
+    caller outside evlatcorr, its adapters and torch: the user's line, however deep the call that warns.
+
+    Example:
+        >>> import warnings
+        >>> def check():
+        ...     warnings.warn("checked", stacklevel=user_stacklevel())
+        >>> with warnings.catch_warnings(record=True) as caught:
+        ...     warnings.simplefilter("always")
+        ...     check()
+        >>> caught[0].filename == __file__ or caught[0].filename.startswith("<doctest")
+        True
+    """
+    frame, level = sys._getframe(1), 1  # the function that warns: level 1 of warnings.warn
+    while frame is not None and _in_library(frame):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+def _in_library(frame: FrameType) -> bool:
+    filename = frame.f_code.co_filename
+    if filename.startswith("<"):  # generated code, e.g. a dataclass's __init__: the library's if it is a method of ours
+        owner = type(frame.f_locals.get("self")).__module__
+        return owner.split(".")[0] in _LIBRARY_PACKAGES
+    return os.path.abspath(filename).startswith(_LIBRARY_DIRS)
 
 
 class SampleWarning(UserWarning):
@@ -23,6 +63,7 @@ class SampleWarning(UserWarning):
         samples: the batch indices the message is about.
         text: the message, with ``{which}`` where the samples are named (and ``{its}`` for "its" or "their").
         summary: what happened without any sample's figures, e.g. to say it of several frames at once.
+        noun: what ``str()`` calls a sample (a stream's warnings name its frames: ``"frame"``).
 
     ``str()`` names the samples by their indices; :meth:`naming` by names the caller gives.
 
@@ -37,19 +78,22 @@ class SampleWarning(UserWarning):
         'frames 7, 9: no clear minimum'
         >>> str(SampleWarning("fallback", [1], "{which}: {its} latency is 0 us", "the fallback"))
         'sample 1: its latency is 0 us'
+        >>> str(SampleWarning("fallback", [12, 13], "{which}: no clear minimum", "no clear minimum", noun="frame"))
+        'frames [12, 13]: no clear minimum'
     """
 
-    def __init__(self, kind: str, samples: Sequence[int], text: str, summary: str) -> None:
+    def __init__(self, kind: str, samples: Sequence[int], text: str, summary: str, noun: str = "sample") -> None:
         if not samples or "{which}" not in text:
             raise ValueError(f"a SampleWarning names one sample or more, in its text's {{which}}; got samples "
                              f"{list(samples)} and text {text!r}")
         # the arguments are the exception's args, so it pickles (e.g. across processes) as it was made
-        super().__init__(kind, tuple(int(i) for i in samples), text, summary)
+        super().__init__(kind, tuple(int(i) for i in samples), text, summary, noun)
         self.kind, self.samples, self.text, self.summary = kind, tuple(int(i) for i in samples), text, summary
+        self.noun = noun
 
     def __str__(self) -> str:
-        which = (f"sample {self.samples[0]}" if len(self.samples) == 1
-                 else f"samples {list(self.samples)}")
+        which = (f"{self.noun} {self.samples[0]}" if len(self.samples) == 1
+                 else f"{self.noun}s {list(self.samples)}")
         return self._text(which)
 
     def naming(self, names: Sequence[str]) -> str:

@@ -25,6 +25,7 @@ from evlatcorr.config import SPARSITY_SCORES, SearchConfig
 from evlatcorr.events import Events
 from evlatcorr.ghost import ghost_root, inverse_ratio_moment
 from evlatcorr.overshoot import overshoot
+from evlatcorr.sample_warnings import user_stacklevel
 from evlatcorr.search_candidates import _CandidateReader, _continuous_reader, _score_candidates, _score_chunk, _Window
 
 __all__ = ["candidate_curves"]
@@ -195,7 +196,7 @@ def _reader_windows(windows: list[_Window]) -> list[_Window]:
         warnings.warn(f"search_range {wide[0].low:.0f}-{wide[0].high:.0f} us reaches beyond 0 to the exposure time "
                       f"({wide[0].end - wide[0].start:.0f} us), the range the learned reader was trained on: it reads "
                       "that range's curves as if they spanned the exposure time, and its estimates there are "
-                      "untested", stacklevel=4)
+                      "untested", stacklevel=user_stacklevel())
     return out
 
 

@@ -47,6 +47,7 @@ from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW, etf
 from evlatcorr.event_grid import EventGrid, _event_grid, _event_grid_bytes
 from evlatcorr.frames import EventFrames
 from evlatcorr.latency_table import LatencyTable
+from evlatcorr.sample_warnings import user_stacklevel
 from evlatcorr.search import _search_constant_latency, fallback_warning, few_events_warning
 
 __all__ = ["PolynomialLatency", "LossWeights", "spatial_objective", "fit_spatial_latency",
@@ -479,7 +480,7 @@ class SpatialLatencyCorrector(nn.Module):
             fell_back[i] = fell
         if any(none_found):
             which = [i for i, fell in enumerate(fell_back) if fell]
-            warnings.warn(fallback_warning("fallback", which, _LEFT_OUT), stacklevel=4)
+            warnings.warn(fallback_warning("fallback", which, _LEFT_OUT), stacklevel=user_stacklevel())
             found = [j for j, fell in enumerate(none_found) if not fell]
             if not found:
                 return PolynomialLatency(self.order).to(frames.device), fell_back
@@ -505,7 +506,7 @@ def _warn_if_few_events(counts: Tensor, skipped: list[bool]) -> None:
     total = sum(int(counts[i]) for i in fitted)
     if fitted and total < FEW_EVENTS:
         warnings.warn(few_events_warning(fitted, str(total), "the map fitted to them", together=len(fitted) > 1),
-                      stacklevel=3)
+                      stacklevel=user_stacklevel())
 
 
 def _select(frames: EventFrames, which: list[int]) -> EventFrames:
@@ -527,7 +528,7 @@ def _blank_frames(frames: EventFrames, kinds: tuple[str, ...] = BLANK_KINDS) -> 
     for kind in kinds:
         which = [i for i, k in enumerate(blank) if k == kind]
         if which:
-            warnings.warn(fallback_warning(kind, which, _LEFT_OUT), stacklevel=3)
+            warnings.warn(fallback_warning(kind, which, _LEFT_OUT), stacklevel=user_stacklevel())
     return blank
 
 

@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from evlatcorr.checks import NoEventsError
 from evlatcorr.curve_reader import CENTRE_HALF_WIDTH, probability_centre
 from evlatcorr.frames import EventFrames
-from evlatcorr.sample_warnings import SampleWarning
+from evlatcorr.sample_warnings import SampleWarning, user_stacklevel
 
 __all__ = ["fuse_latencies", "frame_evidence", "no_latency_share", "LatencyHistory", "StreamingLatencyCorrector",
            "DEFAULT_FUSED_FRAMES", "DEFAULT_NO_LATENCY_MASS"]
@@ -250,10 +250,18 @@ class StreamingLatencyCorrector(nn.Module):
     the blurry frame (no events, no change to undo). For frames that are not one
     recording's (a shuffled training batch) use the :class:`~evlatcorr.correction.EventLatencyCorrector` itself.
 
+    Its warnings name frames by their number in the stream (from 0, again after :meth:`reset`): ``"frame 12"``, not
+    the call's ``"sample 0"``. A problem that lasts, such as a still scene's frames with no events or too few, is
+    named at the first frame of the run, not at every frame after it (each frame's ``meta`` still says it:
+    ``meta["events_in_window"]`` counts the events a latency was read from).
+
     Args:
         corrector: a constant-mode :class:`~evlatcorr.correction.EventLatencyCorrector` (default: one made with
             ``settings``, the learned reader); other scores have no evidence to fuse, and each frame keeps its own.
         before: earlier frames whose evidence counts (default 2).
+        name_frames: name frames in warnings as above; False passes the corrector's warnings as they are, with
+            each call's sample numbers and every frame named (for a caller that groups them itself, as the command
+            line does).
         **settings: the arguments of the :class:`~evlatcorr.correction.EventLatencyCorrector` to make when no
             ``corrector`` is given, e.g. ``threshold=0.5, search_range=(0.0, 5000.0)``.
 
@@ -271,7 +279,8 @@ class StreamingLatencyCorrector(nn.Module):
         True
     """
 
-    def __init__(self, corrector: nn.Module | None = None, before: int = DEFAULT_FUSED_FRAMES, **settings: Any) -> None:
+    def __init__(self, corrector: nn.Module | None = None, before: int = DEFAULT_FUSED_FRAMES, *,
+                 name_frames: bool = True, **settings: Any) -> None:
         super().__init__()
         from evlatcorr.correction import EventLatencyCorrector
 
@@ -283,6 +292,9 @@ class StreamingLatencyCorrector(nn.Module):
         self.corrector, self.history = corrector, LatencyHistory(before)
         self._last_start: float | None = None  # the exposure start of the last frame passed, µs
         self._last_latency: Tensor | None = None  # the last corrected frame's latency, µs (read only when needed)
+        self.name_frames = name_frames
+        self._frames_seen = 0  # frames passed since the start or the last reset
+        self._last_kinds: frozenset[str] = frozenset()  # the kinds of warning that named the last frame
 
     @property
     def before(self) -> int:
@@ -293,6 +305,8 @@ class StreamingLatencyCorrector(nn.Module):
         self.history.reset()
         self._last_start = None
         self._last_latency = None
+        self._frames_seen = 0
+        self._last_kinds = frozenset()
 
     def extra_repr(self) -> str:
         return f"before={self.before}"
@@ -305,15 +319,48 @@ class StreamingLatencyCorrector(nn.Module):
             # not tell
             warnings.warn(f"StreamingLatencyCorrector: a frame's exposure starts at {first:.0f} us, before the last "
                           f"frame's ({self._last_start:.0f} us): taken as a new recording, the earlier frames "
-                          "forgotten; call reset() between recordings", stacklevel=2)
+                          "forgotten; call reset() between recordings", stacklevel=user_stacklevel())
             self.reset()
         self._last_start = last
+        if not self.name_frames:
+            return self._correct_or_carry_over(frames)
+        caught: list[warnings.WarningMessage] = []
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")  # the user's filters apply when they are said again below
+                return self._correct_or_carry_over(frames)
+        finally:
+            self._say(caught, frames.batch_size)
+
+    def _correct_or_carry_over(self, frames: EventFrames) -> EventFrames:
         try:
             return self._correct(frames)
         except NoEventsError:  # checked before the search: nothing was fused yet
             if frames.batch_size == 1:
                 return self._carry_over(frames)
-            return EventFrames.cat([self._correct_or_carry_over(frame, i) for i, frame in enumerate(frames.split())])
+            return EventFrames.cat([self._frame_or_carry_over(frame, i) for i, frame in enumerate(frames.split())])
+
+    def _say(self, caught: list[warnings.WarningMessage], batch_size: int) -> None:
+        """Say the warnings of a call on ``batch_size`` frames again, their samples named as the stream's frames, and
+        leave out those whose every frame continues a run of the same kind of warning."""
+        first = self._frames_seen
+        kinds: list[set[str]] = [set() for _ in range(batch_size)]
+        for w in caught:
+            if isinstance(w.message, SampleWarning):
+                for i in w.message.samples:
+                    kinds[i].add(w.message.kind)
+        before = [self._last_kinds, *kinds[:-1]]
+        self._frames_seen += batch_size
+        self._last_kinds = frozenset(kinds[-1])
+        for w in caught:
+            message = w.message
+            if isinstance(message, SampleWarning):
+                if all(message.kind in before[i] for i in message.samples):
+                    continue
+                message = SampleWarning(message.kind, [first + i for i in message.samples],
+                                        message.text + " (the frames right after it with the same are not named)",
+                                        message.summary, noun="frame")
+            warnings.warn(message, w.category, stacklevel=user_stacklevel())
 
     def _correct(self, frames: EventFrames) -> EventFrames:
         # the search fuses each frame's evidence with the history's as it decides, and reads the frame's latent image
@@ -323,7 +370,7 @@ class StreamingLatencyCorrector(nn.Module):
         meta = {key: value for key, value in out.meta.items() if key != "latency_history"}
         return out.replace(meta=meta)
 
-    def _correct_or_carry_over(self, frame: EventFrames, index: int) -> EventFrames:
+    def _frame_or_carry_over(self, frame: EventFrames, index: int) -> EventFrames:
         try:
             return self._correct(frame)
         except NoEventsError:
@@ -336,14 +383,15 @@ class StreamingLatencyCorrector(nn.Module):
         warnings.warn(SampleWarning(
             "no_events", [index], "{which}: no events in its exposure and search window: its events keep the previous "
             f"frame's latency ({latency:.0f} us)", "no events in the exposure and search window: the previous "
-            "frame's latency"), stacklevel=3)
+            "frame's latency"), stacklevel=user_stacklevel())
         height, width = frame.sensor_size
         # on the frame's device, as the corrector's are: a batch's frames are put back together with torch.cat
         nan = torch.full((1,), math.nan, dtype=torch.float64, device=frame.device)
         meta = {**frame.meta, "latency_source": ["no events"],
                 "latency_fallback": torch.ones(1, dtype=torch.bool, device=frame.device),
                 "latency_confidence": torch.zeros(1, dtype=torch.float64, device=frame.device),
-                "latency_spread_us": nan, "frame_latency_us": nan.clone()}
+                "latency_spread_us": nan, "frame_latency_us": nan.clone(),
+                "events_in_window": torch.zeros(1, dtype=torch.int64)}
         shift = torch.full((1,), latency, dtype=torch.float64, device=frame.device)
         return frame.with_outputs(latency=torch.full((1, 1, height, width), latency, device=frame.device),
                                   corrected=frame.events.shift(shift), latent=frame.blurry.clone(), meta=meta)

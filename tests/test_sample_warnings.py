@@ -29,3 +29,27 @@ def test_sample_warning_refuses_no_samples_a_text_without_them_and_too_few_names
         SampleWarning("fallback", [0], "fallback", "the fallback")
     with pytest.raises(ValueError, match=r"a name for each of samples \[0, 3\], got 2"):
         SampleWarning("fallback", [0, 3], "{which}: fallback", "the fallback").naming(["frame 1", "frame 2"])
+
+
+def test_a_warning_deep_in_a_corrector_points_at_the_line_that_called_it():
+    # under nn.Sequential, nn.Module's __call__ and the search the warning used to point at a line of the library
+    import warnings
+
+    import torch
+    from torch import nn
+
+    from evlatcorr.correction import EventLatencyCorrector
+    from evlatcorr.simulate import simulate
+
+    frames = simulate("camera", num_frames=1, height=32, width=48, latency_us=3000.0, seed=0).frames("delayed")
+    ev = frames.events
+    keep = ev.t < float(frames.exposure_end[0]) + 2000.0  # the events stop 2 ms past the exposure: a warning
+    short = frames.replace(events=type(ev)(ev.x[keep], ev.y[keep], ev.t[keep], ev.p[keep],
+                                           sensor_size=ev.sensor_size))
+    pipeline = nn.Sequential(EventLatencyCorrector(threshold=0.2), nn.Identity())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with torch.no_grad():
+            pipeline(short)
+    events_end = [w for w in caught if getattr(w.message, "kind", "") == "events_end"]
+    assert len(events_end) == 1 and events_end[0].filename == __file__

@@ -1,4 +1,5 @@
 import math
+import warnings
 
 import pytest
 import torch
@@ -226,7 +227,46 @@ def test_a_still_frame_in_a_stream_keeps_the_latency_before_it():
         batched = stream(EventFrames.cat(frames))
     torch.testing.assert_close(batched.latency.flatten(1).mean(1), torch.tensor(latencies), rtol=0, atol=1e-3)
     assert batched.meta["latency_source"] == ["no events", "reader", "no events", "reader"]
-    assert {str(w.message).split(":")[0] for w in caught if "no events" in str(w.message)} == {"sample 0", "sample 2"}
+    assert {str(w.message).split(":")[0] for w in caught if "no events" in str(w.message)} == {"frame 0", "frame 2"}
+
+
+def test_a_stream_names_its_frames_and_a_run_of_still_frames_once():
+    # a still stretch warned of at every frame buried the rest (a street recording: a warning per frame); the stream
+    # names the first frame of a run, by its number in the stream, and each frame's meta keeps its count
+    from evlatcorr.sample_warnings import SampleWarning
+    from evlatcorr.simulate import simulate
+    from evlatcorr.temporal import StreamingLatencyCorrector
+
+    seq = simulate("camera", num_frames=6, height=32, width=48, latency_us=3000.0, seed=0)
+    parts = seq.frames("delayed").split()
+
+    def thinned(frame):  # 20 of its events: under FEW_EVENTS in any window
+        ev = frame.events
+        keep = torch.arange(0, len(ev), max(1, len(ev) // 20))[:20]
+        return frame.replace(events=type(ev)(ev.x[keep], ev.y[keep], ev.t[keep], ev.p[keep],
+                                             sensor_size=ev.sensor_size))
+
+    frames = [parts[0], thinned(parts[1]), thinned(parts[2]), thinned(parts[3]), parts[4], thinned(parts[5])]
+    stream = StreamingLatencyCorrector(threshold=0.2)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        outs = [stream(frame) for frame in frames]
+    few = [w for w in caught if isinstance(w.message, SampleWarning) and w.message.kind == "few_events"]
+    assert [w.message.samples for w in few] == [(1,), (5,)]  # frames 2 and 3 continue frame 1's run
+    assert str(few[0].message).startswith("frame 1: only ") and "not named" in str(few[0].message)
+    assert {w.filename for w in caught} == {__file__}  # the line calling the stream, not the library's
+    assert [int(o.meta["events_in_window"][0]) < 100 for o in outs] == [False, True, True, True, False, True]
+    # after a reset the numbers start again; name_frames=False passes the corrector's own warnings, every frame's
+    stream.reset()
+    with pytest.warns(SampleWarning, match="^frame 0: only "):
+        stream(frames[1])
+    quiet = StreamingLatencyCorrector(threshold=0.2, name_frames=False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for frame in frames[1:4]:
+            quiet(frame)
+    assert [str(w.message)[:17] for w in caught if getattr(w.message, "kind", "") == "few_events"] == [
+        "sample 0: only 20"] * 3
 
 
 def test_the_streaming_corrector_refuses_a_spatial_corrector_or_a_negative_window():

@@ -147,7 +147,7 @@ def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _
     if args.correct == "constant" and args.fuse_frames > 0:  # frame by frame: each takes the frames before it
         from evlatcorr.temporal import StreamingLatencyCorrector
 
-        corrector = StreamingLatencyCorrector(corrector, args.fuse_frames)
+        corrector = StreamingLatencyCorrector(corrector, args.fuse_frames, name_frames=False)  # named by frame here
     pairs = needs_pairs(args.model, task)
     if pairs:  # the first frame's events must reach the next exposure's end, plus the latency searched
         rec.after_us = pair_reach_us(rec, high)

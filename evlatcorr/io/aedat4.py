@@ -33,6 +33,7 @@ import numpy as np
 from evlatcorr.io.base import Recording
 from evlatcorr.io.conversions import structured_events, to_unit_image
 from evlatcorr.io.records import FrameInfo, RecordingError, SegmentEnd, starts_with
+from evlatcorr.sample_warnings import user_stacklevel
 
 __all__ = ["AedatRecording", "is_aedat4"]
 
@@ -125,7 +126,7 @@ class AedatRecording(Recording):
                     # crash, a full disk) keeps everything before it, which is read, and says so
                     warnings.warn(f"{self.path}: the file ends inside the packet after packet {index} (truncated: a "
                                   f"recording cut off, or a corrupt packet size); the {index} packets before it are "
-                                  "read", stacklevel=2)
+                                  "read", stacklevel=user_stacklevel())
                     return
                 if str(exc) == _END_OF_FILE:
                     raise RecordingError(f"{self.path}: the file ends inside its first packet (truncated): nothing to "

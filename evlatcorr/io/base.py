@@ -221,8 +221,7 @@ class Recording:
         lo, hi = self.window(info.exposure_start, info.exposure_end)
         if len(events):  # what streaming checks chunk by chunk: sorted, finite, on the sensor
             self._check_chunk(events, -np.inf, info.segment)
-        # stacklevel 4: through this method and frame() to the caller
-        warn_coverage(self.path, info, lo, hi, events, first, last, exhausted=last < hi, stacklevel=4)
+        warn_coverage(self.path, info, lo, hi, events, first, last, exhausted=last < hi)
         return self._batch(info, events, lo, hi)
 
     def events_between(self, t0: float, t1: float, segment: int | None = None) -> Events:

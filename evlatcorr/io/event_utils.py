@@ -49,6 +49,7 @@ from evlatcorr.io.conversions import (
 from evlatcorr.io.h5 import atomic_path
 from evlatcorr.io.hdf5_access import IndexedH5Recording, bisect_sorted, check_columns, is_hdf5_with, open_h5
 from evlatcorr.io.records import EVENT_DTYPE, FrameInfo, RecordingError, SegmentEnd
+from evlatcorr.sample_warnings import user_stacklevel
 
 __all__ = ["EventUtilsRecording", "is_event_utils_h5", "write_event_utils"]
 
@@ -149,7 +150,7 @@ class EventUtilsRecording(IndexedH5Recording):
             res = tuple(int(v) for v in np.asarray(f.attrs["sensor_resolution"]).reshape(-1)[:2])
             if from_images is not None and res != from_images:
                 warnings.warn(f"{self.path}: sensor_resolution {res} disagrees with the images {from_images} "
-                              "(H, W); using the images'", stacklevel=3)
+                              "(H, W); using the images'", stacklevel=user_stacklevel())
                 return from_images
             return res
         if from_images is None:
@@ -163,7 +164,7 @@ class EventUtilsRecording(IndexedH5Recording):
             if self.exposure_us is not None:  # one message for the file (warnings show each once)
                 warnings.warn(f"{self.path}: images with their own exposure_start/exposure_end keep them; "
                               f"exposure_us={self.exposure_us:g} is used only for images with a timestamp alone",
-                              stacklevel=3)
+                              stacklevel=user_stacklevel())
             return float(self._us(float(a["exposure_start"]))), float(self._us(float(a["exposure_end"])))
         if "timestamp" in a and self.exposure_us is not None:
             t = float(self._us(float(a["timestamp"])))

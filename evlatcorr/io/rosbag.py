@@ -33,6 +33,7 @@ import numpy as np
 from evlatcorr.io.base import Recording
 from evlatcorr.io.conversions import structured_events, to_unit_image
 from evlatcorr.io.records import FrameInfo, RecordingError, starts_with
+from evlatcorr.sample_warnings import user_stacklevel
 
 __all__ = ["RosbagRecording", "is_rosbag1"]
 
@@ -160,7 +161,7 @@ class RosbagRecording(Recording):
             self.sensor_size = decode_image(image[2], f"{self.path}: {self.image_topic}")[1].shape[:2]
         if self.exposure_topic is not None and exposure_us is not None:
             warnings.warn(f"{self.path}: each image's exposure is read from {self.exposure_topic}; exposure_us="
-                          f"{exposure_us:g} is not used", stacklevel=2)
+                          f"{exposure_us:g} is not used", stacklevel=user_stacklevel())
         if self.exposure_topic is None and exposure_us is None:
             raise RecordingError(f"{self.path}: no {exposure} topic (std_msgs/Int32, the driver's exposure of each "
                                  "image): pass exposure_us (--exposure-us), the exposure time set on the camera")
@@ -228,7 +229,8 @@ class RosbagRecording(Recording):
         shared = len(nearest) - len(np.unique(nearest[nearest >= 0])) - int((nearest < 0).sum())
         if shared:  # the exposure is set on the camera and changes slowly: a neighbour's is the best left
             warnings.warn(f"{self.path}: {shared} image(s) have no exposure message of their own on "
-                          f"{self.exposure_topic} (not recorded?): they take the nearest image's", stacklevel=3)
+                          f"{self.exposure_topic} (not recorded?): they take the nearest image's",
+                          stacklevel=user_stacklevel())
         exposures = []
         for i, (stamp, j) in enumerate(zip(stamps, nearest)):
             if j < 0 or lengths[j] <= 0:

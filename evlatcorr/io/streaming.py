@@ -25,11 +25,6 @@ __all__ = ["FrameStream", "FrameWindow", "interleave"]
 Window = Callable[[float, float], tuple[float, float]]
 Item = FrameInfo | np.ndarray | SegmentEnd
 
-# stack levels of the warnings, counted from the warning helpers: through FrameStream and
-# Recording.__iter__ up to the loop that iterates the recording
-_EMIT_STACKLEVEL = 5
-_CLOSE_STACKLEVEL = 5
-
 
 class FrameWindow(NamedTuple):
     """A frame with the events of its window ``[lo, hi)`` (µs)."""
@@ -170,7 +165,7 @@ class FrameStream:
 
     def _emit(self, s: _SegmentState, info: FrameInfo, lo: float, hi: float, exhausted: bool) -> FrameWindow:
         events = cut_window(s.buffer, lo, hi)
-        warn_coverage(self.path, info, lo, hi, events, s.first, s.newest, exhausted, stacklevel=_EMIT_STACKLEVEL)
+        warn_coverage(self.path, info, lo, hi, events, s.first, s.newest, exhausted)
         s.last_frame, s.last_lo, s.last_hi = info, lo, hi
         return FrameWindow(info, events, lo, hi)
 
@@ -183,6 +178,5 @@ class FrameStream:
             later = s.later + sum(int((c["t"] >= s.last_hi).sum()) for c in s.buffer)
             if later:
                 label = f" of segment {s.segment}" if self.several_segments else ""
-                warn_unused_events(self.path, later, s.last_frame.index, label, s.newest - s.last_hi,
-                                   stacklevel=_CLOSE_STACKLEVEL)
+                warn_unused_events(self.path, later, s.last_frame.index, label, s.newest - s.last_hi)
         s.buffer.clear()

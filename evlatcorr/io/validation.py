@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from evlatcorr.io.records import FrameInfo, RecordingError
-from evlatcorr.sample_warnings import FrameWarning
+from evlatcorr.sample_warnings import FrameWarning, user_stacklevel
 
 __all__ = ["check_chunk", "check_frame_order", "warn_coverage", "warn_unused_events"]
 
@@ -58,7 +58,7 @@ def check_frame_order(info: FrameInfo, previous_start: float, lo: float, release
 
 
 def warn_coverage(path: Path, info: FrameInfo, lo: float, hi: float, events: np.ndarray, first: float | None,
-                  newest: float, exhausted: bool, stacklevel: int) -> None:
+                  newest: float, exhausted: bool) -> None:
     """Warn when a frame's window ``[lo, hi)`` starts before the first event or ends past the last one, or when
     its exposure holds no event.
 
@@ -66,12 +66,11 @@ def warn_coverage(path: Path, info: FrameInfo, lo: float, hi: float, events: np.
         first: time of the first event of the frame's segment (``None``: it has none).
         newest: time of the newest event read.
         exhausted: whether the segment's events are all read (so ``newest`` is the last one).
-        stacklevel: as for :func:`warnings.warn`, counted from this function (to point at the user's loop).
     """
     name = f"{path}: frame {info.index}"
 
     def warn(kind: str, text: str, summary: str) -> None:
-        warnings.warn(FrameWarning(kind, info.index, text, summary), stacklevel=stacklevel + 1)
+        warnings.warn(FrameWarning(kind, info.index, text, summary), stacklevel=user_stacklevel())
 
     if first is None:
         warn("segment_without_events", f"{name}: no events at all in its segment; its window [{lo:.0f}, {hi:.0f}) us "
@@ -92,8 +91,8 @@ def warn_coverage(path: Path, info: FrameInfo, lo: float, hi: float, events: np.
 
 
 def warn_unused_events(path: Path, count: int, last_frame: int, segment_label: str, past_us: float,
-                       stacklevel: int) -> None:
+) -> None:
     """Warn that ``count`` events come after the last frame's window (frames may be missing): no frame reads them
     (``evlatcorr correct`` still writes them, at the last frame's latency)."""
     warnings.warn(f"{path}: {count} events after the window of the last frame ({last_frame}){segment_label} lie in "
-                  f"no frame's window (they run {past_us:.0f} us past its window)", stacklevel=stacklevel)
+                  f"no frame's window (they run {past_us:.0f} us past its window)", stacklevel=user_stacklevel())
