@@ -46,12 +46,17 @@ def add_case_options(parser: argparse.ArgumentParser, default_split: str, splits
     parser.add_argument("--size", type=int, nargs=2, default=DEFAULT_SIZE, metavar=("H", "W"))
 
 
+# the smallest frame a script simulates: the suite's scenes and sprites need this many pixels a side
+MIN_SCENE_SIZE = 16
+
+
 def check_case_options(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """The options of :func:`add_case_options` in range: a usage error before the first case, not a traceback."""
     if args.num is not None and args.num < 1:
         parser.error(f"--num must be at least 1, got {args.num}")
-    if min(args.size) < 16:
-        parser.error(f"--size must be at least 16 16 (the suite's scenes), got {list(args.size)}")
+    if min(args.size) < MIN_SCENE_SIZE:
+        parser.error(f"--size must be at least {MIN_SCENE_SIZE} {MIN_SCENE_SIZE} (the suite's scenes), got "
+                     f"{list(args.size)}")
 
 
 def check_out_folder(parser: argparse.ArgumentParser, folder: Path) -> None:

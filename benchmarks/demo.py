@@ -6,7 +6,7 @@
 
 from __future__ import annotations
 
-import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU pages, before torch loads
+import _setup  # first: the repository on sys.path and 2 MB CPU pages, before torch loads
 
 # isort: split
 
@@ -26,8 +26,8 @@ def main() -> None:
     parser.add_argument("--size", type=int, nargs=2, default=(260, 346), metavar=("H", "W"))
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    if min(args.size) < 16:
-        parser.error(f"--size must be at least 16 16, got {list(args.size)}")
+    if min(args.size) < _setup.MIN_SCENE_SIZE:
+        parser.error(f"--size must be at least {_setup.MIN_SCENE_SIZE} {_setup.MIN_SCENE_SIZE}, got {list(args.size)}")
 
     t0 = time.perf_counter()
     try:

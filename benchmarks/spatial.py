@@ -22,7 +22,7 @@ against the true ``τ(I)``) under ``--out``.
 
 from __future__ import annotations
 
-import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU pages, before torch loads
+import _setup  # first: the repository on sys.path and 2 MB CPU pages, before torch loads
 
 # isort: split
 
@@ -151,8 +151,10 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("outputs/spatial"))
     args = p.parse_args()
-    if min(args.size) < 16 or args.epochs < 1 or args.order < 0 or args.train_bins < 2 or args.fit_steps < 1:
-        p.error("--size must be at least 16 16, --epochs and --fit-steps >= 1, --order >= 0 and --train-bins >= 2")
+    floor = _setup.MIN_SCENE_SIZE
+    if min(args.size) < floor or args.epochs < 1 or args.order < 0 or args.train_bins < 2 or args.fit_steps < 1:
+        p.error(f"--size must be at least {floor} {floor}, --epochs and --fit-steps >= 1, --order >= 0 and "
+                "--train-bins >= 2")
     if not (math.isfinite(args.lr) and args.lr > 0 and math.isfinite(args.eta) and args.eta >= 0):
         p.error(f"--lr must be a positive number and --eta >= 0, got {args.lr} and {args.eta}")
     warnings.filterwarnings("ignore", module="lightning")
