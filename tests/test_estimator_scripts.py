@@ -302,3 +302,18 @@ def test_display_gamma_recording_script_moves_the_estimate_and_frame_gamma_takes
     assert encoded != pytest.approx(as_read, abs=1.0)
     with pytest.raises(SystemExit):
         main([str(recording), "--gamma", "0"])
+
+
+def test_binned_pixels_script_averages_blocks_keeps_their_events_and_answers_the_frame_s_size(text_case):
+    case, delayed = text_case
+    binned = load_estimator("benchmarks/estimators/binned_pixels.py:binned_frames")(delayed)
+    assert binned.sensor_size == (48, 64) and binned.blurry.shape == (1, 3, 48, 64)
+    torch.testing.assert_close(binned.blurry[0, :, 0, 0], delayed.blurry[0, :, :2, :2].mean((1, 2)))
+    ev, bev = delayed.events, binned.events
+    assert len(bev) == len(ev)  # 96x128 fills whole blocks: every event kept
+    first = bev.x.eq(0) & bev.y.eq(0)  # block (0, 0) holds the events of pixels (0-1, 0-1)
+    assert int(first.sum()) == int((ev.x.lt(2) & ev.y.lt(2)).sum())
+    for name in ("binned", "both", "default"):
+        latency = load_estimator(f"benchmarks/estimators/binned_pixels.py:{name}")(delayed)
+        assert latency.shape == (1, 1, 96, 128)
+        assert abs(float(latency.mean()) - case.latency_us) < 1000.0
