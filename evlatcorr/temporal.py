@@ -261,7 +261,8 @@ class StreamingLatencyCorrector(nn.Module):
         before: earlier frames whose evidence counts (default 2).
         name_frames: name frames in warnings as above; False passes the corrector's warnings as they are, with
             each call's sample numbers and every frame named (for a caller that groups them itself, as the command
-            line does).
+            line does, or streams run in several threads: the renaming catches warnings with
+            :class:`warnings.catch_warnings`, which holds for the whole process).
         **settings: the arguments of the :class:`~evlatcorr.correction.EventLatencyCorrector` to make when no
             ``corrector`` is given, e.g. ``threshold=0.5, search_range=(0.0, 5000.0)``.
 
