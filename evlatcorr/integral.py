@@ -171,6 +171,7 @@ def cumulative_event_grid(
     integral: str = "step",
     dtype: torch.dtype = torch.float32,
     memory_budget: int | None = None,
+    max_spread_us: float | None = None,
 ) -> Tensor:
     """Cumulative polarity sum of every pixel at the boundaries of a regular time grid.
 
@@ -183,6 +184,9 @@ def cumulative_event_grid(
         dtype: output dtype (accumulation is done in float64 for ``"linear"``).
         memory_budget: bytes the computation may take (estimated with :func:`grid_bytes_per_point`);
             default :data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`.
+        max_spread_us: ``"linear"`` only: the longest interval an event is spread over, µs (None: back to the
+            previous event at its pixel, however long ago). An event after a long quiet is where an edge's change
+            first crossed the threshold, not the end of a change that lasted since the pixel's last event.
 
     Returns:
         :math:`(B, M + 1, H, W)` with ``C[:, 0] = 0``: the polarity integrated from ``g_0`` to ``g_i``.
@@ -197,9 +201,14 @@ def cumulative_event_grid(
         [0.0, 0.0, 0.0, 1.0, 1.0]
         >>> cumulative_event_grid(ev, 0.0, 2.0, 4, integral="linear")[0, :, 0, 0].tolist()
         [0.0, 0.5, 1.0, 1.0, 1.0]
+        >>> cumulative_event_grid(ev, 0.0, 2.0, 4, integral="linear", max_spread_us=2.0)[0, :, 0, 0].tolist()
+        [0.0, 0.0, 1.0, 1.0, 1.0]
     """
     if integral not in ("step", "linear"):
         raise ValueError(f"integral must be 'step' or 'linear', got {integral!r}")
+    if max_spread_us is not None and (integral != "linear" or not max_spread_us > 0):
+        raise ValueError(f"max_spread_us is a positive interval of the 'linear' integral, got {max_spread_us!r} with "
+                         f"integral={integral!r}")
     if num_bins < 1:
         raise ValueError(f"num_bins must be >= 1, got {num_bins}")
     b = events.batch_size
@@ -211,11 +220,11 @@ def cumulative_event_grid(
     check_memory(b * (num_bins + 1) * height * width * grid_bytes_per_point(integral, dtype),
                  f"the cumulative event grid ({b}, {num_bins + 1}, {height}, {width})",
                  "use fewer num_bins or a shorter time span (num_bins x bin_width)", memory_budget)
-    return _cumulative_event_grid(events, g0, width_us, num_bins, integral, dtype)
+    return _cumulative_event_grid(events, g0, width_us, num_bins, integral, dtype, max_spread_us)
 
 
 def _cumulative_event_grid(events: Events, g0: Tensor, width_us: Tensor, num_bins: int, integral: str,
-                           dtype: torch.dtype) -> Tensor:
+                           dtype: torch.dtype, max_spread_us: float | None = None) -> Tensor:
     """:func:`cumulative_event_grid` without its checks (nor the memory budget's: the caller sized the grid).
 
     ``g0`` and ``width_us`` (positive) are float64 :math:`(B,)` on the events' device.
@@ -229,10 +238,11 @@ def _cumulative_event_grid(events: Events, g0: Tensor, width_us: Tensor, num_bin
         del hist
         cumsum_(cum[:, 1:], 1)
         return cum
-    return _linear_grid(events, g0, width_us, num_bins).to(dtype)
+    return _linear_grid(events, g0, width_us, num_bins, max_spread_us).to(dtype)
 
 
-def _linear_grid(events: Events, g0: Tensor, width_us: Tensor, num_bins: int) -> Tensor:
+def _linear_grid(events: Events, g0: Tensor, width_us: Tensor, num_bins: int,
+                 max_spread_us: float | None = None) -> Tensor:
     """Piecewise-linear integral at grid points, exactly, via slope breakpoints.
 
     Event k spreads ``σ_k`` over ``(a_k, t_k]`` with slope ``c_k = σ_k / (t_k - a_k)``; the
@@ -261,6 +271,8 @@ def _linear_grid(events: Events, g0: Tensor, width_us: Tensor, num_bins: int) ->
         # an event before the grid start with no predecessor becomes a step at its timestamp
         prev = torch.where(first & (t_sorted <= 0), t_sorted - _MIN_SPREAD_US / width_us[events.batch[order]], prev)
         min_spread = _MIN_SPREAD_US / width_us[events.batch[order]]
+        if max_spread_us is not None:
+            prev = torch.maximum(prev, t_sorted - max_spread_us / width_us[events.batch[order]])
         prev = torch.minimum(prev, t_sorted - min_spread)
         slope = events.p[order].to(torch.float64) / (t_sorted - prev)
         # breakpoints: +slope at prev, -slope at t

@@ -79,6 +79,19 @@ class TestCumulativeGrid:
         cum = cumulative_event_grid(ev, 0.0, 5.0, 4, "linear", dtype=torch.float64)[0, :, 0, 0]
         torch.testing.assert_close(cum, torch.tensor([0.0, 0.25, 0.5, 0.5, 0.5], dtype=torch.float64))
 
+    def test_linear_spreads_capped_at_max_spread(self):
+        # events at 10 (+1) and 30 (-1) with spreads of at most 5: +1 over (5, 10], -1 over (25, 30]; a cap longer
+        # than every interval changes nothing
+        ev = one_pixel([10.0, 30.0], [1, 0])
+        cum = cumulative_event_grid(ev, 0.0, 5.0, 8, "linear", dtype=torch.float64, max_spread_us=5.0)[0, :, 0, 0]
+        expected = [0.0, 0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]
+        torch.testing.assert_close(cum, torch.tensor(expected, dtype=torch.float64))
+        wide = cumulative_event_grid(ev, 0.0, 5.0, 8, "linear", dtype=torch.float64, max_spread_us=50.0)
+        torch.testing.assert_close(wide, cumulative_event_grid(ev, 0.0, 5.0, 8, "linear", dtype=torch.float64))
+        for integral, cap in (("step", 5.0), ("linear", 0.0), ("linear", -1.0)):
+            with pytest.raises(ValueError, match="max_spread_us is a positive interval of the 'linear' integral"):
+                cumulative_event_grid(ev, 0.0, 5.0, 8, integral, max_spread_us=cap)
+
     def test_linear_equals_step_at_event_times(self):
         # at every grid point after all events both integrals hold the full polarity sum
         ev = random_events(300, (3, 3), (0.0, 90.0), seed=3)
