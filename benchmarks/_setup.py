@@ -46,6 +46,24 @@ def add_case_options(parser: argparse.ArgumentParser, default_split: str, splits
     parser.add_argument("--size", type=int, nargs=2, default=DEFAULT_SIZE, metavar=("H", "W"))
 
 
+def add_constant_case_options(parser: argparse.ArgumentParser) -> None:
+    """:func:`add_case_options` for a script that reads the constant-latency cases of a split (tuning by default)."""
+    add_case_options(parser, "tuning", splits=("tuning", "dev", "dev_wide", "test"),
+                     num_help="first N cases of each split (before keeping the constant-latency ones)")
+
+
+def constant_cases(parser: argparse.ArgumentParser, args: argparse.Namespace) -> list:
+    """The constant-latency cases of ``--split`` (``tuning``: dev and dev_wide) among the first ``--num`` of each, at
+    ``--size``; a usage error where there are none."""
+    from evlatcorr.benchmark.accuracy import make_cases
+
+    splits = ("dev", "dev_wide") if args.split == "tuning" else (args.split,)
+    cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size)) if c.latency_model == "constant"]
+    if not cases:
+        parser.error(f"no constant-latency case among the first {args.num} of split {args.split}")
+    return cases
+
+
 # the smallest frame a script simulates: the suite's scenes and sprites need this many pixels a side
 MIN_SCENE_SIZE = 16
 

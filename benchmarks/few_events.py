@@ -21,7 +21,6 @@ import argparse  # noqa: E402
 import csv  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from evlatcorr.benchmark.accuracy import make_cases  # noqa: E402
 from evlatcorr.benchmark.few_events import (  # noqa: E402
     DEFAULT_SHARES,
     few_events_markdown,
@@ -32,8 +31,7 @@ from evlatcorr.benchmark.few_events import (  # noqa: E402
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    _setup.add_case_options(p, "tuning", splits=("tuning", "dev", "dev_wide", "test"),
-                            num_help="first N cases of each split (before keeping the constant-latency ones)")
+    _setup.add_constant_case_options(p)
     p.add_argument("--shares", type=float, nargs="+", default=list(DEFAULT_SHARES),
                    help="shares of each case's events kept, in (0, 1]")
     p.add_argument("--out", type=Path, default=Path("outputs/few_events"))
@@ -41,10 +39,7 @@ def main(argv: list[str] | None = None) -> None:
     _setup.check_case_options(p, args)
     if not all(0.0 < s <= 1.0 for s in args.shares):
         p.error(f"--shares must lie in (0, 1], got {args.shares}")
-    splits = ("dev", "dev_wide") if args.split == "tuning" else (args.split,)
-    cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size)) if c.latency_model == "constant"]
-    if not cases:
-        p.error(f"no constant-latency case among the first {args.num} of split {args.split}")
+    cases = _setup.constant_cases(p, args)
     _setup.check_out_folder(p, args.out)
     rows, note = _setup.each_simulated(cases, lambda case: thinned_estimates(case, args.shares), "cases")
     rows = [row for case_rows in rows for row in case_rows]

@@ -30,7 +30,6 @@ import sys  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from evlatcorr.benchmark.accuracy import make_cases  # noqa: E402
 from evlatcorr.benchmark.pair_consistency import (  # noqa: E402
     RAMPS_US,
     pair_markdown,
@@ -42,8 +41,7 @@ from evlatcorr.benchmark.pair_consistency import (  # noqa: E402
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    _setup.add_case_options(p, "tuning", splits=("tuning", "dev", "dev_wide", "test"),
-                            num_help="first N cases of each split (before keeping the constant-latency ones)")
+    _setup.add_constant_case_options(p)
     p.add_argument("--ramps-us", type=float, nargs="+", default=list(RAMPS_US),
                    help="ramp lengths to compare, us (0: step EDI)")
     p.add_argument("--recording", type=Path, help="a recording's consecutive frames instead of the suite's cases")
@@ -57,15 +55,14 @@ def main(argv: list[str] | None = None) -> None:
     if args.recording is not None:
         if args.threshold is None or not args.threshold > 0:
             p.error("--recording needs the recording's --threshold, a positive number")
+        if not args.recording.is_file():
+            p.error(f"--recording {args.recording}: no such file")
         _setup.check_out_folder(p, args.out)
         rows = recording_rows(str(args.recording), args.threshold, args.ramps_us)
         title = f"{args.recording.name}, {len(rows)} pairs of consecutive frames, threshold {args.threshold:g}"
         _write(args.out, rows, title, command, _recording_markdown(rows, args.ramps_us))
         return
-    splits = ("dev", "dev_wide") if args.split == "tuning" else (args.split,)
-    cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size)) if c.latency_model == "constant"]
-    if not cases:
-        p.error(f"no constant-latency case among the first {args.num} of split {args.split}")
+    cases = _setup.constant_cases(p, args)
     _setup.check_out_folder(p, args.out)
     with warnings.catch_warnings():  # the corrector's warnings (events that stop, fallbacks): the table says enough
         warnings.simplefilter("ignore")

@@ -79,3 +79,6 @@ def test_the_script_reads_a_recording_s_pairs(tmp_path):
     assert "| frame | default corrector, the frame alone | consistency, step EDI |" in table
     bad = run_script("pair_consistency.py", "--recording", str(tmp_path / "rec.h5"), cwd=tmp_path)
     assert bad.returncode == 2 and "--recording needs the recording's --threshold" in bad.stderr
+    missing = run_script("pair_consistency.py", "--recording", str(tmp_path / "none.h5"), "--threshold", "0.2",
+                         cwd=tmp_path)
+    assert missing.returncode == 2 and "none.h5: no such file" in missing.stderr
