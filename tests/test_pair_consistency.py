@@ -51,6 +51,11 @@ def test_the_summary_on_known_rows():
     both = summary["mean of the corrector and the consistency, ramps up to 3000 us"]
     assert both["median_abs_error_us"] == pytest.approx((150.0 + 400.0) / 2)
     assert math.isnan(both["ideal_median_abs_us"]) and pair_summary([]) == []
+    # where the consistency found no minimum the fallback row takes the corrector alone
+    rows[1]["delayed_3000_at_reach"] = True
+    fallback = {s["estimator"]: s for s in pair_summary(rows, (3000.0,))}[
+        "mean of the two, the corrector alone where the consistency has no minimum"]
+    assert fallback["median_abs_error_us"] == pytest.approx((150.0 + 1000.0) / 2)
 
 
 def test_the_script_writes_its_table(tmp_path):

@@ -121,7 +121,9 @@ def pair_rows(case: Case, ramps_us: Sequence[float] = RAMPS_US) -> dict[str, Any
 
     Returns:
         a row: ``case``, ``truth_us``, ``reader_us`` (the default corrector, the first frame alone), and per ramp
-        ``R`` ``delayed_R_us`` and ``ideal_R_us`` (the ideal events' estimate: 0 is right).
+        ``R`` ``delayed_R_us`` and ``ideal_R_us`` (the ideal events' estimate: 0 is right), with
+        ``delayed_R_at_reach`` and ``ideal_R_at_reach`` (the curve's lowest point within a candidate of the events'
+        reach: no minimum).
     """
     from evlatcorr.correction import EventLatencyCorrector
 
@@ -140,17 +142,21 @@ def pair_rows(case: Case, ramps_us: Sequence[float] = RAMPS_US) -> dict[str, Any
         for ramp in ramps_us:
             curve = pair_disagreement_curve(pair, case.threshold, candidates, ramp)
             row[f"{which}_{ramp:g}_us"] = curve_minimum(candidates, curve)
+            # no minimum before the events run out: the curve fell over the whole range (a frame latency does not
+            # change, or too few events), as the sharpness scores' did before the reader's fallbacks
+            row[f"{which}_{ramp:g}_at_reach"] = int(curve.argmin()) >= len(candidates) - 2
     return row
 
 
 def pair_summary(rows: list[dict[str, Any]], ramps_us: Sequence[float] = RAMPS_US) -> list[dict[str, Any]]:
     """Per estimator (the default corrector on the first frame; the consistency at each ramp length; the mean of
-    the corrector's and the consistency's at each ramp): the median absolute and signed error, the 90th percentile
+    the corrector's and the consistency's at each ramp, and the same with the corrector alone where the consistency
+    found no minimum before the events' reach): the median absolute and signed error, the 90th percentile
     and the worst absolute error, the share within 500 µs, and the ideal events' median absolute estimate.
 
     Example:
         >>> rows = [dict(truth_us=1000.0, reader_us=1400.0, delayed_0_us=2000.0, ideal_0_us=600.0)]
-        >>> [(s["estimator"], s["median_abs_error_us"]) for s in pair_summary(rows, (0.0,))]
+        >>> [(s["estimator"], s["median_abs_error_us"]) for s in pair_summary(rows, (0.0,))][:3]
         [('default corrector, first frame', 400.0), ('consistency, step EDI', 1000.0), ('mean of the two', 700.0)]
     """
     if not rows:
@@ -164,6 +170,9 @@ def pair_summary(rows: list[dict[str, Any]], ramps_us: Sequence[float] = RAMPS_U
         estimators.append((f"consistency, {name}", own, ideal))
         both = "mean of the two" if len(ramps_us) == 1 else f"mean of the corrector and the consistency, {name}"
         estimators.append((both, [(a + r["reader_us"]) / 2 for a, r in zip(own, rows)], None))
+        estimators.append((f"{both}, the corrector alone where the consistency has no minimum",
+                           [r["reader_us"] if r.get(f"delayed_{ramp:g}_at_reach") else (a + r["reader_us"]) / 2
+                            for a, r in zip(own, rows)], None))
     out = []
     truth = [r["truth_us"] for r in rows]
     for name, estimates, ideal in estimators:
