@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from evlatcorr.benchmark.accuracy import make_cases
-from evlatcorr.benchmark.pair_consistency import pair_disagreement_curve, pair_rows, pair_summary
+from evlatcorr.benchmark.pair_consistency import curve_minimum, pair_disagreement_curve, pair_rows, pair_summary
 from evlatcorr.frames import EventFrames
 from evlatcorr.simulate import simulate
 from tests.commands import ROOT, run_script
@@ -35,6 +35,17 @@ def test_the_curve_reads_one_pair():
     assert isinstance(one, EventFrames)
     with pytest.raises(ValueError, match="one pair of frames"):
         pair_disagreement_curve(one, 0.2, torch.tensor([0.0]), 0.0)  # no next frame
+    pair = seq.pairs().split()[0]
+    for theta, candidates, ramp, match in ((0.0, torch.tensor([0.0]), 0.0, "threshold must be a positive"),
+                                           (0.2, torch.tensor([]), 0.0, "non-empty 1-D tensor"),
+                                           (0.2, torch.tensor([100.0, 0.0]), 0.0, "increasing"),
+                                           (0.2, torch.tensor([0.0]), -1.0, "max_spread_us must be 0 or more")):
+        with pytest.raises(ValueError, match=match):
+            pair_disagreement_curve(pair, theta, candidates, ramp)
+    with pytest.raises(ValueError, match="one value per candidate"):
+        curve_minimum(torch.tensor([0.0, 1.0]), torch.tensor([1.0]))
+    # the parabola's vertex between candidates: y = (x - 1.25)^2 sampled at 0, 1, 2
+    assert curve_minimum(torch.tensor([0.0, 1.0, 2.0]), torch.tensor([1.5625, 0.0625, 0.5625])) == pytest.approx(1.25)
 
 
 def test_the_summary_on_known_rows():

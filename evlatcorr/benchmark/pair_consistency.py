@@ -64,6 +64,11 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
     """
     if pair.batch_size != 1 or pair.blurry_next is None:
         raise ValueError("pair_disagreement_curve reads one pair of frames (B = 1, with blurry_next)")
+    if not (math.isfinite(threshold) and threshold > 0):
+        raise ValueError(f"threshold must be a positive number, got {threshold}")
+    if not (math.isfinite(max_spread_us) and max_spread_us >= 0 and math.isfinite(grid_us) and grid_us > 0):
+        raise ValueError(f"max_spread_us must be 0 or more and grid_us positive, got {max_spread_us} and {grid_us}")
+    _check_candidates(candidates)
     s1, e1 = float(pair.exposure_start[0]), float(pair.exposure_end[0])
     s2, e2 = float(pair.exposure_start_next[0]), float(pair.exposure_end_next[0])
     first, second = pair.blurry[0].double().mean(0), pair.blurry_next[0].double().mean(0)
@@ -99,6 +104,14 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
     return torch.stack(out)
 
 
+def _check_candidates(candidates: Tensor) -> None:
+    if candidates.dim() != 1 or len(candidates) == 0 or not bool(torch.isfinite(candidates).all()):
+        raise ValueError(f"candidates must be a non-empty 1-D tensor of finite latencies (us), got shape "
+                         f"{tuple(candidates.shape)}")
+    if len(candidates) > 1 and not bool((candidates.diff() > 0).all()):
+        raise ValueError("candidates must be increasing")
+
+
 def curve_minimum(candidates: Tensor, curve: Tensor) -> float:
     """The candidate with the lowest value, refined by a parabola through it and its neighbours (µs).
 
@@ -106,6 +119,10 @@ def curve_minimum(candidates: Tensor, curve: Tensor) -> float:
         >>> curve_minimum(torch.tensor([0.0, 1.0, 2.0]), torch.tensor([1.0, 0.0, 1.0]))
         1.0
     """
+    _check_candidates(candidates)
+    if curve.shape != candidates.shape:
+        raise ValueError(f"curve must hold one value per candidate, got {tuple(curve.shape)} for "
+                         f"{tuple(candidates.shape)}")
     k = int(curve.argmin())
     if 0 < k < len(curve) - 1:
         y0, y1, y2 = (float(v) for v in curve[k - 1:k + 2])
@@ -212,6 +229,8 @@ def recording_rows(path: str, threshold: float, ramps_us: Sequence[float] = RAMP
     from evlatcorr.io import open_recording
     from evlatcorr.restore import has_events, pair_frames
 
+    if not (math.isfinite(threshold) and threshold > 0):
+        raise ValueError(f"threshold must be a positive number, got {threshold}")
     exposure = max(end - start for start, end, _ in open_recording(path).frame_times())
     reach = 3 * exposure  # the next exposure after a gap of up to an exposure, and the candidates' exposure time
     corrector = EventLatencyCorrector(threshold=threshold)
