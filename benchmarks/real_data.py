@@ -38,6 +38,7 @@ import torch  # noqa: E402
 from evlatcorr import EventLatencyCorrector, edi_deblur  # noqa: E402
 from evlatcorr.consistency import pair_disagreement  # noqa: E402
 from evlatcorr.io import open_recording  # noqa: E402
+from evlatcorr.pair_evidence import pair_log_odds  # noqa: E402
 from evlatcorr.restore import build_model, has_events, pair_frames, pair_reach_us, recording_threshold  # noqa: E402
 from evlatcorr.temporal import frame_evidence, fuse_latencies  # noqa: E402
 
@@ -114,7 +115,8 @@ def main() -> None:
     add_fused(rows, evidence, theta)
     with open(args.out / "real_data_latency.csv", "w", newline="") as fh:
         fields = ["frame", "events_in_exposure", "threshold", "latency_us", "disagreement_stamped",
-                  "disagreement_corrected", "fused_latency_us", "disagreement_fused"]
+                  "disagreement_corrected", "fused_latency_us", "disagreement_fused", "paired_latency_us",
+                  "disagreement_paired"]
         w = csv.DictWriter(fh, fieldnames=fields)
         w.writeheader()
         w.writerows(rows)
@@ -126,19 +128,26 @@ def main() -> None:
 
 
 def add_fused(rows: list[dict], evidence: dict, theta: float) -> None:
-    """Each estimated frame's latency fused with 2 frames either side (:func:`evlatcorr.temporal.fuse_latencies`, as
-    ``evlatcorr correct`` does by default), and its pair's disagreement with it."""
+    """Each estimated frame's latency fused with 2 frames either side (:func:`evlatcorr.temporal.fuse_latencies`):
+    from the reader's evidence alone (``fused_latency_us``), and with each pair of consecutive frames' agreement too
+    (``paired_latency_us``, :func:`evlatcorr.pair_evidence.pair_log_odds`, as ``evlatcorr correct`` does by
+    default); and the frame's pair's disagreement with each."""
     frames = sorted(evidence)
     if not frames:
         return
     own = torch.tensor([evidence[i][0] for i in frames], dtype=torch.float64)
-    fused = fuse_latencies(own, [evidence[i][1] for i in frames], [evidence[i][2] for i in frames])
+    candidates, log_p = [evidence[i][1] for i in frames], [evidence[i][2] for i in frames]
+    pairs = [None if evidence[i][3] is None or evidence[i][2] is None else
+             pair_log_odds(evidence[i][3], theta, evidence[i][1]) for i in frames]
+    estimates = {"fused": fuse_latencies(own, candidates, log_p),
+                 "paired": fuse_latencies(own, candidates, log_p, pair_log_odds=pairs)}
     by_frame = {r["frame"]: r for r in rows}
-    for i, latency in zip(frames, fused.tolist()):
-        row, pair = by_frame[i], evidence[i][3]
-        row["fused_latency_us"] = round(latency, 1)
-        if pair is not None:
-            row["disagreement_fused"] = round(float(pair_disagreement(pair, theta, latency)), 5)
+    for name, fused in estimates.items():
+        for i, latency in zip(frames, fused.tolist()):
+            row, pair = by_frame[i], evidence[i][3]
+            row[f"{name}_latency_us"] = round(latency, 1)
+            if pair is not None:
+                row[f"disagreement_{name}"] = round(float(pair_disagreement(pair, theta, latency)), 5)
 
 
 def _page_header(args: argparse.Namespace) -> str:
@@ -167,13 +176,16 @@ def summarize(rows: list[dict], name: str, theta: float) -> str:
              f"| moving frames (≥ {MOVING_EVENTS} events in the exposure), each frame alone | {len(paired)} | "
              f"{statistics.median(latencies):.0f} ({min(latencies):.0f}-{max(latencies):.0f}) | "
              f"{statistics.median(stamped):.4f} | {statistics.median(corrected):.4f} | {better} of {len(paired)} |\n")
-    fused = [r for r in paired if "disagreement_fused" in r]
-    if len(fused) == len(paired):
-        lat = [r["fused_latency_us"] for r in fused]
-        dis = [r["disagreement_fused"] for r in fused]
-        table += (f"| the same, latency fused with 2 frames either side | {len(fused)} | "
-                  f"{statistics.median(lat):.0f} ({min(lat):.0f}-{max(lat):.0f}) | {statistics.median(stamped):.4f} | "
-                  f"{statistics.median(dis):.4f} | {sum(d < s for s, d in zip(stamped, dis))} of {len(fused)} |\n")
+    for name, what in (("fused", "the same, latency fused with 2 frames either side"),
+                       ("paired", "the same, fused with each pair's agreement too (`evlatcorr correct`'s default)")):
+        fused = [r for r in paired if f"disagreement_{name}" in r]
+        if len(fused) != len(paired):
+            continue
+        lat = [r[f"{name}_latency_us"] for r in fused]
+        dis = [r[f"disagreement_{name}"] for r in fused]
+        table += (f"| {what} | {len(fused)} | {statistics.median(lat):.0f} ({min(lat):.0f}-{max(lat):.0f}) | "
+                  f"{statistics.median(stamped):.4f} | {statistics.median(dis):.4f} | "
+                  f"{sum(d < s for s, d in zip(stamped, dis))} of {len(fused)} |\n")
     return table
 
 

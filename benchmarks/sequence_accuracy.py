@@ -3,16 +3,18 @@
 The accuracy suite's cases (:mod:`evlatcorr.benchmark.accuracy`) simulated as ``--frames`` back-to-back frames of
 one recording (:mod:`evlatcorr.benchmark.sequences`). Every frame is estimated with the default corrector, then
 :func:`evlatcorr.temporal.fuse_latencies` combines the learned reader's evidence of 2 frames either side
-(``fused ±2``, for a whole recording) or of the 2 frames before (a stream). Each frame is scored as the suite
-scores one: latency error (constant latency), EDI PSNR recovery. The same sequences' ideal events (no latency, as
-a recording in bright light gives) are estimated too (``--no-ideal`` skips them): how far from 0 each estimate lies
-and what correcting them by it does to their EDI PSNR. Each fused estimate is also compared with every frame's own,
-case by case, with a bootstrap interval over the cases.
+(``fused ±2``) or of the 2 frames before (a stream); ``fused ±2, pairs 10`` adds each pair of consecutive frames'
+agreement (:mod:`evlatcorr.pair_evidence`), as ``evlatcorr correct`` fuses a recording. Each frame is scored as
+the suite scores one: latency error (constant latency), EDI PSNR recovery. The same sequences' ideal events (no
+latency, as a recording in bright light gives) are estimated too (``--no-ideal`` skips them): how far from 0 each
+estimate lies and what correcting them by it does to their EDI PSNR. Each fused estimate is also compared with every
+frame's own, case by case, with a bootstrap interval over the cases.
 
     python benchmarks/sequence_accuracy.py --split tuning              # dev + dev_wide: 160 sequences
     python benchmarks/sequence_accuracy.py --split test --frames 6     # report only
     python benchmarks/sequence_accuracy.py --split tuning --no-latency-mass 0 0.1   # also without the rule, and at 0.1
     python benchmarks/sequence_accuracy.py --split test --exposure-us 40000 # every case at a 40 ms exposure
+    python benchmarks/sequence_accuracy.py --split dev --pair-weights 3 10 30 --frame-gap 1.25  # a camera's gap
 
 Writes ``results.md``, ``results.csv`` and ``results.json`` under ``--out``.
 """
@@ -43,6 +45,7 @@ from evlatcorr.benchmark.sequences import (  # noqa: E402
     fused_against_own,
     summarize_sequences,
 )
+from evlatcorr.pair_evidence import DEFAULT_PAIR_WEIGHT, DEFAULT_RAMP_US  # noqa: E402
 from evlatcorr.temporal import DEFAULT_NO_LATENCY_MASS  # noqa: E402
 
 MODELS = {"constant": "constant latency", "intensity": "photoreceptor low-pass", "intensity_delay": "per-pixel delay"}
@@ -99,6 +102,14 @@ def main(argv: list[str] | None = None) -> None:
                    help="also score 'fused ±2' with fuse_latencies(no_latency_mass=SHARE): 0 where the fused "
                         "probability keeps more than that share on no latency (0: without that rule; the default "
                         f"windows use {DEFAULT_NO_LATENCY_MASS})")
+    p.add_argument("--pair-weights", type=float, nargs="*", default=[DEFAULT_PAIR_WEIGHT], metavar="W",
+                   help="also score 'fused ±2' with each pair of consecutive frames' agreement "
+                        "(evlatcorr.pair_evidence.pair_log_odds, as evlatcorr correct fuses them) at these weights "
+                        f"(default: {DEFAULT_PAIR_WEIGHT:g}; none: without)")
+    p.add_argument("--pair-ramp-us", type=float, default=DEFAULT_RAMP_US,
+                   help=f"the pairs' ramps' longest, us (default: {DEFAULT_RAMP_US:g})")
+    p.add_argument("--frame-gap", type=float, default=1.0,
+                   help="time from one exposure's start to the next, in exposure times (default: 1, back to back)")
     p.add_argument("--no-ideal", action="store_true",
                    help="skip the sequences' ideal events (estimated by default: what bright light gives)")
     _setup.add_exposure_option(p)
@@ -107,6 +118,12 @@ def main(argv: list[str] | None = None) -> None:
     _setup.check_case_options(p, args)
     if args.frames < 2:  # one frame has no neighbours: its fused estimates would be its own
         p.error(f"--frames must be at least 2 (fusing needs a frame's neighbours), got {args.frames}")
+    if any(not (math.isfinite(w) and w > 0) for w in args.pair_weights):
+        p.error(f"--pair-weights must be positive, got {args.pair_weights}")
+    if not (math.isfinite(args.frame_gap) and args.frame_gap >= 1):
+        p.error(f"--frame-gap must be 1 or more (frames do not overlap), got {args.frame_gap}")
+    if not (math.isfinite(args.pair_ramp_us) and args.pair_ramp_us >= 0):
+        p.error(f"--pair-ramp-us must be 0 or more, got {args.pair_ramp_us}")
     if any(not 0 <= share < 1 for share in args.no_latency_mass):
         p.error(f"--no-latency-mass must be in [0, 1), got {args.no_latency_mass}")
     windows = dict(DEFAULT_WINDOWS) | {
@@ -118,7 +135,9 @@ def main(argv: list[str] | None = None) -> None:
     _setup.check_out_folder(p, args.out)
     t0 = time.perf_counter()
     per_case, unsimulated = _setup.each_simulated(
-        cases, lambda case: evaluate_sequence(case, args.frames, windows, ideal=not args.no_ideal), "sequences")
+        cases, lambda case: evaluate_sequence(case, args.frames, windows, ideal=not args.no_ideal,
+                                              pair_weights=args.pair_weights, frame_gap=args.frame_gap,
+                                              ramp_us=args.pair_ramp_us), "sequences")
     rows = [row for case_rows in per_case for row in case_rows]
     seconds = time.perf_counter() - t0
     if not rows:

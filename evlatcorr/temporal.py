@@ -42,7 +42,8 @@ DEFAULT_NO_LATENCY_MASS = 0.2
 def fuse_latencies(latency: Tensor, candidates: Tensor | Sequence[Tensor],
                    log_probability: Tensor | Sequence[Tensor | None] | None,
                    before: int = DEFAULT_FUSED_FRAMES, after: int = DEFAULT_FUSED_FRAMES,
-                   no_latency_mass: float | None = DEFAULT_NO_LATENCY_MASS) -> Tensor:
+                   no_latency_mass: float | None = DEFAULT_NO_LATENCY_MASS,
+                   pair_log_odds: Sequence[Tensor | None] | None = None) -> Tensor:
     """Each frame's latency from its own and its neighbours' reader log-probabilities.
 
     Args:
@@ -62,6 +63,9 @@ def fuse_latencies(latency: Tensor, candidates: Tensor | Sequence[Tensor],
             :func:`no_latency_share`) more than this share gets 0, where at least two frames' evidence is fused. One
             frame's curves barely tell no latency from a little; a few frames' together do better
             (:data:`DEFAULT_NO_LATENCY_MASS`, ``docs/estimator.md``).
+        pair_log_odds: N rows or None: frame ``k``'s with frame ``k + 1``'s agreement over frame ``k``'s candidates
+            (:func:`evlatcorr.pair_evidence.pair_log_odds`), added to frame ``k``'s evidence wherever both are
+            there; None for a frame without one (the last, or a pair that tells nothing).
 
     Returns:
         :math:`(N,)` float64 µs, on ``latency``'s device.
@@ -99,6 +103,15 @@ def fuse_latencies(latency: Tensor, candidates: Tensor | Sequence[Tensor],
                              f"{None if cand[k] is None else tuple(cand[k].shape)} and {tuple(log_p[k].shape)}")
     has_row = [r is not None and not bool(torch.isnan(r).any()) and bool(torch.isfinite(r).any()) for r in log_p]
     evidence = [_uninformative_filled(log_p[j]) if has_row[j] else None for j in range(n)]
+    if pair_log_odds is not None:
+        pairs = _rows(pair_log_odds, n, "pair_log_odds")
+        for j in range(n):
+            if pairs[j] is None or not has_row[j]:
+                continue
+            if pairs[j].shape != cand[j].shape or not bool(torch.isfinite(pairs[j]).all()):
+                raise ValueError(f"frame {j}: pair_log_odds must be finite, one per candidate "
+                                 f"{tuple(cand[j].shape)}, got {tuple(pairs[j].shape)}")
+            evidence[j] = evidence[j] + pairs[j]
     for k in range(n):  # frames, not events or pixels: a recording has a few thousand
         window = [j for j in range(max(0, k - before), min(n, k + after + 1)) if has_row[j]]
         if not window:

@@ -109,6 +109,22 @@ def test_correct_writes_events_and_report(simulated):
         assert os.stat(written).st_mode & 0o777 == 0o666 & ~_umask()
 
 
+def test_correct_adds_each_pairs_agreement_unless_told_not_to(simulated, tmp_path):
+    out = tmp_path / "paired.h5"
+    r = run("correct", str(simulated), str(out), "--num-bins", "100", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    rows = list(csv.DictReader(open(out.with_suffix(".csv"))))
+    # the first frame and the second agree best at about the injected 3000 us; the last frame has no next one
+    assert abs(float(rows[0]["pair_latency_us"]) - 3000.0) <= 500.0 and rows[1]["pair_latency_us"] == ""
+    alone = tmp_path / "alone.h5"
+    r = run("correct", str(simulated), str(alone), "--num-bins", "100", "--no-pairs", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    alone_rows = list(csv.DictReader(open(alone.with_suffix(".csv"))))
+    assert "pair_latency_us" not in alone_rows[0]
+    assert [row["frame_latency_us"] for row in alone_rows] == [row["frame_latency_us"] for row in rows]
+    assert [row["latency_us"] for row in alone_rows] != [row["latency_us"] for row in rows]
+
+
 def test_deblur_writes_pngs(simulated, tmp_path):
     r = run("deblur", str(simulated), str(tmp_path / "png"), "--num-bins", "100", cwd=tmp_path)
     assert r.returncode == 0, r.stderr

@@ -53,6 +53,14 @@ def test_fused_rows_show_each_frames_own_estimate_and_marked_sources():
     assert bottom.get_yscale() == "symlog"  # a frame without events sits at 0
 
 
+def test_each_pairs_agreement_is_drawn_where_there_is_one():
+    rows = _rows(frame_latency_us=["2000.0"] * 6, pair_latency_us=["1000.0", "3000.0", "", "3200.0", "2800.0", ""])
+    top, _ = latency_figure(rows).axes
+    pairs = _line(top, "agreement with the next frame")
+    assert list(pairs.get_xdata()) == pytest.approx([0.0, 0.025, 0.075, 0.1])
+    assert list(pairs.get_ydata()) == pytest.approx([1.0, 3.0, 3.2, 2.8])
+
+
 def test_a_flat_frame_is_marked():
     rows = _rows(source=["reader", "flat", "reader", "reader", "reader", "reader"])
     top, _ = latency_figure(rows).axes

@@ -6,9 +6,10 @@ best lies a millisecond or so after the true one (``docs/estimator.md``, "two fr
 pixel's level until its event, while the scene crossed the threshold gradually, so both frames' latents lag the
 scene, and reading the events later makes up for it. Here each event is instead the end of a ramp from the pixel's
 previous event, at most ``max_spread_us`` long (:func:`evlatcorr.integral.cumulative_event_grid`'s ``"linear"``
-integral): an event after a long quiet is an edge's first crossing, not the end of a change since the last one.
-:func:`pair_rows` scans the candidate latencies of one constant-latency case simulated as two frames with a
-camera's gap between them, for each ramp length (0: step EDI), beside the default corrector on the first frame.
+integral): an event after a long quiet is an edge's first crossing, not the end of a change since the last one
+(:func:`evlatcorr.pair_evidence.pair_disagreement_curve`). :func:`pair_rows` scans the candidate latencies of one
+constant-latency case simulated as two frames with a camera's gap between them, for each ramp length (0: step EDI),
+beside the default corrector on the first frame.
 """
 
 from __future__ import annotations
@@ -23,8 +24,7 @@ import torch
 from torch import Tensor
 
 from evlatcorr.benchmark.accuracy_cases import Case, simulate_case
-from evlatcorr.frames import EventFrames
-from evlatcorr.integral import cumulative_event_grid
+from evlatcorr.pair_evidence import check_candidates, pair_disagreement_curve
 
 __all__ = ["RAMPS_US", "CANDIDATE_STEP_US", "pair_disagreement_curve", "curve_minimum", "pair_rows", "pair_summary",
            "pair_markdown", "recording_rows"]
@@ -35,81 +35,6 @@ RAMPS_US = (0.0, 2000.0, 3000.0, 5000.0)
 CANDIDATE_STEP_US = 250.0
 #: the frame interval as a multiple of the exposure time (a camera's frames have a gap; as benchmark.threshold's)
 FRAME_GAP = 1.25
-_FLOOR = 0.02  # log(I + c), as evlatcorr.consistency: the dark pixels' noise does not dominate
-_GRID_US = 125.0  # the integral's grid spacing (half the candidates')
-
-
-def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Tensor, max_spread_us: float,
-                            grid_us: float = _GRID_US) -> Tensor:
-    """For each candidate latency, the mean over pixels of ``|log(I_1(t) + c) − log(I_2(t) + c)|`` (c = 0.02):
-    the two frames' EDI latents at ``t``, the middle of the gap between their exposures, from the events read that
-    late, each event a ramp of at most ``max_spread_us`` (0: a step).
-
-    Args:
-        pair: one pair (``B = 1``): ``blurry``, ``blurry_next``, both exposures and the events over both.
-        threshold: contrast threshold θ.
-        candidates: :math:`(K,)` latencies, µs.
-        max_spread_us: the ramps' longest, µs; 0 for step EDI.
-        grid_us: the integral's grid spacing, µs (times are read at the nearest grid point).
-
-    Returns:
-        :math:`(K,)` float64.
-
-    Example:
-        >>> from evlatcorr.simulate import simulate
-        >>> pair = simulate("camera", num_frames=2, height=24, width=32, latency_us=3000.0, seed=0).pairs()
-        >>> curve = pair_disagreement_curve(pair, 0.2, torch.tensor([0.0, 3000.0]), 3000.0)
-        >>> bool(curve[1] < curve[0])
-        True
-    """
-    if pair.batch_size != 1 or pair.blurry_next is None:
-        raise ValueError("pair_disagreement_curve reads one pair of frames (B = 1, with blurry_next)")
-    if not (math.isfinite(threshold) and threshold > 0):
-        raise ValueError(f"threshold must be a positive number, got {threshold}")
-    if not (math.isfinite(max_spread_us) and max_spread_us >= 0 and math.isfinite(grid_us) and grid_us > 0):
-        raise ValueError(f"max_spread_us must be 0 or more and grid_us positive, got {max_spread_us} and {grid_us}")
-    _check_candidates(candidates)
-    s1, e1 = float(pair.exposure_start[0]), float(pair.exposure_end[0])
-    s2, e2 = float(pair.exposure_start_next[0]), float(pair.exposure_end_next[0])
-    first, second = pair.blurry[0].double().mean(0), pair.blurry_next[0].double().mean(0)
-    # events read l late: their integral at t is the stamped events' at t + l, so one grid serves every candidate;
-    # each exposure's mean of exp(θ C) is a difference of prefix sums (trapezoids between grid points), and times are
-    # taken at the nearest grid point (exact for the suite's exposures, gap and candidates: multiples of the spacing)
-    start = s1 - grid_us
-    bins = int(math.ceil((e2 + max(float(candidates.max()), 0.0) - start) / grid_us)) + 2
-    if max_spread_us > 0:
-        grid = cumulative_event_grid(pair.events, start, grid_us, bins, "linear", torch.float64,
-                                     max_spread_us=max_spread_us)[0]
-    else:
-        grid = cumulative_event_grid(pair.events, start, grid_us, bins, "step", torch.float64)[0]
-    grid = grid - grid[round(((e1 + s2) / 2 - start) / grid_us)]  # levels about the middle of the gap: no overflow
-    weights = torch.exp(threshold * grid)
-    sums = weights.cumsum(0)
-
-    def index(t: float) -> int:
-        return min(bins, max(0, round((t - start) / grid_us)))
-
-    def mean_weight(a: int, b: int) -> Tensor:  # the mean of exp(θ C) from grid point a to b, trapezoids
-        inside = sums[b] - sums[a] + weights[a]
-        return (inside - (weights[a] + weights[b]) / 2) / max(b - a, 1)
-
-    out = []
-    for latency in candidates.tolist():
-        middle = weights[index((e1 + s2) / 2 + latency)]
-        logs = []
-        for blurry, (a, b) in ((first, (s1, e1)), (second, (s2, e2))):
-            latent = blurry * middle / mean_weight(index(a + latency), index(b + latency))
-            logs.append(torch.log(latent.clamp_min(0) + _FLOOR))
-        out.append((logs[0] - logs[1]).abs().mean())
-    return torch.stack(out)
-
-
-def _check_candidates(candidates: Tensor) -> None:
-    if candidates.dim() != 1 or len(candidates) == 0 or not bool(torch.isfinite(candidates).all()):
-        raise ValueError(f"candidates must be a non-empty 1-D tensor of finite latencies (us), got shape "
-                         f"{tuple(candidates.shape)}")
-    if len(candidates) > 1 and not bool((candidates.diff() > 0).all()):
-        raise ValueError("candidates must be increasing")
 
 
 def curve_minimum(candidates: Tensor, curve: Tensor) -> float:
@@ -119,7 +44,7 @@ def curve_minimum(candidates: Tensor, curve: Tensor) -> float:
         >>> curve_minimum(torch.tensor([0.0, 1.0, 2.0]), torch.tensor([1.0, 0.0, 1.0]))
         1.0
     """
-    _check_candidates(candidates)
+    check_candidates(candidates)
     if curve.shape != candidates.shape:
         raise ValueError(f"curve must hold one value per candidate, got {tuple(curve.shape)} for "
                          f"{tuple(candidates.shape)}")
@@ -217,7 +142,7 @@ def pair_markdown(summary: list[dict[str, Any]]) -> str:
 
 
 def recording_rows(path: str, threshold: float, ramps_us: Sequence[float] = RAMPS_US,
-                   grid_us: float = 2 * _GRID_US) -> list[dict[str, Any]]:
+                   grid_us: float = 250.0) -> list[dict[str, Any]]:
     """Each pair of consecutive frames of a recording (no truth): the default corrector's latency for the first frame
     alone and the consistency's for each ramp length (candidates every 250 µs up to the exposure time; the grid
     250 µs apart, so that a DAVIS346 pair fits the default memory budget).

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import statistics
 import warnings
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -27,6 +28,7 @@ import torch
 from evlatcorr.benchmark.accuracy import NO_GAP_DB, Case, simulate_case
 from evlatcorr.benchmark.accuracy_compare import CLEAR_CHANGE_DB, bootstrap_interval
 from evlatcorr.benchmark.compare import edi_psnr, recovery
+from evlatcorr.pair_evidence import DEFAULT_RAMP_US, pair_log_odds
 from evlatcorr.temporal import frame_evidence, fuse_latencies
 
 __all__ = ["evaluate_sequence", "summarize_sequences", "fused_against_own", "DEFAULT_WINDOWS", "IDEAL"]
@@ -40,7 +42,8 @@ LOSING_DB = 0.5
 
 
 def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple] | None = None,
-                      ideal: bool = True) -> list[dict[str, Any]]:
+                      ideal: bool = True, pair_weights: Sequence[float] = (), frame_gap: float = 1.0,
+                      ramp_us: float = DEFAULT_RAMP_US) -> list[dict[str, Any]]:
     """Every frame of a case simulated as a sequence, scored with its own latency and with each fused one.
 
     Args:
@@ -50,6 +53,11 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
             after, no_latency_mass)``; default :data:`DEFAULT_WINDOWS`.
         ideal: also estimate the same sequence's ideal events (no latency: what a recording in bright light gives),
             as rows of model :data:`IDEAL`.
+        pair_weights: for each weight ``w``, also ``"fused ±2, pairs w"``: the ``fused ±2`` window with each pair of
+            consecutive frames' agreement (:func:`evlatcorr.pair_evidence.pair_log_odds` at weight ``w``, ramps up to
+            ``ramp_us``) added to the first frame's evidence.
+        frame_gap: time from one exposure's start to the next, in exposure times (1: back to back; a camera's
+            frames have a gap).
 
     Returns:
         one row per frame and estimate (``"per frame"`` and each window): ``case``, ``model``, ``frame``,
@@ -60,10 +68,16 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
         estimate, and no recovery (NaN).
     """
     windows = DEFAULT_WINDOWS if windows is None else windows
-    delayed, ideal_events, _ = simulate_case(case, num_frames)
+    delayed, ideal_events, seq = simulate_case(case, num_frames, frame_interval_us=frame_gap * case.exposure_us)
     frames, ideal_frames = delayed.split(), ideal_events.split()
+
+    def pairs(which: str) -> list:
+        if not pair_weights or num_frames < 2:
+            return []
+        return seq.pairs(which, after_us=case.after_us).split()
+
     rows = []
-    kept, estimates = _estimates(frames, case.threshold, windows)
+    kept, estimates = _estimates(frames, case.threshold, windows, pairs("delayed"), pair_weights, ramp_us)
     for n, i in enumerate(kept):
         frame = frames[i]
         true = float(frame.meta["true_latency"].mean())
@@ -76,7 +90,7 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
                              psnr_uncorrected=psnr_uncorrected, psnr_corrected=psnr,
                              recovery=recovery(psnr, psnr_uncorrected, psnr_ideal, NO_GAP_DB)))
     if ideal:
-        kept, estimates = _estimates(ideal_frames, case.threshold, windows)
+        kept, estimates = _estimates(ideal_frames, case.threshold, windows, pairs("ideal"), pair_weights, ramp_us)
         for n, i in enumerate(kept):
             psnr_ideal = edi_psnr(ideal_frames[i], case.threshold)
             for name, values in estimates.items():
@@ -89,9 +103,11 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
     return rows
 
 
-def _estimates(frames: list, threshold: float, windows: dict[str, tuple]) -> tuple[list[int], dict[str, torch.Tensor]]:
-    """The default corrector's latency of each frame with events (their indices), alone (``"per frame"``) and fused
-    over each window."""
+def _estimates(frames: list, threshold: float, windows: dict[str, tuple], pairs: Sequence = (),
+               pair_weights: Sequence[float] = (), ramp_us: float = DEFAULT_RAMP_US
+               ) -> tuple[list[int], dict[str, torch.Tensor]]:
+    """The default corrector's latency of each frame with events (their indices), alone (``"per frame"``), fused
+    over each window, and fused ±2 with the pairs' agreement at each weight (``pairs[i]``: frames i and i + 1)."""
     from evlatcorr.correction import EventLatencyCorrector
 
     corrector = EventLatencyCorrector(threshold=threshold)
@@ -112,6 +128,14 @@ def _estimates(frames: list, threshold: float, windows: dict[str, tuple]) -> tup
     estimates = {"per frame": latency}
     for name, window in windows.items():
         estimates[name] = fuse_latencies(latency, candidates, log_p, *window)
+    if pair_weights:
+        # weight 1, then scaled: the log-odds are proportional to the weight
+        unit = [pair_log_odds(pairs[i], threshold, cand, ramp_us, 1.0) if i < len(pairs) else None
+                for i, cand in zip(kept, candidates)]
+        for w in pair_weights:
+            estimates[f"fused ±2, pairs {w:g}"] = fuse_latencies(latency, candidates, log_p, 2, 2,
+                                                                 pair_log_odds=[None if u is None else w * u
+                                                                                for u in unit])
     return kept, estimates
 
 

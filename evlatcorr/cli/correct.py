@@ -9,6 +9,7 @@ import itertools
 import math
 import tempfile
 import time
+import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -74,7 +75,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
             raise ValueError(f"{args.input}: no frames")
         latencies = frames.latencies
         if args.mode == "constant" and args.fuse_frames > 0:
-            latencies = _fused(frames.rows, latencies, frames.evidence, args.fuse_frames, args.search_us)
+            pairs = None if args.no_pairs else _pair_evidence(args, frames, theta, device)
+            latencies = _fused(frames.rows, latencies, frames.evidence, args.fuse_frames, args.search_us, pairs)
         _write_corrected(args, rec, h5, frames, latencies, maps)
         write_csv(report_tmp, frames.rows)
     rows = frames.rows
@@ -201,15 +203,49 @@ def _write_corrected(args: argparse.Namespace, rec, h5, frames: _CorrectedFrames
     h5["frames/estimated_latency"] = np.array([float(m.mean()) for m in latencies], dtype=np.float32)
 
 
+def _pair_evidence(args: argparse.Namespace, frames: _CorrectedFrames, theta, device: torch.device
+                   ) -> list[torch.Tensor | None] | None:
+    """Each frame's agreement with the next one over its candidates (:func:`evlatcorr.pair_evidence.pair_log_odds`),
+    from a second pass over the recording whose windows reach the next exposure; None for a frame without one (the
+    last of a segment, a frame without the reader's evidence, a pair that tells nothing). None in all where θ is
+    estimated per frame: no pair of consecutive frames has events. The rows get ``pair_latency_us``: where the
+    pair agrees best, empty where it tells nothing."""
+    from evlatcorr.pair_evidence import pair_log_odds
+    from evlatcorr.restore import pair_frames, pair_reach_us
+
+    for row in frames.rows:
+        row["pair_latency_us"] = ""
+    if isinstance(theta, str):  # no pair of consecutive frames with events (threshold_of_recording said so)
+        return None
+    rec = open_input(args)
+    rec.after_us = pair_reach_us(rec, args.search_us[1] if args.search_us else None)
+    out: list[torch.Tensor | None] = []
+    with warnings.catch_warnings():  # what the reader says of a frame's window, the main pass has said
+        warnings.simplefilter("ignore")
+        for k, (_, pair) in enumerate(progress(pair_frames(rec), len(rec), "pairs")):
+            candidates, log_p = frames.evidence[k] if k < len(frames.evidence) else (None, None)
+            if pair is None or log_p is None or frames.rows[k]["skipped"]:
+                out.append(None)
+                continue
+            log_odds = pair_log_odds(pair.to(device), float(theta), candidates)
+            out.append(log_odds)
+            if log_odds is not None:
+                frames.rows[k]["pair_latency_us"] = f"{float(candidates[log_odds.argmax()]):.1f}"
+    return out + [None] * (len(frames.rows) - len(out))
+
+
 def _fused(rows: list[dict], latencies: list[torch.Tensor], evidence: list[tuple[Any, Any]],
-           frames: int, search_range: list[float] | None = None) -> list[torch.Tensor]:
-    """Each frame's constant latency fused with its neighbours' evidence (:func:`evlatcorr.temporal.fuse_latencies`),
-    kept inside ``search_range`` where one is given; a frame without events keeps the fused latency before it. The
-    rows get ``frame_latency_us`` (the frame's own estimate) and the fused ``latency_us``."""
+           frames: int, search_range: list[float] | None = None,
+           pairs: list[torch.Tensor | None] | None = None) -> list[torch.Tensor]:
+    """Each frame's constant latency fused with its neighbours' evidence (:func:`evlatcorr.temporal.fuse_latencies`)
+    and, where given, each frame's agreement with the next (``pairs``), kept inside ``search_range`` where one is
+    given; a frame without events keeps the fused latency before it. The rows get ``frame_latency_us`` (the frame's
+    own estimate) and the fused ``latency_us``."""
     from evlatcorr.temporal import fuse_latencies
 
     own = torch.tensor([float(m.mean()) for m in latencies], dtype=torch.float64)
-    fused = fuse_latencies(own, [c for c, _ in evidence], [p for _, p in evidence], frames, frames)
+    fused = fuse_latencies(own, [c for c, _ in evidence], [p for _, p in evidence], frames, frames,
+                           pair_log_odds=pairs)
     if search_range:
         fused = fused.clamp(*search_range)
     for k, row in enumerate(rows):

@@ -28,7 +28,8 @@ def latency_figure(rows: Sequence[Mapping[str, Any]], title: str = ""):
     Args:
         rows: the commands' per-frame CSV rows (:func:`evlatcorr.cli.common.latency_row`; strings or numbers):
             ``exposure_start_us``, ``exposure_end_us``, ``latency_us`` (the latency written), and where present
-            ``frame_latency_us`` (each frame's own estimate, where the written one is fused), ``latency_min_us`` /
+            ``frame_latency_us`` (each frame's own estimate, where the written one is fused), ``pair_latency_us``
+            (where the frame and the next agree best, when their agreement was fused too), ``latency_min_us`` /
             ``latency_max_us`` (a map's range), ``spread_us``, ``source``, ``skipped`` and ``events_in_window``.
             Rows without a latency (a frame not corrected) are left out.
         title: the figure's title (e.g. the recording's name).
@@ -73,6 +74,10 @@ def latency_figure(rows: Sequence[Mapping[str, Any]], title: str = ""):
     if fused:
         top.plot(time_s, [v / 1e3 for v in own], "o", color="C1", markerfacecolor="none", label="each frame alone",
                  **style)
+    pairs = [(t, v) for t, v in zip(time_s, _column(rows, "pair_latency_us")) if math.isfinite(v)]
+    if pairs:
+        top.plot([t for t, _ in pairs], [v / 1e3 for _, v in pairs], "x", color="C2",
+                 label="agreement with the next frame", **style)
     top.plot(time_s, [v / 1e3 for v in written], "-o", color="C0",
              label="written (fused with nearby frames)" if fused else "written", **style)
     for kind, (marker, colour, label) in _MARKED.items():
@@ -82,7 +87,8 @@ def latency_figure(rows: Sequence[Mapping[str, Any]], title: str = ""):
             top.plot([t for t, _ in picked], [v / 1e3 for _, v in picked], marker, color=colour, markersize=7,
                      linestyle="none", label=f"{label}: {len(picked)}")
     top.set_ylabel("latency (ms)")
-    top.set_ylim(bottom=min(0.0, min(written) / 1e3, *(v / 1e3 for v in own if math.isfinite(v))))
+    top.set_ylim(bottom=min(0.0, min(written) / 1e3, *(v / 1e3 for v in own if math.isfinite(v)),
+                            *(v / 1e3 for _, v in pairs)))
     top.grid(alpha=0.3)
     top.legend(fontsize=8, loc="best")
     median = sorted(written)[len(written) // 2] / 1e3

@@ -76,6 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--curve", type=Path, help="trained latency curve checkpoint (mode spatial)")
     _fuse_frames_option(c, "constant mode", "N frames either side too (a recording's latency changes slowly",
                         "the report")
+    c.add_argument("--no-pairs", action="store_true",
+                   help="fuse the reader's evidence alone: without each pair of consecutive frames' agreement (with "
+                        "--fuse-frames in constant mode; the report's pair_latency_us is where a pair agrees best)")
     _common_options(c)
 
     d = sub.add_parser("deblur", help="deblur every frame with EDI or a network; PNGs, a side-by-side GIF, a CSV",

@@ -1,0 +1,180 @@
+"""Two consecutive frames' agreement as evidence of a recording's latency, with each event the end of a ramp.
+
+Each blurry frame and the events give the latent image at any time (EDI); between two exposures both frames give
+it, and at the right latency they agree (:mod:`evlatcorr.consistency`). With step EDI the latency at which they agree
+best lies a millisecond or so after the true one: a step holds a pixel's level until its event, while the scene
+crossed the threshold gradually, so both frames' latents lag the scene and reading the events later makes up for it.
+Here each event is the end of a ramp from the pixel's previous event, at most ``max_spread_us`` long
+(:func:`evlatcorr.integral.cumulative_event_grid`'s ``"linear"`` integral; an event after a long quiet is an edge's
+first crossing), and the lag goes (``docs/estimator.md``, "two frames' consistency with each event a ramp").
+
+:func:`pair_log_odds` turns a pair's disagreement over the candidate latencies into log-odds that
+:func:`evlatcorr.temporal.fuse_latencies` adds to the first frame's reader evidence (``pair_log_odds=``): a recording
+gets two cues that share nothing but EDI.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from evlatcorr.checks import check_threshold, resolve_memory_budget
+from evlatcorr.events import Events
+from evlatcorr.frames import EventFrames
+from evlatcorr.integral import cumulative_event_grid, grid_bytes_per_point
+
+__all__ = ["DEFAULT_RAMP_US", "DEFAULT_PAIR_WEIGHT", "pair_disagreement_curve", "pair_log_odds"]
+
+#: the ramps' longest, µs: on the accuracy suite's tuning pairs 5 ms took the lag off (ideal events' median
+#: estimate 0 µs, median signed error −63 / −6 µs on dev / dev_wide); 3 ms was still late where pixels fire slowly
+DEFAULT_RAMP_US = 5000.0
+#: log-odds per unit of log disagreement (:func:`pair_log_odds`): on the tuning cases' 6-frame sequences fused ±2
+#: (``benchmarks/sequence_accuracy.py --pair-weights 3 10 30 100``) 10 took the constant-latency median error from
+#: 546 / 341 to 395 / 269 µs (dev / dev_wide) and the ideal events' from 700 / 686 µs to 0; 30 and 100 were closer on
+#: constant latency and cost the per-pixel delay cases of dev_wide 0.3-0.4 dB (docs/estimator.md)
+DEFAULT_PAIR_WEIGHT = 10.0
+_FLOOR = 0.02  # log(I + c), as evlatcorr.consistency: the dark pixels' noise does not dominate
+_GRID_US = 125.0  # the integral's finest grid spacing, µs
+
+
+def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Tensor,
+                            max_spread_us: float = DEFAULT_RAMP_US, grid_us: float = _GRID_US) -> Tensor:
+    """For each candidate latency, the mean over pixels of ``|log(I_1(t) + c) − log(I_2(t) + c)|`` (c = 0.02):
+    the two frames' EDI latents at ``t``, the middle of the gap between their exposures, from the events read that
+    late, each event a ramp of at most ``max_spread_us`` (0: a step).
+
+    The sensor is read in bands of rows whose grid fits a quarter of the memory budget
+    (:data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`): a DAVIS346 pair 40 ms apart spans about 600 grid points.
+
+    Args:
+        pair: one pair (``B = 1``): ``blurry``, ``blurry_next``, both exposures and the events over both.
+        threshold: contrast threshold θ.
+        candidates: :math:`(K,)` latencies, µs, increasing.
+        max_spread_us: the ramps' longest, µs; 0 for step EDI.
+        grid_us: the integral's grid spacing, µs (times are read at the nearest grid point).
+
+    Returns:
+        :math:`(K,)` float64.
+
+    Raises:
+        ValueError: for a batch that is not one pair, a bad threshold, ramp, grid or candidates.
+
+    Example:
+        >>> from evlatcorr.simulate import simulate
+        >>> pair = simulate("camera", num_frames=2, height=24, width=32, latency_us=3000.0, seed=0).pairs()
+        >>> curve = pair_disagreement_curve(pair, 0.2, torch.tensor([0.0, 3000.0]), 3000.0)
+        >>> bool(curve[1] < curve[0])
+        True
+    """
+    if pair.batch_size != 1 or pair.blurry_next is None:
+        raise ValueError("pair_disagreement_curve reads one pair of frames (B = 1, with blurry_next)")
+    if not (isinstance(threshold, (int, float)) and math.isfinite(threshold) and threshold > 0):
+        raise ValueError(f"threshold must be a positive number, got {threshold}")
+    if not (math.isfinite(max_spread_us) and max_spread_us >= 0):
+        raise ValueError(f"max_spread_us must be 0 or more, got {max_spread_us}")
+    if not (math.isfinite(grid_us) and grid_us > 0):
+        raise ValueError(f"grid_us must be positive, got {grid_us}")
+    check_candidates(candidates)
+    s1, e1 = float(pair.exposure_start[0]), float(pair.exposure_end[0])
+    s2, e2 = float(pair.exposure_start_next[0]), float(pair.exposure_end_next[0])
+    integral = "linear" if max_spread_us > 0 else "step"
+    # events read l late: their integral at t is the stamped events' at t + l, so one grid serves every candidate;
+    # each exposure's mean of exp(θ C) is a difference of prefix sums (trapezoids between grid points), and times are
+    # taken at the nearest grid point
+    start = s1 - grid_us
+    bins = int(math.ceil((e2 + max(float(candidates.max()), 0.0) - start) / grid_us)) + 2
+    latency = candidates.detach().to("cpu", torch.float64)
+
+    def index(t: float) -> Tensor:  # (K,) grid points of t + each candidate
+        return ((t + latency - start) / grid_us).round().long().clamp(0, bins)
+
+    middle, windows = index((e1 + s2) / 2), ((index(s1), index(e1)), (index(s2), index(e2)))
+    zero = round(((e1 + s2) / 2 - start) / grid_us)
+    h, w = pair.sensor_size
+    per_row = (bins + 1) * w * (grid_bytes_per_point(integral, torch.float64) + 16)  # the grid, its exp and sums
+    band = max(1, min(h, resolve_memory_budget() // 4 // per_row))
+    spread = {"max_spread_us": max_spread_us} if max_spread_us > 0 else {}
+    events, total = pair.events, torch.zeros(len(latency), dtype=torch.float64)
+    first, second = pair.blurry[0].double().mean(0), pair.blurry_next[0].double().mean(0)
+    for top in range(0, h, band):  # bands of rows, not pixels: a few per pair at most
+        rows = min(band, h - top)
+        inside = (events.y >= top) & (events.y < top + rows)
+        part = Events.from_canonical(events.x[inside], events.y[inside] - top, events.t[inside], events.p[inside],
+                                     events.batch[inside], (rows, w), 1)
+        grid = cumulative_event_grid(part, start, grid_us, bins, integral, torch.float64, **spread)[0]
+        weights = torch.exp(threshold * (grid - grid[zero]))  # levels about the middle of the gap: no overflow
+        sums = weights.cumsum(0)
+        del grid
+        logs = []
+        at_middle = weights[middle.to(weights.device)]
+        for blurry, (a, b) in ((first, windows[0]), (second, windows[1])):
+            a, b = a.to(weights.device), b.to(weights.device)
+            inside_sum = sums[b] - sums[a] + weights[a]
+            mean = (inside_sum - (weights[a] + weights[b]) / 2) / (b - a).clamp_min(1)[:, None, None]
+            latent = blurry[top:top + rows].to(weights.device) * at_middle / mean
+            logs.append(torch.log(latent.clamp_min(0) + _FLOOR))
+        total += (logs[0] - logs[1]).abs().sum((1, 2)).cpu()
+    return total / (h * w)
+
+
+def check_candidates(candidates: Tensor) -> None:
+    """Refuse candidates that are not a non-empty, increasing 1-D tensor of finite latencies."""
+    if candidates.dim() != 1 or len(candidates) == 0 or not bool(torch.isfinite(candidates).all()):
+        raise ValueError(f"candidates must be a non-empty 1-D tensor of finite latencies (us), got shape "
+                         f"{tuple(candidates.shape)}")
+    if len(candidates) > 1 and not bool((candidates.diff() > 0).all()):
+        raise ValueError("candidates must be increasing")
+
+
+def pair_log_odds(pair: EventFrames, threshold: float, candidates: Tensor, max_spread_us: float = DEFAULT_RAMP_US,
+                  weight: float = DEFAULT_PAIR_WEIGHT) -> Tensor | None:
+    """A pair's evidence of its latency over the first frame's candidates: ``−weight · log(d(l) / min d)``, where
+    ``d`` is :func:`pair_disagreement_curve`.
+
+    A pixel's disagreement taken as Laplace noise of one scale, the pair's log-likelihood at ``l`` is ``−P log d(l)``
+    for ``P`` independent pixels; neighbouring pixels are not independent, and ``weight`` stands for how many count
+    (:data:`DEFAULT_PAIR_WEIGHT`). Only candidates whose windows end before the pair's last event are read; the others
+    get the median of the read ones (no evidence either way, as :func:`~evlatcorr.temporal.fuse_latencies` fills a
+    frame's unscored candidates).
+
+    Args:
+        pair: one pair (``B = 1``, with ``blurry_next``) whose events reach past the second exposure.
+        threshold: contrast threshold θ.
+        candidates: :math:`(K,)` the first frame's candidate latencies, µs, increasing.
+        max_spread_us: the ramps' longest, µs.
+        weight: log-odds per unit of log disagreement, positive.
+
+    Returns:
+        :math:`(K,)` float64 log-odds (their maximum 0), or None where the pair tells nothing: fewer than three
+        candidates can be read, or the disagreement is lowest at the last two of them (no minimum before the events
+        run out: latency does not change the frames' latents, or the events stop too early).
+
+    Example:
+        >>> from evlatcorr.simulate import simulate
+        >>> pair = simulate("camera", num_frames=2, height=24, width=32, latency_us=3000.0, seed=0).pairs()
+        >>> log_odds = pair_log_odds(pair, 0.2, torch.arange(0.0, 6001.0, 500.0))
+        >>> int(log_odds.argmax()) * 500
+        3000
+    """
+    if not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight > 0):
+        raise ValueError(f"weight must be a positive number, got {weight!r}")
+    if pair.batch_size != 1 or pair.blurry_next is None:
+        raise ValueError("pair_log_odds reads one pair of frames (B = 1, with blurry_next)")
+    threshold = float(check_threshold(threshold, 1)[0])
+    check_candidates(candidates)
+    candidates = candidates.detach().to("cpu", torch.float64)
+    if len(pair.events) == 0:
+        return None
+    reach = float(pair.events.t.max() - pair.exposure_end_next[0])  # a window never runs past the last event
+    readable = candidates <= reach
+    if int(readable.sum()) < 3:
+        return None
+    curve = pair_disagreement_curve(pair, threshold, candidates[readable], max_spread_us)
+    if int(curve.argmin()) >= len(curve) - 2 or not bool(torch.isfinite(curve).all()):
+        return None
+    read = -weight * torch.log(curve / curve.min())
+    out = torch.full_like(candidates, float(read.median()))
+    out[readable] = read
+    return out
