@@ -199,6 +199,19 @@ def test_interpolate(simulated, tmp_path, model):
                     blurry=False)
 
 
+def test_interpolate_adds_each_pairs_agreement_unless_told_not_to(simulated, tmp_path):
+    args = ("--model", "edi", "--num", "1", "--num-bins", "100", "--correct")
+    latencies = {}
+    for name, extra in (("paired", ()), ("alone", ("--no-pairs",))):
+        r = run("interpolate", str(simulated), str(tmp_path / name), *args, *extra, cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+        rows = list(csv.DictReader(open(tmp_path / name / "frames.csv")))
+        latencies[name] = [float(row["latency_us"]) for row in rows if row["latency_us"]]
+    # the one pair: its first frame takes the two frames' agreement too, about the injected 3000 us
+    assert latencies["paired"] != latencies["alone"]
+    assert all(abs(v - 3000.0) < 1500.0 for v in latencies["paired"]), latencies
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not (DAVIS / "cradle_lowlight.aedat4").is_file(), reason="shared DAVIS346 data absent")
 @pytest.mark.parametrize("model", ["edi", "efnet", "gem", "refid"])

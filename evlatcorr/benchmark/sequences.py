@@ -53,9 +53,10 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
             after, no_latency_mass)``; default :data:`DEFAULT_WINDOWS`.
         ideal: also estimate the same sequence's ideal events (no latency: what a recording in bright light gives),
             as rows of model :data:`IDEAL`.
-        pair_weights: for each weight ``w``, also ``"fused ±2, pairs w"``: the ``fused ±2`` window with each pair of
-            consecutive frames' agreement (:func:`evlatcorr.pair_evidence.pair_log_odds` at weight ``w``, ramps up to
-            ``ramp_us``) added to the first frame's evidence.
+        pair_weights: for each weight ``w``, also ``"fused ±2, pairs w"`` and ``"fused, past 2 (stream), pairs w"``:
+            2 frames either side or before with each pair of consecutive frames' agreement
+            (:func:`evlatcorr.pair_evidence.pair_log_odds` at weight ``w``, ramps up to ``ramp_us``) added to the
+            first frame's evidence.
         frame_gap: time from one exposure's start to the next, in exposure times (1: back to back; a camera's
             frames have a gap).
 
@@ -133,9 +134,12 @@ def _estimates(frames: list, threshold: float, windows: dict[str, tuple], pairs:
         unit = [pair_log_odds(pairs[i], threshold, cand, ramp_us, 1.0) if i < len(pairs) else None
                 for i, cand in zip(kept, candidates)]
         for w in pair_weights:
+            weighted = [None if u is None else w * u for u in unit]
             estimates[f"fused ±2, pairs {w:g}"] = fuse_latencies(latency, candidates, log_p, 2, 2,
-                                                                 pair_log_odds=[None if u is None else w * u
-                                                                                for u in unit])
+                                                                 pair_log_odds=weighted)
+            # a stream of pairs (interpolation, REFID): each frame has its own pair, not the later frames'
+            estimates[f"fused, past 2 (stream), pairs {w:g}"] = fuse_latencies(latency, candidates, log_p, 2, 0,
+                                                                               pair_log_odds=weighted)
     return kept, estimates
 
 
