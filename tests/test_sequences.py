@@ -102,7 +102,7 @@ def test_the_script_writes_its_table(tmp_path):
     summary = json.loads((tmp_path / "results.json").read_text())["summary"]
     assert summary["per frame"]["constant"]["frames"] == 2  # the one constant case among the first six, 2 frames
     rows = (tmp_path / "results.csv").read_text().splitlines()
-    assert rows[0].startswith("case,model,frame,estimate") and len(rows) == 1 + 2 * 6 * 2  # and the ideal events'
+    assert rows[0].startswith("case,model,frame,estimate") and len(rows) == 1 + 2 * 7 * 2  # and the ideal events'
     assert "| fused ±2 | 2 |" in table  # the ideal events' table
     # each fused estimate against the frames' own, case by case (one case here: no interval)
     paired = json.loads((tmp_path / "results.json").read_text())["fused_against_own"]
@@ -126,8 +126,8 @@ def test_each_pairs_agreement_is_fused_at_each_weight_with_a_cameras_gap():
     case = next(c for c in make_cases("dev", size=(48, 64)) if c.latency_model == "constant")
     rows = evaluate_sequence(case, num_frames=3, windows={}, ideal=False, pair_weights=(10.0, 30.0), frame_gap=1.25)
     assert [r["estimate"] for r in rows if r["frame"] == 0] == [
-        "per frame", "fused ±2, pairs 10", "fused, past 2 (stream), pairs 10", "fused ±2, pairs 30",
-        "fused, past 2 (stream), pairs 30"]
+        "per frame", "fused ±2, pairs 10", "per frame, with its pair 10", "fused, past 2 (stream), pairs 10",
+        "fused ±2, pairs 30", "per frame, with its pair 30", "fused, past 2 (stream), pairs 30"]
     fused = [r["latency_us"] for r in rows if r["estimate"] == "fused ±2, pairs 10"]
     assert len(fused) == 3 and all(abs(v - case.latency_us) < 1000.0 for v in fused), (case.latency_us, fused)
     assert [r["latency_us"] for r in rows if r["estimate"] == "fused ±2, pairs 30"] != fused

@@ -53,8 +53,9 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
             after, no_latency_mass)``; default :data:`DEFAULT_WINDOWS`.
         ideal: also estimate the same sequence's ideal events (no latency: what a recording in bright light gives),
             as rows of model :data:`IDEAL`.
-        pair_weights: for each weight ``w``, also ``"fused ±2, pairs w"`` and ``"fused, past 2 (stream), pairs w"``:
-            2 frames either side or before with each pair of consecutive frames' agreement
+        pair_weights: for each weight ``w``, also ``"fused ±2, pairs w"``, ``"per frame, with its pair w"`` and
+            ``"fused, past 2 (stream), pairs w"``: 2 frames either side, none or 2 before, with each pair of consecutive
+            frames' agreement
             (:func:`evlatcorr.pair_evidence.pair_log_odds` at weight ``w``, ramps up to ``ramp_us``) added to the
             first frame's evidence.
         frame_gap: time from one exposure's start to the next, in exposure times (1: back to back; a camera's
@@ -137,6 +138,9 @@ def _estimates(frames: list, threshold: float, windows: dict[str, tuple], pairs:
             weighted = [None if u is None else w * u for u in unit]
             estimates[f"fused ±2, pairs {w:g}"] = fuse_latencies(latency, candidates, log_p, 2, 2,
                                                                  pair_log_odds=weighted)
+            # one pair alone (a pair-reading network behind the corrector): the frame's evidence and its pair's
+            estimates[f"per frame, with its pair {w:g}"] = fuse_latencies(latency, candidates, log_p, 0, 0,
+                                                                          pair_log_odds=weighted)
             # a stream of pairs (interpolation, REFID): each frame has its own pair, not the later frames'
             estimates[f"fused, past 2 (stream), pairs {w:g}"] = fuse_latencies(latency, candidates, log_p, 2, 0,
                                                                                pair_log_odds=weighted)
