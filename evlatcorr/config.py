@@ -18,10 +18,12 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 from evlatcorr.checks import check_search_range
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
+from evlatcorr.pair_evidence import DEFAULT_PAIR_WEIGHT
 
 __all__ = ["SearchConfig", "SCORES", "DEFAULT_SCORE", "SPARSITY_SCORES"]
 
@@ -65,6 +67,10 @@ class SearchConfig:
         tiles: ``score="learned"``: also read the curves of the frame's 3x3 tiles and weigh them against the
             whole frame's with the tile reader (:mod:`evlatcorr.tile_reader`); False: the whole frame's alone.
             Frames under 18x18 pixels are read whole (:func:`~evlatcorr.image_tiles.tiles_fit`).
+        pair_weight: ``score="learned"``, frames given with the next one (``blurry_next`` set, their events past
+            the next exposure, as interpolation and REFID read them): the weight of the two frames' agreement
+            (:func:`~evlatcorr.pair_evidence.pair_log_odds`) added to the frame's reader evidence; 0: the frame
+            alone.
     """
 
     num_bins: int = 500
@@ -77,6 +83,7 @@ class SearchConfig:
     sigma_us: float = DEFAULT_SIGMA_US
     ghost_confidence: float | None = DEFAULT_GHOST_CONFIDENCE
     tiles: bool = True
+    pair_weight: float = DEFAULT_PAIR_WEIGHT
 
     def __post_init__(self) -> None:
         if not isinstance(self.num_bins, int) or self.num_bins < 2:
@@ -89,6 +96,9 @@ class SearchConfig:
             raise ValueError(f"sigma_us must be positive, got {self.sigma_us}")
         if self.ghost_confidence is not None and not 0 <= self.ghost_confidence <= 1:
             raise ValueError(f"ghost_confidence must be in [0, 1] or None, got {self.ghost_confidence}")
+        if isinstance(self.pair_weight, bool) or not (isinstance(self.pair_weight, (int, float))
+                                                      and math.isfinite(self.pair_weight) and self.pair_weight >= 0):
+            raise ValueError(f"pair_weight must be a finite number >= 0, got {self.pair_weight!r}")
         # frozen: normalise the range through object.__setattr__ (floats, or None)
         object.__setattr__(self, "search_range", check_search_range(self.search_range))
 

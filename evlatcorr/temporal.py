@@ -23,6 +23,7 @@ from torch import Tensor, nn
 from evlatcorr.checks import NoEventsError
 from evlatcorr.curve_reader import CENTRE_HALF_WIDTH, probability_centre
 from evlatcorr.frames import EventFrames
+from evlatcorr.pair_evidence import DEFAULT_PAIR_WEIGHT
 from evlatcorr.sample_warnings import SampleWarning, user_stacklevel
 
 __all__ = ["fuse_latencies", "frame_evidence", "no_latency_share", "LatencyHistory", "StreamingLatencyCorrector",
@@ -233,19 +234,25 @@ class LatencyHistory:
             raise ValueError(f"before must be a whole number >= 0, got {before!r}")
         self.before = before
         self._rows: list[tuple[float, Tensor, Tensor | None, Tensor | None]] = []
-        self._pairs: list[tuple[EventFrames | None, float]] = []  # the next frames' pairs, in order
+        self._pairs: list[tuple[EventFrames | None, float, float]] = []  # the next frames' pairs, θ and weight
 
     def reset(self) -> None:
         """Forget the earlier frames: the next frame starts a new recording."""
         self._rows.clear()
         self._pairs.clear()
 
-    def expect_pairs(self, pairs: Sequence[EventFrames | None], threshold: float) -> None:
+    def expect_pairs(self, pairs: Sequence[EventFrames | None], threshold: float | Sequence[float] = 0.2,
+                     weight: float = DEFAULT_PAIR_WEIGHT) -> None:
         """The next frames' pairs, in the order :meth:`fuse` takes them: each frame with the next one
         (``blurry_next`` set, events up to past the next exposure; None for a frame without one), whose agreement
-        (:func:`evlatcorr.pair_evidence.pair_log_odds` at θ ``threshold``) :meth:`fuse` adds to the frame's evidence.
-        Replaces any not taken yet; ``[]`` clears them."""
-        self._pairs = [(pair, float(threshold)) for pair in pairs]
+        (:func:`evlatcorr.pair_evidence.pair_log_odds` at θ ``threshold``, one or one per pair, and ``weight``)
+        :meth:`fuse` adds to the frame's evidence. Replaces any not taken yet; ``[]`` clears them.
+
+        The constant corrector calls it for a batch of pairs (``SearchConfig.pair_weight``)."""
+        thresholds = [threshold] * len(pairs) if isinstance(threshold, (int, float)) else list(threshold)
+        if len(thresholds) != len(pairs):
+            raise ValueError(f"expect_pairs takes one threshold or one per pair ({len(pairs)}), got {len(thresholds)}")
+        self._pairs = [(pair, float(theta), float(weight)) for pair, theta in zip(pairs, thresholds)]
 
     def fuse(self, latency: float, candidates: Tensor, log_probability: Tensor | None) -> float:
         """Take the next frame: its own latency (µs), its candidates :math:`(K,)` and the reader's log-probability of
@@ -256,8 +263,10 @@ class LatencyHistory:
         if row is not None and bool(torch.isnan(row).any()):
             row = None
         candidates = candidates.detach().to("cpu", torch.float64)
-        pair, theta = self._pairs.pop(0) if self._pairs else (None, 0.0)
-        agreement = None if pair is None or row is None else pair_log_odds(pair, theta, candidates)
+        pair, theta, weight = self._pairs.pop(0) if self._pairs else (None, 0.0, 0.0)
+        agreement = None if pair is None or row is None else pair_log_odds(pair, theta, candidates, weight=weight)
+        if self.before == 0 and agreement is None:  # nothing to fuse the frame's own estimate with
+            return float(latency)
         self._rows.append((float(latency), candidates, row, agreement))
         del self._rows[:-(self.before + 1)]
         return float(fuse_latencies(torch.tensor([r[0] for r in self._rows], dtype=torch.float64),
@@ -291,14 +300,13 @@ class StreamingLatencyCorrector(nn.Module):
             each call's sample numbers and every frame named (for a caller that groups them itself, as the command
             line does, or streams run in several threads: the renaming catches warnings with
             :class:`warnings.catch_warnings`, which holds for the whole process).
-        pairs: where the frames passed are pairs (``blurry_next`` set, as interpolation and REFID read them, with
-            events past the next exposure) and θ is a number, add each pair's agreement
-            (:func:`evlatcorr.pair_evidence.pair_log_odds`) to its first frame's evidence, as ``evlatcorr correct``
-            does (about 0.7 s per DAVIS346 pair on 2 CPU cores); False: the reader's evidence alone.
         **settings: the arguments of the :class:`~evlatcorr.correction.EventLatencyCorrector` to make when no
             ``corrector`` is given, e.g. ``threshold=0.5, search_range=(0.0, 5000.0)``.
 
-    ``meta["frame_latency_us"]`` :math:`(B,)` holds each frame's own estimate.
+    ``meta["frame_latency_us"]`` :math:`(B,)` holds each frame's own estimate. Frames passed as pairs
+    (``blurry_next`` set, events past the next exposure, as interpolation and REFID read them) add each pair's
+    agreement to its first frame's evidence (:func:`evlatcorr.pair_evidence.pair_log_odds`, as ``evlatcorr correct``
+    does; about 0.7 s per DAVIS346 pair on 2 CPU cores), unless the corrector's ``pair_weight`` is 0.
 
     Raises:
         ValueError: for a spatial corrector, a negative ``before``, or both a ``corrector`` and ``settings``.
@@ -313,7 +321,7 @@ class StreamingLatencyCorrector(nn.Module):
     """
 
     def __init__(self, corrector: nn.Module | None = None, before: int = DEFAULT_FUSED_FRAMES, *,
-                 name_frames: bool = True, pairs: bool = True, **settings: Any) -> None:
+                 name_frames: bool = True, **settings: Any) -> None:
         super().__init__()
         from evlatcorr.correction import EventLatencyCorrector
 
@@ -325,7 +333,7 @@ class StreamingLatencyCorrector(nn.Module):
         self.corrector, self.history = corrector, LatencyHistory(before)
         self._last_start: float | None = None  # the exposure start of the last frame passed, µs
         self._last_latency: Tensor | None = None  # the last corrected frame's latency, µs (read only when needed)
-        self.name_frames, self.pairs = name_frames, pairs
+        self.name_frames = name_frames
         self._frames_seen = 0  # frames passed since the start or the last reset
         self._last_kinds: frozenset[str] = frozenset()  # the kinds of warning that named the last frame
 
@@ -342,7 +350,7 @@ class StreamingLatencyCorrector(nn.Module):
         self._last_kinds = frozenset()
 
     def extra_repr(self) -> str:
-        return f"before={self.before}, pairs={self.pairs}"
+        return f"before={self.before}"
 
     @torch.compiler.disable  # as the corrector's: a compiled pipeline compiles the network behind it
     def forward(self, frames: EventFrames) -> EventFrames:
@@ -398,13 +406,7 @@ class StreamingLatencyCorrector(nn.Module):
     def _correct(self, frames: EventFrames) -> EventFrames:
         # the search fuses each frame's evidence with the history's as it decides, and reads the frame's latent image
         # at the fused latency from the frame's own integral
-        theta = self.corrector.threshold
-        if self.pairs and frames.blurry_next is not None and isinstance(theta, (int, float)):
-            self.history.expect_pairs(frames.split() if frames.batch_size > 1 else [frames], theta)
-        try:
-            out = self.corrector(frames.replace(meta={**frames.meta, "latency_history": self.history}))
-        finally:
-            self.history.expect_pairs([], 1.0)
+        out = self.corrector(frames.replace(meta={**frames.meta, "latency_history": self.history}))
         self._last_latency = out.latency[-1, 0, 0, 0]
         meta = {key: value for key, value in out.meta.items() if key != "latency_history"}
         return out.replace(meta=meta)

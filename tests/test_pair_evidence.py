@@ -100,3 +100,15 @@ def test_fuse_latencies_adds_a_pairs_log_odds_to_its_first_frame():
         fuse_latencies(own, CANDIDATES, log_p, pair_log_odds=[pair[:-1], None, None])
     with pytest.raises(ValueError, match="pair_log_odds must be finite"):
         fuse_latencies(own, CANDIDATES, log_p, pair_log_odds=[torch.full_like(pair, -math.inf), None, None])
+
+
+@pytest.mark.parametrize("bad", [-1.0, math.nan, math.inf, True, "10"])
+def test_the_search_settings_refuse_a_bad_pair_weight(bad):
+    from evlatcorr.config import SearchConfig
+    from evlatcorr.correction import EventLatencyCorrector
+
+    assert SearchConfig().pair_weight == 10.0 and SearchConfig(pair_weight=0).pair_weight == 0
+    with pytest.raises(ValueError, match="pair_weight must be a finite number >= 0"):
+        SearchConfig(pair_weight=bad)
+    with pytest.raises(ValueError, match="pair_weight must be a finite number >= 0"):
+        EventLatencyCorrector(pair_weight=bad)

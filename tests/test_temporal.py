@@ -181,9 +181,10 @@ def test_the_streaming_corrector_fuses_each_frame_with_the_frames_before_it():
     torch.testing.assert_close(stream(frames.split()[2]).latency, alone.latency[2:3], rtol=0, atol=1e-3)
 
 
-def test_a_stream_of_pairs_adds_each_pairs_agreement_to_its_first_frame():
-    # interpolation and REFID pass each frame with the next one: the stream fuses their agreement too, as
-    # fuse_latencies(pair_log_odds=) does for a whole recording, one call at a time or in one batch
+def test_pairs_add_their_agreement_to_their_first_frame_alone_and_in_a_stream():
+    # interpolation and REFID pass each frame with the next one: the corrector fuses the frame's evidence with their
+    # agreement, and a stream with the earlier frames' too, as fuse_latencies(pair_log_odds=) does for a recording,
+    # one call at a time or in one batch
     from evlatcorr.correction import EventLatencyCorrector
     from evlatcorr.pair_evidence import pair_log_odds
     from evlatcorr.simulate import simulate
@@ -191,28 +192,27 @@ def test_a_stream_of_pairs_adds_each_pairs_agreement_to_its_first_frame():
 
     seq = simulate("camera", num_frames=4, height=32, width=48, latency_us=3000.0, seed=0)
     pairs = seq.pairs("delayed", after_us=20000.0)  # 3 pairs, events past the next exposure and the search
-    corrector = EventLatencyCorrector(threshold=0.2)
-    alone = corrector(pairs)
-    own, candidates, log_p = _evidence(alone)
+    each_alone = EventLatencyCorrector(threshold=0.2, pair_weight=0.0)
+    own, candidates, log_p = _evidence(each_alone(pairs))
     agreement = [pair_log_odds(pair, 0.2, candidates[k]) for k, pair in enumerate(pairs.split())]
     assert all(a is not None for a in agreement)
+    with_pair = EventLatencyCorrector(threshold=0.2)(pairs)
+    torch.testing.assert_close(with_pair.latency.flatten(1).mean(1).double(),
+                               fuse_latencies(own, candidates, log_p, 0, 0, pair_log_odds=agreement), rtol=0,
+                               atol=1e-3)
+    torch.testing.assert_close(with_pair.meta["frame_latency_us"], own, rtol=0, atol=1e-3)
+    assert with_pair.blurry_next is not None  # the pair goes on to the model behind
     want = fuse_latencies(own, candidates, log_p, before=2, after=0, pair_log_odds=agreement)
     without = fuse_latencies(own, candidates, log_p, before=2, after=0)
     assert not torch.allclose(want, without, rtol=0, atol=1.0)
-    stream = StreamingLatencyCorrector(corrector)
+    stream = StreamingLatencyCorrector(threshold=0.2)
     streamed = torch.stack([stream(pair).latency.mean().double() for pair in pairs.split()])
     torch.testing.assert_close(streamed, want, rtol=0, atol=1e-3)
     stream.reset()
     torch.testing.assert_close(stream(pairs).latency.flatten(1).mean(1).double(), want, rtol=0, atol=1e-3)
-    plain = StreamingLatencyCorrector(corrector, pairs=False)
-    assert "pairs=False" in repr(plain)
+    plain = StreamingLatencyCorrector(each_alone)
     torch.testing.assert_close(torch.stack([plain(pair).latency.mean().double() for pair in pairs.split()]),
                                without, rtol=0, atol=1e-3)
-    # single frames (no next frame) have no pairs to read
-    single = StreamingLatencyCorrector(corrector)
-    torch.testing.assert_close(torch.stack([single(f).latency.mean().double() for f in seq.frames().split()]),
-                               fuse_latencies(*_evidence(corrector(seq.frames())), before=2, after=0),
-                               rtol=0, atol=1e-3)
 
 
 def _evidence(out):

@@ -172,8 +172,11 @@ def build_corrector(args: argparse.Namespace, mode: str = "constant", curve: Pat
             raise ValueError(f"--curve {curve}: no such file")
         kwargs["curve"] = str(curve)
     search = tuple(args.search_us) if args.search_us else None
+    if getattr(args, "no_pairs", False):  # frames read with the next one: each alone
+        kwargs["pair_weight"] = 0.0
     if curve is None:
-        return EventLatencyCorrector(mode=mode, threshold=theta, num_bins=args.num_bins, search_range=search)
+        return EventLatencyCorrector(mode=mode, threshold=theta, num_bins=args.num_bins, search_range=search,
+                                     **kwargs)
     try:
         return EventLatencyCorrector(mode=mode, threshold=theta, num_bins=args.num_bins, search_range=search,
                                      **kwargs)

@@ -151,8 +151,8 @@ def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> Non
     _fuse_frames_option(p, "--correct constant", "the N frames before it too (frame by frame, as a stream",
                         "frames.csv")
     p.add_argument("--no-pairs", action="store_true",
-                   help="where the model reads each frame with the next (interpolate, REFID): fuse the reader's "
-                        "evidence alone, without each pair's agreement (with --correct constant and --fuse-frames)")
+                   help="where the model reads each frame with the next (interpolate, REFID): each frame's "
+                        "latency from the reader's evidence alone, without the pair's agreement (--correct constant)")
     _common_options(p)
 
 

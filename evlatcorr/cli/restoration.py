@@ -147,8 +147,7 @@ def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _
     if args.correct == "constant" and args.fuse_frames > 0:  # frame by frame: each takes the frames before it
         from evlatcorr.temporal import StreamingLatencyCorrector
 
-        # named by frame here; a pair's agreement where the model reads pairs (the stream is given them)
-        corrector = StreamingLatencyCorrector(corrector, args.fuse_frames, name_frames=False, pairs=not args.no_pairs)
+        corrector = StreamingLatencyCorrector(corrector, args.fuse_frames, name_frames=False)  # named by frame here
     pairs = needs_pairs(args.model, task)
     if pairs:  # the first frame's events must reach the next exposure's end, plus the latency searched
         rec.after_us = pair_reach_us(rec, high)
