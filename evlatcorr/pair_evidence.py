@@ -46,14 +46,15 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
     late, each event a ramp of at most ``max_spread_us`` (0: a step).
 
     The sensor is read in bands of rows whose grid fits a quarter of the memory budget
-    (:data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`): a DAVIS346 pair 40 ms apart spans about 600 grid points.
+    (:data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`): a DAVIS346 pair 40 ms apart spans about 600 grid points. Where
+    not even one row's would fit (exposures of seconds), the grid is coarser.
 
     Args:
         pair: one pair (``B = 1``): ``blurry``, ``blurry_next``, both exposures and the events over both.
         threshold: contrast threshold θ.
         candidates: :math:`(K,)` latencies, µs, increasing.
         max_spread_us: the ramps' longest, µs; 0 for step EDI.
-        grid_us: the integral's grid spacing, µs (times are read at the nearest grid point).
+        grid_us: the integral's finest grid spacing, µs (times are read at the nearest grid point).
 
     Returns:
         :math:`(K,)` float64.
@@ -83,8 +84,12 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
     # events read l late: their integral at t is the stamped events' at t + l, so one grid serves every candidate;
     # each exposure's mean of exp(θ C) is a difference of prefix sums (trapezoids between grid points), and times are
     # taken at the nearest grid point
+    h, w = pair.sensor_size
+    per_point = w * (grid_bytes_per_point(integral, torch.float64) + 16)  # a row's grid, its exp and sums
+    span = e2 + max(float(candidates.max()), 0.0) - s1
+    grid_us = max(grid_us, span / max(resolve_memory_budget() // 4 // per_point - 4, 1))  # a row fits, at least
     start = s1 - grid_us
-    bins = int(math.ceil((e2 + max(float(candidates.max()), 0.0) - start) / grid_us)) + 2
+    bins = int(math.ceil((span + grid_us) / grid_us)) + 2
     latency = candidates.detach().to("cpu", torch.float64)
 
     def index(t: float) -> Tensor:  # (K,) grid points of t + each candidate
@@ -92,9 +97,7 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
 
     middle, windows = index((e1 + s2) / 2), ((index(s1), index(e1)), (index(s2), index(e2)))
     zero = round(((e1 + s2) / 2 - start) / grid_us)
-    h, w = pair.sensor_size
-    per_row = (bins + 1) * w * (grid_bytes_per_point(integral, torch.float64) + 16)  # the grid, its exp and sums
-    band = max(1, min(h, resolve_memory_budget() // 4 // per_row))
+    band = max(1, min(h, resolve_memory_budget() // 4 // ((bins + 1) * per_point)))
     spread = {"max_spread_us": max_spread_us} if max_spread_us > 0 else {}
     events, total = pair.events, torch.zeros(len(latency), dtype=torch.float64)
     first, second = pair.blurry[0].double().mean(0), pair.blurry_next[0].double().mean(0)

@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from evlatcorr.checks import NoEventsError
 from evlatcorr.curve_reader import CENTRE_HALF_WIDTH, probability_centre
 from evlatcorr.frames import EventFrames
-from evlatcorr.pair_evidence import DEFAULT_PAIR_WEIGHT
+from evlatcorr.pair_evidence import DEFAULT_PAIR_WEIGHT, pair_log_odds
 from evlatcorr.sample_warnings import SampleWarning, user_stacklevel
 
 __all__ = ["fuse_latencies", "frame_evidence", "no_latency_share", "LatencyHistory", "StreamingLatencyCorrector",
@@ -257,8 +257,6 @@ class LatencyHistory:
     def fuse(self, latency: float, candidates: Tensor, log_probability: Tensor | None) -> float:
         """Take the next frame: its own latency (µs), its candidates :math:`(K,)` and the reader's log-probability of
         each :math:`(K,)` (None, or a NaN row, where it has none); returns its fused latency, µs."""
-        from evlatcorr.pair_evidence import pair_log_odds
-
         row = None if log_probability is None else log_probability.detach().to("cpu", torch.float64)
         if row is not None and bool(torch.isnan(row).any()):
             row = None

@@ -58,7 +58,10 @@ def test_a_small_memory_budget_reads_the_sensor_in_bands_with_the_same_curve(mon
     for rows in (1, 7):  # the grid's 428 points, 32 pixels a row, 56 bytes a point: a quarter of the budget
         monkeypatch.setattr(checks, "MEMORY_BUDGET_BYTES", 4 * rows * 428 * 32 * 56)
         torch.testing.assert_close(pair_disagreement_curve(pair, 0.2, CANDIDATES), whole, rtol=1e-12, atol=1e-12)
-    monkeypatch.setattr(checks, "MEMORY_BUDGET_BYTES", 1)  # not even a row: refused, as every grid over the budget
+    monkeypatch.setattr(checks, "MEMORY_BUDGET_BYTES", 4 * 200 * 32 * 56)  # a row of 428 points does not fit: coarser
+    coarse = pair_disagreement_curve(pair, 0.2, CANDIDATES)
+    assert not torch.allclose(coarse, whole) and abs(float(CANDIDATES[coarse.argmin()]) - 3000.0) <= 500.0
+    monkeypatch.setattr(checks, "MEMORY_BUDGET_BYTES", 1)  # not even the coarsest grid: refused, as every grid over
     with pytest.raises(ValueError, match="over the memory budget"):
         pair_disagreement_curve(pair, 0.2, CANDIDATES)
     assert abs(float(CANDIDATES[whole.argmin()]) - 3000.0) <= 250.0
