@@ -38,7 +38,8 @@ recording (``--recording``, default the shared low-light DAVIS346 one), each aft
 CPU's compiled passes (the default, ``evlatcorr.compiled``) and, in the same run, in eager PyTorch
 (``evlatcorr.compiled.ENABLED = False``), with the median over frames of each frame's median of ``--repeats`` calls,
 and checks that both give the same latencies (a GPU, which has no compiled passes, is timed once); then the time to
-estimate the recording's θ (what ``threshold="auto"`` and the command line do once per recording), once.
+estimate the recording's θ (what ``threshold="auto"`` and the command line do once per recording), once, and each
+pair of consecutive frames' agreement (``pair_log_odds``, what ``evlatcorr correct`` and the corrector given pairs add).
 
 ``--part stages`` says where the default search's time goes; on a CPU it does so twice in one run, with the compiled
 passes (the default) and in eager PyTorch (``eager/compiled: <x>``).
@@ -383,11 +384,38 @@ def bench_recording(device: torch.device, args: argparse.Namespace) -> None:
               f"{statistics.median(eager) / statistics.median(compiled):.2f}x")
         gap = max(abs(a - b) for a, b in zip(compiled_latency, eager_latency))
         print(f"[{device.type}] largest latency difference between the two: {gap:.4f} us")
+    bench_pairs(device, args, corrector, frames, statistics.median(compiled))
     from evlatcorr.restore import recording_threshold
 
     seconds, theta = timed(lambda: recording_threshold(open_recording(args.recording), device=device), device)
     print(f"[{device.type}] the recording's θ (threshold='auto': two-frame consistency of its first frames): "
           f"{theta if theta is None else round(theta, 3)}, found in {seconds:.1f} s (once)")
+
+
+def bench_pairs(device: torch.device, args: argparse.Namespace, corrector, frames: list, per_frame: float) -> None:
+    """Each pair of the recording's consecutive frames' agreement over the first frame's candidates
+    (:func:`evlatcorr.pair_evidence.pair_log_odds`: what ``evlatcorr correct`` adds per frame, and the corrector per
+    pair given pairs), the median over pairs of each pair's median of ``--repeats`` calls, against ``per_frame``
+    (the corrector's time per frame, s)."""
+    from evlatcorr.io import open_recording
+    from evlatcorr.pair_evidence import pair_log_odds
+    from evlatcorr.restore import pair_frames, pair_reach_us
+
+    rec = open_recording(args.recording)
+    rec.after_us = pair_reach_us(rec)
+    pairs = [pair.to(device) for _, pair in pair_frames(rec) if pair is not None and len(pair.events)]
+    if not pairs:
+        print(f"[{device.type}] {args.recording.name}: no pair of consecutive frames")
+        return
+    candidates = corrector(frames[0]).meta["etf_curve"][0][0]  # the frames' candidates (one exposure time)
+    times = []
+    for pair in pairs:
+        pair_log_odds(pair, args.threshold, candidates)  # untimed first call
+        times.append(statistics.median(timed(lambda p=pair: pair_log_odds(p, args.threshold, candidates), device)[0]
+                                       for _ in range(args.repeats)))
+    each = statistics.median(times)
+    print(f"[{device.type}] each pair's agreement (pair_log_odds, {len(pairs)} pairs, {len(candidates)} candidates): "
+          f"{each * 1000:.1f} ms per pair, {each / per_frame:.2f}x the corrector's time per frame")
 
 
 def bench_batch(device: torch.device, args: argparse.Namespace) -> None:

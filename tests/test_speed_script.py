@@ -101,7 +101,9 @@ def test_recording_times_the_corrector_compiled_and_eager(tmp_path):
     assert lines[0].startswith("[cpu] rec.h5: 2 frames 32x24")
     assert "compiled passes: " in lines[1] and "ms per frame; eager: " in lines[1] and "speed-up" in lines[1]
     assert float(lines[2].split(": ")[1].split(" us")[0]) < 1.0  # the same latencies either way
-    assert lines[3].startswith("[cpu] the recording's θ") and lines[3].endswith(" s (once)")
+    assert lines[3].startswith("[cpu] each pair's agreement (pair_log_odds, 1 pairs, 101 candidates): ")
+    assert float(lines[3].split("candidates): ")[1].split(" ms per pair")[0]) > 0 and "x the corrector's" in lines[3]
+    assert lines[4].startswith("[cpu] the recording's θ") and lines[4].endswith(" s (once)")
     missing = run_script("speed.py", *args, str(tmp_path / "no.h5"), cwd=ROOT)
     assert missing.returncode == 1 and "no such file" in missing.stderr
 
