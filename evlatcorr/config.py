@@ -23,9 +23,8 @@ from dataclasses import dataclass
 
 from evlatcorr.checks import check_search_range
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
-from evlatcorr.pair_evidence import DEFAULT_PAIR_WEIGHT
 
-__all__ = ["SearchConfig", "SCORES", "DEFAULT_SCORE", "SPARSITY_SCORES"]
+__all__ = ["SearchConfig", "SCORES", "DEFAULT_SCORE", "SPARSITY_SCORES", "DEFAULT_PAIR_WEIGHT"]
 
 # sparsity scores: (c of log(I / mean(I) + c), image scales). c sets how much relatively dark pixels count:
 # 0.25 found the constant latency best on the dev split, 1.0 follows the bright pixels when latency varies
@@ -40,6 +39,12 @@ DEFAULT_SCORE = "learned"
 # 0.01 it also fixed the dev split's constant-latency misses, but under the photoreceptor model it lowered the
 # share of the best shift's gain on 5 of the 8 frames it decided in a 99-case draw of the dev distribution
 DEFAULT_GHOST_CONFIDENCE = 0.0
+# a pair's agreement: log-odds per unit of log disagreement (evlatcorr.pair_evidence.pair_log_odds). On the tuning
+# cases' 6-frame sequences fused ±2 (benchmarks/sequence_accuracy.py --pair-weights 3 10 30 100) 10 took the
+# constant-latency median error from 546 / 341 to 395 / 269 µs (dev / dev_wide) and the ideal events' from 700 / 686
+# µs to 0; 30 and 100 were closer on constant latency and cost dev_wide's per-pixel delay cases 0.3-0.4 dB
+# (docs/estimator.md)
+DEFAULT_PAIR_WEIGHT = 10.0
 
 
 @dataclass(frozen=True)

@@ -10,11 +10,10 @@ from torch import Tensor, nn
 
 from evlatcorr.blank_frames import BLANK_KINDS, blank_pairs
 from evlatcorr.checks import FEW_EVENTS, check_batch_vector, check_has_events, check_search_size, check_threshold
-from evlatcorr.config import DEFAULT_GHOST_CONFIDENCE, DEFAULT_SCORE, SearchConfig
+from evlatcorr.config import DEFAULT_GHOST_CONFIDENCE, DEFAULT_PAIR_WEIGHT, DEFAULT_SCORE, SearchConfig
 from evlatcorr.edi import _edi_deblur, _estimate_threshold
 from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 from evlatcorr.frames import EventFrames
-from evlatcorr.pair_evidence import DEFAULT_PAIR_WEIGHT
 from evlatcorr.sample_warnings import SampleWarning, user_stacklevel
 from evlatcorr.search import ConstantSearchResult, _search_constant_latency, fallback_warning, few_events_warning
 from evlatcorr.search_candidates import HOT_PIXEL_LOG_RANGE

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from evlatcorr.checks import check_threshold, resolve_memory_budget
+from evlatcorr.config import DEFAULT_PAIR_WEIGHT
 from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
 from evlatcorr.integral import cumulative_event_grid, grid_bytes_per_point
@@ -30,11 +31,6 @@ __all__ = ["DEFAULT_RAMP_US", "DEFAULT_PAIR_WEIGHT", "pair_disagreement_curve", 
 #: the ramps' longest, µs: on the accuracy suite's tuning pairs 5 ms took the lag off (ideal events' median
 #: estimate 0 µs, median signed error −63 / −6 µs on dev / dev_wide); 3 ms was still late where pixels fire slowly
 DEFAULT_RAMP_US = 5000.0
-#: log-odds per unit of log disagreement (:func:`pair_log_odds`): on the tuning cases' 6-frame sequences fused ±2
-#: (``benchmarks/sequence_accuracy.py --pair-weights 3 10 30 100``) 10 took the constant-latency median error from
-#: 546 / 341 to 395 / 269 µs (dev / dev_wide) and the ideal events' from 700 / 686 µs to 0; 30 and 100 were closer on
-#: constant latency and cost the per-pixel delay cases of dev_wide 0.3-0.4 dB (docs/estimator.md)
-DEFAULT_PAIR_WEIGHT = 10.0
 _FLOOR = 0.02  # log(I + c), as evlatcorr.consistency: the dark pixels' noise does not dominate
 _GRID_US = 125.0  # the integral's finest grid spacing, µs
 

@@ -21,9 +21,10 @@ import torch
 from torch import Tensor, nn
 
 from evlatcorr.checks import NoEventsError
+from evlatcorr.config import DEFAULT_PAIR_WEIGHT
 from evlatcorr.curve_reader import CENTRE_HALF_WIDTH, probability_centre
 from evlatcorr.frames import EventFrames
-from evlatcorr.pair_evidence import DEFAULT_PAIR_WEIGHT, pair_log_odds
+from evlatcorr.pair_evidence import pair_log_odds
 from evlatcorr.sample_warnings import SampleWarning, user_stacklevel
 
 __all__ = ["fuse_latencies", "frame_evidence", "no_latency_share", "LatencyHistory", "StreamingLatencyCorrector",
