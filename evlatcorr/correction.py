@@ -332,8 +332,8 @@ class EventLatencyCorrector(nn.Module):
             the tile reader (default; :mod:`evlatcorr.tile_reader`); False: the whole frame's curves alone.
         pair_weight: frames given with the next one (``blurry_next`` set, their events past the next exposure, as
             interpolation and REFID read them): each pair's agreement (:func:`evlatcorr.pair_evidence.pair_log_odds`)
-            joins its first frame's reader evidence with this weight (default 10); 0: each frame alone. About 0.7 s
-            per DAVIS346 pair on 2 CPU cores.
+            joins its first frame's reader evidence with this weight (default 10); 0: each frame alone. About 0.6 s
+            per DAVIS346 pair on 2 CPU cores, 5-7x the search of a frame (``benchmarks/speed.py --part recording``).
         curve: ``mode="spatial"`` only: a trained latency curve checkpoint.
         frame_gamma: the frames are encoded as ``linear ** (1 / frame_gamma)`` (2.2: encoded for display, as PNG
             exports and video frames are; default 1: linear, as a DAVIS's frames). The estimate reads them made

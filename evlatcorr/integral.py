@@ -289,8 +289,9 @@ def _linear_grid(events: Events, g0: Tensor, width_us: Tensor, num_bins: int,
     s1 = cumsum_(s1.view(b, m1, height, width), 1)
     s2 = cumsum_(s2.view(b, m1, height, width), 1)
     grid = torch.arange(m1, dtype=torch.float64, device=device).view(1, m1, 1, 1)
-    cum = grid * s1 - s2
-    return cum - cum[:, :1]
+    cum = s1.mul_(grid).sub_(s2)  # in place: no third grid-sized array
+    del s2
+    return cum.sub_(cum[:, :1].clone())
 
 
 def _row_strips(events: Events, rows: int) -> list[tuple[int, int, Events]]:

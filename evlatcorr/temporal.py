@@ -305,7 +305,8 @@ class StreamingLatencyCorrector(nn.Module):
     ``meta["frame_latency_us"]`` :math:`(B,)` holds each frame's own estimate. Frames passed as pairs
     (``blurry_next`` set, events past the next exposure, as interpolation and REFID read them) add each pair's
     agreement to its first frame's evidence (:func:`evlatcorr.pair_evidence.pair_log_odds`, as ``evlatcorr correct``
-    does; about 0.7 s per DAVIS346 pair on 2 CPU cores), unless the corrector's ``pair_weight`` is 0.
+    does; about 0.6 s per DAVIS346 pair on 2 CPU cores, 5-7x the corrector per frame), unless the corrector's
+    ``pair_weight`` is 0.
 
     Raises:
         ValueError: for a spatial corrector, a negative ``before``, or both a ``corrector`` and ``settings``.
