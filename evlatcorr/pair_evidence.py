@@ -6,11 +6,13 @@ best lies a millisecond or so after the true one: a step holds a pixel's level u
 crossed the threshold gradually, so both frames' latents lag the scene and reading the events later makes up for it.
 Here each event is the end of a ramp from the pixel's previous event, at most ``max_spread_us`` long
 (:func:`evlatcorr.integral.cumulative_event_grid`'s ``"linear"`` integral; an event after a long quiet is an edge's
-first crossing), and the lag goes (``docs/estimator.md``, "two frames' consistency with each event a ramp").
+first crossing), and the lag goes (``docs/estimator.md``, "two frames' agreement with each event a ramp").
 
-:func:`pair_log_odds` turns a pair's disagreement over the candidate latencies into log-odds that
-:func:`evlatcorr.temporal.fuse_latencies` adds to the first frame's reader evidence (``pair_log_odds=``): a recording
-gets two cues that share nothing but EDI.
+:func:`pair_log_odds` turns a pair's disagreement over the candidate latencies into log-odds that are added to the
+first frame's reader evidence: by :func:`evlatcorr.temporal.fuse_latencies` (``pair_log_odds=``, as ``evlatcorr
+correct`` fuses a recording), and by the constant corrector itself where it is given pairs (``pair_weight``, as
+interpolation and REFID read them; in a :class:`~evlatcorr.temporal.StreamingLatencyCorrector` with the earlier
+frames' evidence too). Two cues that share nothing but EDI.
 """
 
 from __future__ import annotations
