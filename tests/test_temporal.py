@@ -376,6 +376,21 @@ def test_latency_history_fuses_each_frame_with_the_ones_before_it():
     assert without == pytest.approx(float(want[1])) and abs(without - 1234.0) > 50.0
 
 
+def test_latency_history_takes_one_threshold_or_one_per_pair_and_reset_forgets_the_pairs():
+    from evlatcorr.temporal import LatencyHistory
+
+    history = LatencyHistory(before=1)
+    with pytest.raises(ValueError, match="one threshold or one per pair \\(2\\), got 3"):
+        history.expect_pairs([None, None], [0.2, 0.3, 0.4])
+    history.expect_pairs([None, None], 0.2)
+    history.reset()
+    cand = torch.arange(0.0, 2000.0, 100.0)
+    sure = torch.log_softmax(-((cand - 400.0) / 150.0) ** 2, 0)
+    assert round(history.fuse(400.0, cand, sure)) == 400  # no pair left to read
+    # before=0 and no pair: nothing to fuse, the frame's own estimate as it is
+    assert LatencyHistory(before=0).fuse(1234.5, cand, sure) == 1234.5
+
+
 @pytest.mark.parametrize("before", [-1, 1.5, True])
 def test_latency_history_refuses_a_bad_window(before):
     from evlatcorr.temporal import LatencyHistory
