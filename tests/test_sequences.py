@@ -84,6 +84,11 @@ def test_fused_against_own_averages_frames_within_a_case_first():
 def test_a_sequence_needs_at_least_one_frame():
     with pytest.raises(ValueError, match="num_frames"):
         evaluate_sequence(make_cases("dev")[0], num_frames=0)
+    for kwargs, match in ((dict(pair_weights=(10.0, 0.0)), "pair_weights must be positive"),
+                          (dict(frame_gap=0.5), "frame_gap must be 1 or more"),
+                          (dict(ramp_us=-1.0), "ramp_us must be 0 or more")):
+        with pytest.raises(ValueError, match=match):
+            evaluate_sequence(make_cases("dev")[0], **kwargs)
 
 
 def test_the_script_writes_its_table(tmp_path):

@@ -145,23 +145,24 @@ def recording_rows(path: str, threshold: float, ramps_us: Sequence[float] = RAMP
                    grid_us: float = 250.0) -> list[dict[str, Any]]:
     """Each pair of consecutive frames of a recording (no truth): the default corrector's latency for the first frame
     alone and the consistency's for each ramp length (candidates every 250 µs up to the exposure time; the grid
-    250 µs apart, so that a DAVIS346 pair fits the default memory budget).
+    250 µs apart, as docs/estimator.md's figures were measured).
 
     Returns:
         a row per pair: ``frame``, ``reader_us`` and per ramp ``R`` ``delayed_R_us``.
     """
     from evlatcorr.correction import EventLatencyCorrector
     from evlatcorr.io import open_recording
-    from evlatcorr.restore import has_events, pair_frames
+    from evlatcorr.restore import has_events, pair_frames, pair_reach_us
 
     if not (math.isfinite(threshold) and threshold > 0):
         raise ValueError(f"threshold must be a positive number, got {threshold}")
-    exposure = max(end - start for start, end, _ in open_recording(path).frame_times())
-    reach = 3 * exposure  # the next exposure after a gap of up to an exposure, and the candidates' exposure time
+    rec = open_recording(path)
+    exposure = max(end - start for start, end, _ in rec.frame_times())
+    rec.after_us = pair_reach_us(rec)  # to the next exposure's end, and the candidates past it
     corrector = EventLatencyCorrector(threshold=threshold)
     candidates = torch.arange(0.0, exposure + 1.0, CANDIDATE_STEP_US, dtype=torch.float64)
     rows = []
-    for frame, pair in pair_frames(open_recording(path, after_us=reach)):
+    for frame, pair in pair_frames(rec):
         if pair is None or not has_events(frame):
             continue
         with warnings.catch_warnings():  # what the corrector warns of is in its own command's report

@@ -54,12 +54,12 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
         ideal: also estimate the same sequence's ideal events (no latency: what a recording in bright light gives),
             as rows of model :data:`IDEAL`.
         pair_weights: for each weight ``w``, also ``"fused ±2, pairs w"``, ``"per frame, with its pair w"`` and
-            ``"fused, past 2 (stream), pairs w"``: 2 frames either side, none or 2 before, with each pair of consecutive
-            frames' agreement
-            (:func:`evlatcorr.pair_evidence.pair_log_odds` at weight ``w``, ramps up to ``ramp_us``) added to the
-            first frame's evidence.
+            ``"fused, past 2 (stream), pairs w"``: 2 frames either side, none or 2 before, with each pair of
+            consecutive frames' agreement (:func:`evlatcorr.pair_evidence.pair_log_odds` at weight ``w``, ramps up to
+            ``ramp_us``) added to the first frame's evidence.
         frame_gap: time from one exposure's start to the next, in exposure times (1: back to back; a camera's
             frames have a gap).
+        ramp_us: the pairs' ramps' longest, µs (0: steps).
 
     Returns:
         one row per frame and estimate (``"per frame"`` and each window): ``case``, ``model``, ``frame``,
@@ -68,8 +68,17 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
         with no events gets no rows. The ideal events' rows have a true latency of 0, ``psnr_uncorrected`` equal to
         ``psnr_ideal`` (their EDI PSNR as they are), ``psnr_corrected`` that of the events corrected by the
         estimate, and no recovery (NaN).
+
+    Raises:
+        ValueError: for a weight that is not positive, a gap under 1 or a negative ramp.
     """
     windows = DEFAULT_WINDOWS if windows is None else windows
+    if any(not (isinstance(w, (int, float)) and math.isfinite(w) and w > 0) for w in pair_weights):
+        raise ValueError(f"pair_weights must be positive numbers, got {list(pair_weights)}")
+    if not (math.isfinite(frame_gap) and frame_gap >= 1):
+        raise ValueError(f"frame_gap must be 1 or more (frames do not overlap), got {frame_gap}")
+    if not (math.isfinite(ramp_us) and ramp_us >= 0):
+        raise ValueError(f"ramp_us must be 0 or more, got {ramp_us}")
     delayed, ideal_events, seq = simulate_case(case, num_frames, frame_interval_us=frame_gap * case.exposure_us)
     frames, ideal_frames = delayed.split(), ideal_events.split()
 
