@@ -48,7 +48,9 @@ def correct_constant_latency(
         history: the frames are the next of a stream, in order: each frame's latency is fused with the
             ``history.before`` frames before it (:class:`~evlatcorr.temporal.LatencyHistory`), and its events and
             latent image follow the fused latency; ``meta["frame_latency_us"]`` :math:`(B,)` keeps each frame's
-            own estimate.
+            own estimate and ``meta["pair_latency_us"]`` :math:`(B,)` where each frame's pair agreed best (NaN where
+            the frames came without the next one, or the pair told nothing; also for pairs without a history, with
+            ``pair_weight`` > 0).
         **settings: fields of :class:`~evlatcorr.config.SearchConfig` to change, e.g. ``num_bins=100``.
 
     Returns:
@@ -129,6 +131,8 @@ def correct_constant_latency(
     meta["events_in_window"] = counts
     if result.own_latency is not None:
         meta["frame_latency_us"] = result.own_latency
+    if result.pair_latency is not None:
+        meta["pair_latency_us"] = result.pair_latency
     return frames.with_outputs(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
 
 

@@ -102,6 +102,8 @@ class ConstantSearchResult:
             sample has one. :func:`evlatcorr.temporal.fuse_latencies` combines consecutive frames' rows.
         own_latency: :math:`(B,)` µs, where a :class:`~evlatcorr.temporal.LatencyHistory` fused ``latency`` with
             earlier frames': each frame's own estimate (None otherwise).
+        pair_latency: :math:`(B,)` µs, with ``own_latency``: where each frame's pair with the next frame agreed best
+            (NaN where it came without one, or the pair told nothing).
         outside_range: :math:`(B,)` µs, ``score="learned"`` with a ``search_range`` narrower than the candidates it
             reads: where the reader puts more than half its probability outside that range, its likeliest latency
             there (the estimate is held at the range's edge); NaN elsewhere.
@@ -125,6 +127,7 @@ class ConstantSearchResult:
     log_probability: Tensor | None = None
     own_latency: Tensor | None = None
     outside_range: Tensor | None = None
+    pair_latency: Tensor | None = None
 
 
 def default_search_range(exposure_time: Tensor) -> tuple[Tensor, Tensor]:
@@ -366,6 +369,8 @@ def _search_constant_latency(blurry: Tensor, events: Events, exposure_start: Ten
         own_latency=(None if history is None else
                      torch.tensor([r.own_latency for r in results], dtype=torch.float64, device=blurry.device)),
         outside_range=torch.tensor([r.outside_range_us for r in results], dtype=torch.float64, device=blurry.device),
+        pair_latency=(None if history is None else
+                      torch.tensor([r.pair_latency_us for r in results], dtype=torch.float64, device=blurry.device)),
     )
 
 
@@ -392,6 +397,7 @@ class _OneResult:
     spread_us: float = math.nan  # the learned reader's standard deviation, µs
     log_probability: Tensor | None = None  # (K,) the learned reader's, without the prior (−inf: not scored)
     own_latency: float | None = None  # the frame's own estimate, where a history fused ``latency`` with others'
+    pair_latency_us: float = math.nan  # where the frame's pair with the next frame agreed best (a history's)
     outside_range_us: float = math.nan  # the reader's likeliest latency where it lies outside the user's range
     # the latent's read at a latency, where it was left until the latency is final (a history to fuse with)
     read_latent: Callable[[float], Tensor | None] | None = None
@@ -403,6 +409,7 @@ def _fuse_with_history(result: _OneResult, history: LatencyHistory, span: _Windo
     result.own_latency = result.latency
     low, high = span.answer_range
     result.latency = min(max(history.fuse(result.latency, result.candidates, result.log_probability), low), high)
+    result.pair_latency_us = history.pair_latency_us
 
 
 @dataclass

@@ -236,6 +236,8 @@ class LatencyHistory:
         self.before = before
         self._rows: list[tuple[float, Tensor, Tensor | None, Tensor | None]] = []
         self._pairs: list[tuple[EventFrames | None, float, float]] = []  # the next frames' pairs, θ and weight
+        #: where the last frame's pair agreed best, µs (NaN where it had none or the pair told nothing)
+        self.pair_latency_us = math.nan
 
     def reset(self) -> None:
         """Forget the earlier frames: the next frame starts a new recording."""
@@ -264,6 +266,7 @@ class LatencyHistory:
         candidates = candidates.detach().to("cpu", torch.float64)
         pair, theta, weight = self._pairs.pop(0) if self._pairs else (None, 0.0, 0.0)
         agreement = None if pair is None or row is None else pair_log_odds(pair, theta, candidates, weight=weight)
+        self.pair_latency_us = math.nan if agreement is None else float(candidates[agreement.argmax()])
         if self.before == 0 and agreement is None:  # nothing to fuse the frame's own estimate with
             return float(latency)
         self._rows.append((float(latency), candidates, row, agreement))
@@ -431,7 +434,7 @@ class StreamingLatencyCorrector(nn.Module):
         meta = {**frame.meta, "latency_source": ["no events"],
                 "latency_fallback": torch.ones(1, dtype=torch.bool, device=frame.device),
                 "latency_confidence": torch.zeros(1, dtype=torch.float64, device=frame.device),
-                "latency_spread_us": nan, "frame_latency_us": nan.clone(),
+                "latency_spread_us": nan, "frame_latency_us": nan.clone(), "pair_latency_us": nan.clone(),
                 "events_in_window": torch.zeros(1, dtype=torch.int64)}
         shift = torch.full((1,), latency, dtype=torch.float64, device=frame.device)
         return frame.with_outputs(latency=torch.full((1, 1, height, width), latency, device=frame.device),

@@ -544,9 +544,11 @@ def test_deblur_and_interpolate_search_several_frames_per_call_as_frame_by_frame
     batched = list(csv.DictReader(open(tmp_path / "batched" / "frames.csv")))
     assert [r["frame"] for r in batched] == [r["frame"] for r in alone] == ["0", "1", "2", "3"]
     assert [r["skipped"] for r in batched] == [r["skipped"] for r in alone]
-    for key in ("latency_us", "frame_latency_us"):
+    keys = ("latency_us", "frame_latency_us") + (("pair_latency_us",) if command == "interpolate" else ())
+    for key in keys:
         np.testing.assert_allclose([float(r[key] or "nan") for r in batched], [float(r[key] or "nan") for r in alone],
                                    atol=0.2, equal_nan=True)
+    assert ("pair_latency_us" in alone[0]) == (command == "interpolate")  # single frames have no pair to read
     images = sorted(p.name for p in (tmp_path / "alone").glob("*.png"))
     assert images == sorted(p.name for p in (tmp_path / "batched").glob("*.png")) and images
     for name in images:

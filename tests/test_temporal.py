@@ -201,6 +201,8 @@ def test_pairs_add_their_agreement_to_their_first_frame_alone_and_in_a_stream():
                                fuse_latencies(own, candidates, log_p, 0, 0, pair_log_odds=agreement), rtol=0,
                                atol=1e-3)
     torch.testing.assert_close(with_pair.meta["frame_latency_us"], own, rtol=0, atol=1e-3)
+    agreed = torch.stack([candidates[k][a.argmax()] for k, a in enumerate(agreement)])  # where each pair agreed best
+    torch.testing.assert_close(with_pair.meta["pair_latency_us"], agreed, rtol=0, atol=0)
     assert with_pair.blurry_next is not None  # the pair goes on to the model behind
     want = fuse_latencies(own, candidates, log_p, before=2, after=0, pair_log_odds=agreement)
     without = fuse_latencies(own, candidates, log_p, before=2, after=0)
@@ -209,7 +211,11 @@ def test_pairs_add_their_agreement_to_their_first_frame_alone_and_in_a_stream():
     streamed = torch.stack([stream(pair).latency.mean().double() for pair in pairs.split()])
     torch.testing.assert_close(streamed, want, rtol=0, atol=1e-3)
     stream.reset()
-    torch.testing.assert_close(stream(pairs).latency.flatten(1).mean(1).double(), want, rtol=0, atol=1e-3)
+    together = stream(pairs)
+    torch.testing.assert_close(together.latency.flatten(1).mean(1).double(), want, rtol=0, atol=1e-3)
+    torch.testing.assert_close(together.meta["pair_latency_us"], agreed, rtol=0, atol=0)
+    assert bool(StreamingLatencyCorrector(threshold=0.2)(seq.frames("delayed").split()[0]).meta["pair_latency_us"]
+                .isnan().all())  # a single frame has no pair
     plain = StreamingLatencyCorrector(each_alone)
     torch.testing.assert_close(torch.stack([plain(pair).latency.mean().double() for pair in pairs.split()]),
                                without, rtol=0, atol=1e-3)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -68,8 +69,11 @@ def _restore(args: argparse.Namespace, task: str) -> int:
         with frame_warnings.naming([batch]):
             plain, corrected = _restored_outputs(run, frames, out)
         rows.append(latency_row(batch, out, run.theta, seconds + time.perf_counter() - t0, skipped))
-        if out is not None and "frame_latency_us" in out.meta:  # fused: the frame's own estimate too
-            rows[-1]["frame_latency_us"] = f"{float(out.meta['frame_latency_us'][0]):.1f}"
+        # fused: the frame's own estimate, and where the frame's pair with the next frame agreed best
+        for key in ("frame_latency_us", "pair_latency_us") if run.pairs else ("frame_latency_us",):
+            if out is not None and key in out.meta:
+                value = float(out.meta[key][0])
+                rows[-1][key] = "" if math.isnan(value) else f"{value:.1f}"
         _save_restored(tmp, task, args.model, batch.meta["frame"], *_as_in_the_file(run, frames.blurry[0], plain,
                                                                                  corrected), gif)
 
