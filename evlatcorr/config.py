@@ -22,9 +22,15 @@ import math
 from dataclasses import dataclass
 
 from evlatcorr.checks import check_search_range
-from evlatcorr.etf import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 
-__all__ = ["SearchConfig", "SCORES", "DEFAULT_SCORE", "SPARSITY_SCORES", "DEFAULT_PAIR_WEIGHT"]
+__all__ = ["SearchConfig", "SCORES", "DEFAULT_SCORE", "SPARSITY_SCORES", "DEFAULT_PAIR_WEIGHT", "DEFAULT_EPSILON",
+           "DEFAULT_WINDOW", "DEFAULT_SIGMA_US"]
+
+# the paper's ETF settings (evlatcorr.etf reads them from here: the search's settings live in this bottom layer):
+# edge thickness's gradient amplifier ε, local contrast's window (pixels), the temporal prior's width (µs)
+DEFAULT_EPSILON = 20.0
+DEFAULT_WINDOW = 7
+DEFAULT_SIGMA_US = 1000.0
 
 # sparsity scores: (c of log(I / mean(I) + c), image scales). c sets how much relatively dark pixels count:
 # 0.25 found the constant latency best on the dev split, 1.0 follows the bright pixels when latency varies

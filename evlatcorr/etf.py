@@ -27,6 +27,7 @@ import torch
 from torch import Tensor, nn
 
 from evlatcorr.checks import check_shape
+from evlatcorr.config import DEFAULT_EPSILON, DEFAULT_SIGMA_US, DEFAULT_WINDOW
 
 __all__ = [
     "edge_thickness",
@@ -41,9 +42,6 @@ __all__ = [
     "DEFAULT_SIGMA_US",
 ]
 
-DEFAULT_EPSILON = 20.0
-DEFAULT_WINDOW = 7
-DEFAULT_SIGMA_US = 1000.0
 _EPS = 1e-8
 
 
