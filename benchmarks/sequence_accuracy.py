@@ -45,7 +45,7 @@ from evlatcorr.benchmark.sequences import (  # noqa: E402
     fused_against_own,
     summarize_sequences,
 )
-from evlatcorr.pair_evidence import DEFAULT_PAIR_WEIGHT, DEFAULT_RAMP_US  # noqa: E402
+from evlatcorr.pair_evidence import DEFAULT_PAIR_WEIGHT, DEFAULT_RAMP_NEXT_FACTOR, DEFAULT_RAMP_US  # noqa: E402
 from evlatcorr.temporal import DEFAULT_NO_LATENCY_MASS  # noqa: E402
 
 MODELS = {"constant": "constant latency", "intensity": "photoreceptor low-pass", "intensity_delay": "per-pixel delay"}
@@ -108,6 +108,9 @@ def main(argv: list[str] | None = None) -> None:
                         f"(default: {DEFAULT_PAIR_WEIGHT:g}; none: without)")
     p.add_argument("--pair-ramp-us", type=float, default=DEFAULT_RAMP_US,
                    help=f"the pairs' ramps' longest, us (default: {DEFAULT_RAMP_US:g})")
+    p.add_argument("--pair-ramp-next", type=float, default=DEFAULT_RAMP_NEXT_FACTOR, metavar="FACTOR",
+                   help="the pairs' ramps' longest as a multiple of the interval to the pixel's next event (default: "
+                        f"{DEFAULT_RAMP_NEXT_FACTOR:g}; 0: no such limit)")
     p.add_argument("--frame-gap", type=float, default=1.0,
                    help="time from one exposure's start to the next, in exposure times (default: 1, back to back)")
     p.add_argument("--no-ideal", action="store_true",
@@ -124,6 +127,8 @@ def main(argv: list[str] | None = None) -> None:
         p.error(f"--frame-gap must be 1 or more (frames do not overlap), got {args.frame_gap}")
     if not (math.isfinite(args.pair_ramp_us) and args.pair_ramp_us >= 0):
         p.error(f"--pair-ramp-us must be 0 or more, got {args.pair_ramp_us}")
+    if not (math.isfinite(args.pair_ramp_next) and args.pair_ramp_next >= 0):
+        p.error(f"--pair-ramp-next must be 0 or more, got {args.pair_ramp_next}")
     if any(not 0 <= share < 1 for share in args.no_latency_mass):
         p.error(f"--no-latency-mass must be in [0, 1), got {args.no_latency_mass}")
     windows = dict(DEFAULT_WINDOWS) | {
@@ -137,7 +142,8 @@ def main(argv: list[str] | None = None) -> None:
     per_case, unsimulated = _setup.each_simulated(
         cases, lambda case: evaluate_sequence(case, args.frames, windows, ideal=not args.no_ideal,
                                               pair_weights=args.pair_weights, frame_gap=args.frame_gap,
-                                              ramp_us=args.pair_ramp_us), "sequences")
+                                              ramp_us=args.pair_ramp_us,
+                                              ramp_next_factor=args.pair_ramp_next or None), "sequences")
     rows = [row for case_rows in per_case for row in case_rows]
     seconds = time.perf_counter() - t0
     if not rows:

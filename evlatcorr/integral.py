@@ -20,6 +20,8 @@ between events and makes both integrals differentiable in ``l`` almost everywher
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -172,6 +174,7 @@ def cumulative_event_grid(
     dtype: torch.dtype = torch.float32,
     memory_budget: int | None = None,
     max_spread_us: float | None = None,
+    next_spread_factor: float | None = None,
 ) -> Tensor:
     """Cumulative polarity sum of every pixel at the boundaries of a regular time grid.
 
@@ -187,6 +190,10 @@ def cumulative_event_grid(
         max_spread_us: ``"linear"`` only: the longest interval an event is spread over, µs (None: back to the
             previous event at its pixel, however long ago). An event after a long quiet is where an edge's change
             first crossed the threshold, not the end of a change that lasted since the pixel's last event.
+        next_spread_factor: ``"linear"`` only: an event is also spread over no longer than this many times the
+            interval to its pixel's next event (None: no such limit). The first event of an edge's burst then
+            spreads over about the burst's own interval between events, not over ``max_spread_us``: the change that
+            led up to it took about as long as the ones after it.
 
     Returns:
         :math:`(B, M + 1, H, W)` with ``C[:, 0] = 0``: the polarity integrated from ``g_0`` to ``g_i``.
@@ -209,6 +216,9 @@ def cumulative_event_grid(
     if max_spread_us is not None and (integral != "linear" or not max_spread_us > 0):
         raise ValueError(f"max_spread_us is a positive interval of the 'linear' integral, got {max_spread_us!r} with "
                          f"integral={integral!r}")
+    if next_spread_factor is not None and (integral != "linear" or not next_spread_factor > 0):
+        raise ValueError(f"next_spread_factor is a positive factor of the 'linear' integral, got "
+                         f"{next_spread_factor!r} with integral={integral!r}")
     if num_bins < 1:
         raise ValueError(f"num_bins must be >= 1, got {num_bins}")
     b = events.batch_size
@@ -220,11 +230,12 @@ def cumulative_event_grid(
     check_memory(b * (num_bins + 1) * height * width * grid_bytes_per_point(integral, dtype),
                  f"the cumulative event grid ({b}, {num_bins + 1}, {height}, {width})",
                  "use fewer num_bins or a shorter time span (num_bins x bin_width)", memory_budget)
-    return _cumulative_event_grid(events, g0, width_us, num_bins, integral, dtype, max_spread_us)
+    return _cumulative_event_grid(events, g0, width_us, num_bins, integral, dtype, max_spread_us, next_spread_factor)
 
 
 def _cumulative_event_grid(events: Events, g0: Tensor, width_us: Tensor, num_bins: int, integral: str,
-                           dtype: torch.dtype, max_spread_us: float | None = None) -> Tensor:
+                           dtype: torch.dtype, max_spread_us: float | None = None,
+                           next_spread_factor: float | None = None) -> Tensor:
     """:func:`cumulative_event_grid` without its checks (nor the memory budget's: the caller sized the grid).
 
     ``g0`` and ``width_us`` (positive) are float64 :math:`(B,)` on the events' device.
@@ -238,11 +249,11 @@ def _cumulative_event_grid(events: Events, g0: Tensor, width_us: Tensor, num_bin
         del hist
         cumsum_(cum[:, 1:], 1)
         return cum
-    return _linear_grid(events, g0, width_us, num_bins, max_spread_us).to(dtype)
+    return _linear_grid(events, g0, width_us, num_bins, max_spread_us, next_spread_factor).to(dtype)
 
 
 def _linear_grid(events: Events, g0: Tensor, width_us: Tensor, num_bins: int,
-                 max_spread_us: float | None = None) -> Tensor:
+                 max_spread_us: float | None = None, next_spread_factor: float | None = None) -> Tensor:
     """Piecewise-linear integral at grid points, exactly, via slope breakpoints.
 
     Event k spreads ``σ_k`` over ``(a_k, t_k]`` with slope ``c_k = σ_k / (t_k - a_k)``; the
@@ -273,6 +284,10 @@ def _linear_grid(events: Events, g0: Tensor, width_us: Tensor, num_bins: int,
         min_spread = _MIN_SPREAD_US / width_us[events.batch[order]]
         if max_spread_us is not None:
             prev = torch.maximum(prev, t_sorted - max_spread_us / width_us[events.batch[order]])
+        if next_spread_factor is not None:  # a few times the interval to the pixel's next event (none after its last)
+            after = torch.full_like(t_sorted, math.inf)
+            after[:-1] = torch.where(same, t_sorted[1:] - t_sorted[:-1], math.inf)
+            prev = torch.maximum(prev, t_sorted - next_spread_factor * after)
         prev = torch.minimum(prev, t_sorted - min_spread)
         slope = events.p[order].to(torch.float64) / (t_sorted - prev)
         # breakpoints: +slope at prev, -slope at t

@@ -4,9 +4,10 @@ Each blurry frame and the events give the latent image at any time (EDI); betwee
 it, and at the right latency they agree (:mod:`evlatcorr.consistency`). With step EDI the latency at which they agree
 best lies a millisecond or so after the true one: a step holds a pixel's level until its event, while the scene
 crossed the threshold gradually, so both frames' latents lag the scene and reading the events later makes up for it.
-Here each event is the end of a ramp from the pixel's previous event, at most ``max_spread_us`` long
-(:func:`evlatcorr.integral.cumulative_event_grid`'s ``"linear"`` integral; an event after a long quiet is an edge's
-first crossing), and the lag goes (``docs/estimator.md``, "two frames' agreement with each event a ramp").
+Here each event is the end of a ramp from the pixel's previous event, at most ``max_spread_us`` long and at most
+twice the interval to the pixel's next event (:func:`evlatcorr.integral.cumulative_event_grid`'s ``"linear"``
+integral; an event after a long quiet is an edge's first crossing, and the edge's own pace says how long the change
+before it took), and the lag goes (``docs/estimator.md``, "two frames' agreement with each event a ramp").
 
 :func:`pair_log_odds` turns a pair's disagreement over the candidate latencies into log-odds that are added to the
 first frame's reader evidence: by :func:`evlatcorr.temporal.fuse_latencies` (``pair_log_odds=``, as ``evlatcorr
@@ -28,20 +29,26 @@ from evlatcorr.events import Events
 from evlatcorr.frames import EventFrames
 from evlatcorr.integral import cumulative_event_grid, grid_bytes_per_point
 
-__all__ = ["DEFAULT_RAMP_US", "DEFAULT_PAIR_WEIGHT", "pair_disagreement_curve", "pair_log_odds"]
+__all__ = ["DEFAULT_RAMP_US", "DEFAULT_RAMP_NEXT_FACTOR", "DEFAULT_PAIR_WEIGHT", "pair_disagreement_curve",
+           "pair_log_odds"]
 
-#: the ramps' longest, µs: on the accuracy suite's tuning pairs 5 ms took the lag off (ideal events' median
-#: estimate 0 µs, median signed error −63 / −6 µs on dev / dev_wide); 3 ms was still late where pixels fire slowly
-DEFAULT_RAMP_US = 5000.0
+#: the ramps' longest, µs, and their longest as a multiple of the interval to the pixel's next event: on the accuracy
+#: suite's tuning pairs (``docs/estimator.md``) these took the lag off on slow and fast scenes alike (median signed
+#: error +6 / +24 µs on dev / dev_wide, ideal events' median estimate 0 µs); a cap alone had to trade them (3 ms still
+#: late where pixels fire slowly, 5 ms early where they fire fast)
+DEFAULT_RAMP_US = 10000.0
+DEFAULT_RAMP_NEXT_FACTOR = 2.0
 _FLOOR = 0.02  # log(I + c), as evlatcorr.consistency: the dark pixels' noise does not dominate
 _GRID_US = 125.0  # the integral's finest grid spacing, µs
 
 
 def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Tensor,
-                            max_spread_us: float = DEFAULT_RAMP_US, grid_us: float = _GRID_US) -> Tensor:
+                            max_spread_us: float = DEFAULT_RAMP_US, grid_us: float = _GRID_US,
+                            next_spread_factor: float | None = DEFAULT_RAMP_NEXT_FACTOR) -> Tensor:
     """For each candidate latency, the mean over pixels of ``|log(I_1(t) + c) − log(I_2(t) + c)|`` (c = 0.02):
     the two frames' EDI latents at ``t``, the middle of the gap between their exposures, from the events read that
-    late, each event a ramp of at most ``max_spread_us`` (0: a step).
+    late, each event a ramp of at most ``max_spread_us`` (0: a step) and ``next_spread_factor`` times the interval to
+    its pixel's next event.
 
     The sensor is read in bands of rows whose grid fits a quarter of the memory budget
     (:data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`): a DAVIS346 pair 40 ms apart spans about 600 grid points. Where
@@ -53,6 +60,8 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
         candidates: :math:`(K,)` latencies, µs, increasing.
         max_spread_us: the ramps' longest, µs; 0 for step EDI.
         grid_us: the integral's finest grid spacing, µs (times are read at the nearest grid point).
+        next_spread_factor: each ramp also no longer than this many times the interval to the pixel's next event
+            (:func:`~evlatcorr.integral.cumulative_event_grid`'s; None: the cap alone).
 
     Returns:
         :math:`(K,)` float64.
@@ -73,6 +82,8 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
         raise ValueError(f"threshold must be a positive number, got {threshold}")
     if not (math.isfinite(max_spread_us) and max_spread_us >= 0):
         raise ValueError(f"max_spread_us must be 0 or more, got {max_spread_us}")
+    if next_spread_factor is not None and not (math.isfinite(next_spread_factor) and next_spread_factor > 0):
+        raise ValueError(f"next_spread_factor must be positive or None, got {next_spread_factor}")
     if not (math.isfinite(grid_us) and grid_us > 0):
         raise ValueError(f"grid_us must be positive, got {grid_us}")
     check_candidates(candidates)
@@ -96,7 +107,7 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
     middle, windows = index((e1 + s2) / 2), ((index(s1), index(e1)), (index(s2), index(e2)))
     zero = round(((e1 + s2) / 2 - start) / grid_us)
     band = max(1, min(h, resolve_memory_budget() // 4 // ((bins + 1) * per_point)))
-    spread = {"max_spread_us": max_spread_us} if max_spread_us > 0 else {}
+    spread = {"max_spread_us": max_spread_us, "next_spread_factor": next_spread_factor} if max_spread_us > 0 else {}
     events, total = pair.events, torch.zeros(len(latency), dtype=torch.float64)
     first, second = pair.blurry[0].float().mean(0), pair.blurry_next[0].float().mean(0)
     for top in range(0, h, band):  # bands of rows, not pixels: a few per pair at most
@@ -132,7 +143,8 @@ def check_candidates(candidates: Tensor) -> None:
 
 
 def pair_log_odds(pair: EventFrames, threshold: float, candidates: Tensor, max_spread_us: float = DEFAULT_RAMP_US,
-                  weight: float = DEFAULT_PAIR_WEIGHT) -> Tensor | None:
+                  weight: float = DEFAULT_PAIR_WEIGHT,
+                  next_spread_factor: float | None = DEFAULT_RAMP_NEXT_FACTOR) -> Tensor | None:
     """A pair's evidence of its latency over the first frame's candidates: ``−weight · log(d(l) / min d)``, where
     ``d`` is :func:`pair_disagreement_curve`.
 
@@ -148,6 +160,7 @@ def pair_log_odds(pair: EventFrames, threshold: float, candidates: Tensor, max_s
         candidates: :math:`(K,)` the first frame's candidate latencies, µs, increasing.
         max_spread_us: the ramps' longest, µs.
         weight: log-odds per unit of log disagreement, positive.
+        next_spread_factor: the ramps' longest as a multiple of the interval to the pixel's next event (None: none).
 
     Returns:
         :math:`(K,)` float64 log-odds (their maximum 0), or None where the pair tells nothing: fewer than three
@@ -174,7 +187,8 @@ def pair_log_odds(pair: EventFrames, threshold: float, candidates: Tensor, max_s
     readable = candidates <= reach
     if int(readable.sum()) < 3:
         return None
-    curve = pair_disagreement_curve(pair, threshold, candidates[readable], max_spread_us)
+    curve = pair_disagreement_curve(pair, threshold, candidates[readable], max_spread_us,
+                                    next_spread_factor=next_spread_factor)
     if int(curve.argmin()) >= len(curve) - 2 or not bool(torch.isfinite(curve).all()):
         return None
     read = -weight * torch.log(curve / curve.min())

@@ -92,6 +92,25 @@ class TestCumulativeGrid:
             with pytest.raises(ValueError, match="max_spread_us is a positive interval of the 'linear' integral"):
                 cumulative_event_grid(ev, 0.0, 5.0, 8, integral, max_spread_us=cap)
 
+    def test_linear_spreads_capped_by_the_interval_to_the_next_event(self):
+        # a burst at 20, 25, 30: the first event, after a quiet since the grid's start, is spread over twice the
+        # burst's interval, (10, 20], not back to 0; the others over their interval since the previous event
+        ev = one_pixel([20.0, 25.0, 30.0], [1, 1, 1])
+        cum = cumulative_event_grid(ev, 0.0, 5.0, 8, "linear", dtype=torch.float64, next_spread_factor=2.0)
+        expected = [0.0, 0.0, 0.0, 0.5, 1.0, 2.0, 3.0, 3.0, 3.0]
+        torch.testing.assert_close(cum[0, :, 0, 0], torch.tensor(expected, dtype=torch.float64))
+        plain = cumulative_event_grid(ev, 0.0, 5.0, 8, "linear", dtype=torch.float64)[0, :, 0, 0]
+        torch.testing.assert_close(plain, torch.tensor([0.0, 0.25, 0.5, 0.75, 1.0, 2.0, 3.0, 3.0, 3.0],
+                                                       dtype=torch.float64))
+        # the pixel's last event has no next one: a lone event keeps the cap
+        lone = cumulative_event_grid(one_pixel([20.0], [1]), 0.0, 5.0, 8, "linear", dtype=torch.float64,
+                                     max_spread_us=10.0, next_spread_factor=2.0)[0, :, 0, 0]
+        torch.testing.assert_close(lone, torch.tensor([0.0, 0.0, 0.0, 0.5, 1.0, 1.0, 1.0, 1.0, 1.0],
+                                                      dtype=torch.float64))
+        for integral, factor in (("step", 2.0), ("linear", 0.0), ("linear", -1.0)):
+            with pytest.raises(ValueError, match="next_spread_factor is a positive factor of the 'linear' integral"):
+                cumulative_event_grid(ev, 0.0, 5.0, 8, integral, next_spread_factor=factor)
+
     def test_linear_equals_step_at_event_times(self):
         # at every grid point after all events both integrals hold the full polarity sum
         ev = random_events(300, (3, 3), (0.0, 90.0), seed=3)

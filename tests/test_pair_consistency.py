@@ -11,18 +11,23 @@ import torch
 from evlatcorr.benchmark.accuracy import make_cases
 from evlatcorr.benchmark.pair_consistency import curve_minimum, pair_disagreement_curve, pair_rows, pair_summary
 from evlatcorr.frames import EventFrames
+from evlatcorr.pair_evidence import DEFAULT_RAMP_US
 from evlatcorr.simulate import simulate
 from tests.commands import ROOT, run_script
 
 
 def test_ramps_take_off_the_step_lag_on_ideal_events():
     # a dev case (shapes rotating, 7.34 ms): with step EDI the two frames agree best about 0.7 ms late even with
-    # ideal events; with each event a ramp of up to 3 ms they agree best at 0, and the delayed events' at the truth
+    # ideal events; with each event a ramp (the shipped rule: up to 10 ms and twice the interval to the pixel's next
+    # event) they agree best at 0, and the delayed events' at the truth
     case = next(c for c in make_cases("dev") if c.name.startswith("dev-05-"))
-    row = pair_rows(case, (0.0, 3000.0))
-    assert row["ideal_0_us"] > 400.0 and row["ideal_3000_us"] < 150.0
-    assert abs(row["delayed_3000_us"] - case.latency_us) < 150.0 < row["delayed_0_us"] - case.latency_us
+    row = pair_rows(case, (0.0, DEFAULT_RAMP_US))
+    ramp = f"{DEFAULT_RAMP_US:g}"
+    assert row["ideal_0_us"] > 400.0 and row[f"ideal_{ramp}_us"] < 150.0
+    assert abs(row[f"delayed_{ramp}_us"] - case.latency_us) < 150.0 < row["delayed_0_us"] - case.latency_us
     assert math.isfinite(row["reader_us"])
+    # the cap alone spreads the first event of each edge's burst over 10 ms, and the pair agrees best early
+    assert pair_rows(case, (DEFAULT_RAMP_US,), None)[f"delayed_{ramp}_us"] < case.latency_us - 500.0
     with pytest.raises(ValueError, match="constant-latency cases"):
         pair_rows(next(c for c in make_cases("dev") if c.latency_model != "constant"))
 
@@ -76,8 +81,11 @@ def test_the_script_writes_its_table(tmp_path):
     table = (tmp_path / "results.md").read_text()
     assert "| consistency, ramps up to 3000 us |" in table and "--ramps-us 0 3000" in table
     assert (tmp_path / "results.csv").read_text().startswith("case,truth_us,reader_us,delayed_0_us")
+    assert "each ramp at most 2x the interval to its pixel's next event" in table
     bad = run_script("pair_consistency.py", "--ramps-us", "-1", cwd=tmp_path)
     assert bad.returncode == 2 and "--ramps-us must be 0 or more, got [-1.0]" in bad.stderr
+    bad = run_script("pair_consistency.py", "--next-factor", "-1", cwd=tmp_path)
+    assert bad.returncode == 2 and "--next-factor must be 0 or more, got -1.0" in bad.stderr
 
 
 def test_the_script_reads_a_recording_s_pairs(tmp_path):

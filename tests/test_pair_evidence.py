@@ -80,6 +80,8 @@ def test_bad_inputs_are_refused():
         pair_log_odds(pair, 0.2, CANDIDATES.flip(0))
     with pytest.raises(ValueError, match="grid_us must be positive"):
         pair_disagreement_curve(pair, 0.2, CANDIDATES, grid_us=0.0)
+    with pytest.raises(ValueError, match="next_spread_factor must be positive or None"):
+        pair_log_odds(pair, 0.2, CANDIDATES, next_spread_factor=0.0)
 
 
 def _belief(mean: float, sigma: float) -> torch.Tensor:

@@ -86,7 +86,8 @@ def test_a_sequence_needs_at_least_one_frame():
         evaluate_sequence(make_cases("dev")[0], num_frames=0)
     for kwargs, match in ((dict(pair_weights=(10.0, 0.0)), "pair_weights must be positive"),
                           (dict(frame_gap=0.5), "frame_gap must be 1 or more"),
-                          (dict(ramp_us=-1.0), "ramp_us must be 0 or more")):
+                          (dict(ramp_us=-1.0), "ramp_us must be 0 or more"),
+                          (dict(ramp_next_factor=0.0), "ramp_next_factor must be positive or None")):
         with pytest.raises(ValueError, match=match):
             evaluate_sequence(make_cases("dev")[0], **kwargs)
 
@@ -121,7 +122,8 @@ def test_the_script_writes_its_table(tmp_path):
     assert bad.returncode == 2 and "--no-latency-mass must be in [0, 1)" in bad.stderr
     for option, value, message in (("--pair-weights", "0", "--pair-weights must be positive"),
                                    ("--frame-gap", "0.5", "--frame-gap must be 1 or more"),
-                                   ("--pair-ramp-us", "-1", "--pair-ramp-us must be 0 or more")):
+                                   ("--pair-ramp-us", "-1", "--pair-ramp-us must be 0 or more"),
+                                   ("--pair-ramp-next", "-1", "--pair-ramp-next must be 0 or more")):
         bad = run_script(*script[:-2], option, value, cwd=ROOT)
         assert bad.returncode == 2 and message in bad.stderr
 

@@ -5,11 +5,11 @@ it, and at the right latency they agree (:mod:`evlatcorr.consistency`). With ste
 best lies a millisecond or so after the true one (``docs/estimator.md``, "two frames' consistency"): a step holds a
 pixel's level until its event, while the scene crossed the threshold gradually, so both frames' latents lag the
 scene, and reading the events later makes up for it. Here each event is instead the end of a ramp from the pixel's
-previous event, at most ``max_spread_us`` long (:func:`evlatcorr.integral.cumulative_event_grid`'s ``"linear"``
-integral): an event after a long quiet is an edge's first crossing, not the end of a change since the last one
-(:func:`evlatcorr.pair_evidence.pair_disagreement_curve`). :func:`pair_rows` scans the candidate latencies of one
-constant-latency case simulated as two frames with a camera's gap between them, for each ramp length (0: step EDI),
-beside the default corrector on the first frame.
+previous event, at most ``max_spread_us`` long and, by default, at most twice the interval to the pixel's next event
+(:func:`evlatcorr.integral.cumulative_event_grid`'s ``"linear"`` integral): an event after a long quiet is an edge's
+first crossing, not the end of a change since the last one (:func:`evlatcorr.pair_evidence.pair_disagreement_curve`).
+:func:`pair_rows` scans the candidate latencies of one constant-latency case simulated as two frames with a camera's
+gap between them, for each ramp length (0: step EDI), beside the default corrector on the first frame.
 """
 
 from __future__ import annotations
@@ -24,13 +24,13 @@ import torch
 from torch import Tensor
 
 from evlatcorr.benchmark.accuracy_cases import Case, simulate_case
-from evlatcorr.pair_evidence import check_candidates, pair_disagreement_curve
+from evlatcorr.pair_evidence import DEFAULT_RAMP_NEXT_FACTOR, check_candidates, pair_disagreement_curve
 
 __all__ = ["RAMPS_US", "CANDIDATE_STEP_US", "pair_disagreement_curve", "curve_minimum", "pair_rows", "pair_summary",
            "pair_markdown", "recording_rows"]
 
-#: ramp lengths compared, µs (0: step EDI)
-RAMPS_US = (0.0, 2000.0, 3000.0, 5000.0)
+#: ramp lengths compared, µs (0: step EDI; 10 ms is the shipped cap)
+RAMPS_US = (0.0, 5000.0, 10000.0, 20000.0)
 #: the candidates' spacing, µs (0 to the end of the events)
 CANDIDATE_STEP_US = 250.0
 #: the frame interval as a multiple of the exposure time (a camera's frames have a gap; as benchmark.threshold's)
@@ -57,7 +57,8 @@ def curve_minimum(candidates: Tensor, curve: Tensor) -> float:
     return float(candidates[k])
 
 
-def pair_rows(case: Case, ramps_us: Sequence[float] = RAMPS_US) -> dict[str, Any]:
+def pair_rows(case: Case, ramps_us: Sequence[float] = RAMPS_US,
+              next_factor: float | None = DEFAULT_RAMP_NEXT_FACTOR) -> dict[str, Any]:
     """One constant-latency case simulated as two frames with a camera's gap: the consistency's latency for each
     ramp length, on the delayed and on the ideal events, beside the default corrector's on the first frame.
 
@@ -82,7 +83,7 @@ def pair_rows(case: Case, ramps_us: Sequence[float] = RAMPS_US) -> dict[str, Any
         reach = float(pair.events.t.max() - pair.exposure_end_next[0])  # a window never runs past the last event
         candidates = torch.arange(0.0, max(reach, 0.0) + 1.0, CANDIDATE_STEP_US, dtype=torch.float64)
         for ramp in ramps_us:
-            curve = pair_disagreement_curve(pair, case.threshold, candidates, ramp)
+            curve = pair_disagreement_curve(pair, case.threshold, candidates, ramp, next_spread_factor=next_factor)
             row[f"{which}_{ramp:g}_us"] = curve_minimum(candidates, curve)
             # no minimum before the events run out: the curve fell over the whole range (a frame latency does not
             # change, or too few events), as the sharpness scores' did before the reader's fallbacks
@@ -142,7 +143,8 @@ def pair_markdown(summary: list[dict[str, Any]]) -> str:
 
 
 def recording_rows(path: str, threshold: float, ramps_us: Sequence[float] = RAMPS_US,
-                   grid_us: float = 250.0) -> list[dict[str, Any]]:
+                   grid_us: float = 250.0,
+                   next_factor: float | None = DEFAULT_RAMP_NEXT_FACTOR) -> list[dict[str, Any]]:
     """Each pair of consecutive frames of a recording (no truth): the default corrector's latency for the first frame
     alone and the consistency's for each ramp length (candidates every 250 µs up to the exposure time; the grid
     250 µs apart, as docs/estimator.md's figures were measured).
@@ -169,7 +171,7 @@ def recording_rows(path: str, threshold: float, ramps_us: Sequence[float] = RAMP
             warnings.simplefilter("ignore")
             row: dict[str, Any] = dict(frame=int(frame.meta["frame"]), reader_us=float(corrector(frame).latency.mean()))
         for ramp in ramps_us:
-            curve = pair_disagreement_curve(pair, threshold, candidates, ramp, grid_us)
+            curve = pair_disagreement_curve(pair, threshold, candidates, ramp, grid_us, next_factor)
             row[f"delayed_{ramp:g}_us"] = curve_minimum(candidates, curve)
         rows.append(row)
     return rows

@@ -28,7 +28,7 @@ import torch
 from evlatcorr.benchmark.accuracy import NO_GAP_DB, Case, simulate_case
 from evlatcorr.benchmark.accuracy_compare import CLEAR_CHANGE_DB, bootstrap_interval
 from evlatcorr.benchmark.compare import edi_psnr, recovery
-from evlatcorr.pair_evidence import DEFAULT_RAMP_US, pair_log_odds
+from evlatcorr.pair_evidence import DEFAULT_RAMP_NEXT_FACTOR, DEFAULT_RAMP_US, pair_log_odds
 from evlatcorr.temporal import frame_evidence, fuse_latencies
 
 __all__ = ["evaluate_sequence", "summarize_sequences", "fused_against_own", "DEFAULT_WINDOWS", "IDEAL"]
@@ -43,7 +43,8 @@ LOSING_DB = 0.5
 
 def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple] | None = None,
                       ideal: bool = True, pair_weights: Sequence[float] = (), frame_gap: float = 1.0,
-                      ramp_us: float = DEFAULT_RAMP_US) -> list[dict[str, Any]]:
+                      ramp_us: float = DEFAULT_RAMP_US,
+                      ramp_next_factor: float | None = DEFAULT_RAMP_NEXT_FACTOR) -> list[dict[str, Any]]:
     """Every frame of a case simulated as a sequence, scored with its own latency and with each fused one.
 
     Args:
@@ -60,6 +61,7 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
         frame_gap: time from one exposure's start to the next, in exposure times (1: back to back; a camera's
             frames have a gap).
         ramp_us: the pairs' ramps' longest, µs (0: steps).
+        ramp_next_factor: the ramps' longest as a multiple of the interval to the pixel's next event (None: none).
 
     Returns:
         one row per frame and estimate (``"per frame"`` and each window): ``case``, ``model``, ``frame``,
@@ -70,7 +72,8 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
         estimate, and no recovery (NaN).
 
     Raises:
-        ValueError: for a weight that is not positive, a gap under 1 or a negative ramp.
+        ValueError: for a weight that is not positive, a gap under 1, a negative ramp or a factor that is not
+            positive.
     """
     windows = DEFAULT_WINDOWS if windows is None else windows
     if any(not (isinstance(w, (int, float)) and math.isfinite(w) and w > 0) for w in pair_weights):
@@ -79,6 +82,9 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
         raise ValueError(f"frame_gap must be 1 or more (frames do not overlap), got {frame_gap}")
     if not (math.isfinite(ramp_us) and ramp_us >= 0):
         raise ValueError(f"ramp_us must be 0 or more, got {ramp_us}")
+    if ramp_next_factor is not None and not (math.isfinite(ramp_next_factor) and ramp_next_factor > 0):
+        raise ValueError(f"ramp_next_factor must be positive or None, got {ramp_next_factor}")
+    ramps = (ramp_us, ramp_next_factor)
     delayed, ideal_events, seq = simulate_case(case, num_frames, frame_interval_us=frame_gap * case.exposure_us)
     frames, ideal_frames = delayed.split(), ideal_events.split()
 
@@ -88,7 +94,7 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
         return seq.pairs(which, after_us=case.after_us).split()
 
     rows = []
-    kept, estimates = _estimates(frames, case.threshold, windows, pairs("delayed"), pair_weights, ramp_us)
+    kept, estimates = _estimates(frames, case.threshold, windows, pairs("delayed"), pair_weights, ramps)
     for n, i in enumerate(kept):
         frame = frames[i]
         true = float(frame.meta["true_latency"].mean())
@@ -101,7 +107,7 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
                              psnr_uncorrected=psnr_uncorrected, psnr_corrected=psnr,
                              recovery=recovery(psnr, psnr_uncorrected, psnr_ideal, NO_GAP_DB)))
     if ideal:
-        kept, estimates = _estimates(ideal_frames, case.threshold, windows, pairs("ideal"), pair_weights, ramp_us)
+        kept, estimates = _estimates(ideal_frames, case.threshold, windows, pairs("ideal"), pair_weights, ramps)
         for n, i in enumerate(kept):
             psnr_ideal = edi_psnr(ideal_frames[i], case.threshold)
             for name, values in estimates.items():
@@ -115,7 +121,7 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
 
 
 def _estimates(frames: list, threshold: float, windows: dict[str, tuple], pairs: Sequence = (),
-               pair_weights: Sequence[float] = (), ramp_us: float = DEFAULT_RAMP_US
+               pair_weights: Sequence[float] = (), ramps: tuple[float, float | None] = (DEFAULT_RAMP_US, None)
                ) -> tuple[list[int], dict[str, torch.Tensor]]:
     """The default corrector's latency of each frame with events (their indices), alone (``"per frame"``), fused
     over each window, and fused ±2 with the pairs' agreement at each weight (``pairs[i]``: frames i and i + 1)."""
@@ -141,7 +147,7 @@ def _estimates(frames: list, threshold: float, windows: dict[str, tuple], pairs:
         estimates[name] = fuse_latencies(latency, candidates, log_p, *window)
     if pair_weights:
         # weight 1, then scaled: the log-odds are proportional to the weight
-        unit = [pair_log_odds(pairs[i], threshold, cand, ramp_us, 1.0) if i < len(pairs) else None
+        unit = [pair_log_odds(pairs[i], threshold, cand, ramps[0], 1.0, ramps[1]) if i < len(pairs) else None
                 for i, cand in zip(kept, candidates)]
         for w in pair_weights:
             weighted = [None if u is None else w * u for u in unit]
