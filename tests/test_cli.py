@@ -160,18 +160,27 @@ def _check_restored(outdir: Path, model: str, frames: int, size: tuple[int, int]
     return rows
 
 
-def test_deblur_fuses_each_frames_latency_with_the_frames_before(simulated, tmp_path):
+def test_deblur_fuses_each_frames_latency_with_the_frames_before_and_its_pair(simulated, tmp_path):
     args = ("--model", "edi", "--correct", "--num-bins", "100")
-    assert run("deblur", str(simulated), str(tmp_path / "fused"), *args, cwd=tmp_path).returncode == 0
-    r = run("deblur", str(simulated), str(tmp_path / "alone"), *args, "--fuse-frames", "0", cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
-    fused = list(csv.DictReader(open(tmp_path / "fused" / "frames.csv")))
-    alone = list(csv.DictReader(open(tmp_path / "alone" / "frames.csv")))
-    assert "frame_latency_us" not in alone[0]
+    for name, extra in (("paired", ()), ("fused", ("--no-pairs",)), ("alone", ("--fuse-frames", "0", "--no-pairs"))):
+        r = run("deblur", str(simulated), str(tmp_path / name), *args, *extra, cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+    paired, fused, alone = (list(csv.DictReader(open(tmp_path / name / "frames.csv")))
+                            for name in ("paired", "fused", "alone"))
+    assert "frame_latency_us" not in alone[0] and "pair_latency_us" not in fused[0]
     assert [row["latency_us"] for row in alone] == [row["frame_latency_us"] for row in fused]
+    # each frame's own estimate is the same (the paired run's frames hold more events after their window)
+    np.testing.assert_allclose([float(row["frame_latency_us"]) for row in paired],
+                               [float(row["frame_latency_us"]) for row in fused], atol=5.0)
     # a stream: the first frame has no earlier evidence, the second takes the first's too
     assert abs(float(fused[0]["latency_us"]) - float(fused[0]["frame_latency_us"])) < 1.0
-    assert all(abs(float(row["latency_us"]) - 3000.0) < 1500.0 for row in fused)
+    assert all(abs(float(row["latency_us"]) - 3000.0) < 1500.0 for row in fused + paired)
+    # the model reads single frames, the corrector each frame with the next (the last frame has none): their
+    # agreement is in the report and moves the latency
+    assert all(row["pair_latency_us"] for row in paired[:-1]) and paired[-1]["pair_latency_us"] == ""
+    assert [row["latency_us"] for row in paired[:-1]] != [row["latency_us"] for row in fused[:-1]]
+    assert paired[-1]["skipped"] == "" and sorted(p.name for p in (tmp_path / "paired").glob("*.png")) == sorted(
+        p.name for p in (tmp_path / "fused").glob("*.png"))
     bad = run("deblur", str(simulated), str(tmp_path / "bad"), *args, "--fuse-frames", "-2", cwd=tmp_path)
     assert bad.returncode == 2 and "--fuse-frames must be 0 or more" in bad.stderr
 
@@ -548,7 +557,7 @@ def test_deblur_and_interpolate_search_several_frames_per_call_as_frame_by_frame
     for key in keys:
         np.testing.assert_allclose([float(r[key] or "nan") for r in batched], [float(r[key] or "nan") for r in alone],
                                    atol=0.2, equal_nan=True)
-    assert ("pair_latency_us" in alone[0]) == (command == "interpolate")  # single frames have no pair to read
+    assert "pair_latency_us" in alone[0]  # deblur reads each frame with the next for the corrector too
     images = sorted(p.name for p in (tmp_path / "alone").glob("*.png"))
     assert images == sorted(p.name for p in (tmp_path / "batched").glob("*.png")) and images
     for name in images:

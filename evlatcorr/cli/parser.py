@@ -151,8 +151,9 @@ def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> Non
     _fuse_frames_option(p, "--correct constant", "the N frames before it too (frame by frame, as a stream",
                         "frames.csv")
     p.add_argument("--no-pairs", action="store_true",
-                   help="where the model reads each frame with the next (interpolate, REFID): each frame's "
-                        "latency from the reader's evidence alone, without the pair's agreement (--correct constant)")
+                   help="--correct constant reads each frame with the next one and adds their agreement to the "
+                        "frame's evidence (a model of single frames still reads the frame alone); this leaves it out "
+                        "(faster: the pair costs several times the frame's own search)")
     _common_options(p)
 
 

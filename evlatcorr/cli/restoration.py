@@ -70,7 +70,8 @@ def _restore(args: argparse.Namespace, task: str) -> int:
             plain, corrected = _restored_outputs(run, frames, out)
         rows.append(latency_row(batch, out, run.theta, seconds + time.perf_counter() - t0, skipped))
         # fused: the frame's own estimate, and where the frame's pair with the next frame agreed best
-        for key in ("frame_latency_us", "pair_latency_us") if run.pairs else ("frame_latency_us",):
+        paired = run.pairs or run.evidence_pairs
+        for key in ("frame_latency_us", "pair_latency_us") if paired else ("frame_latency_us",):
             if out is not None and key in out.meta:
                 value = float(out.meta[key][0])
                 rows[-1][key] = "" if math.isnan(value) else f"{value:.1f}"
@@ -88,9 +89,12 @@ def _restore(args: argparse.Namespace, task: str) -> int:
             pending.clear()
 
     with atomic_dir(args.outdir, overwrite=args.overwrite) as tmp:
-        stream, limit = _restore_inputs(run.rec, args.max_frames, run.pairs)
+        stream, limit = _restore_inputs(run.rec, args.max_frames, run.pairs or run.evidence_pairs)
         for batch, frames in progress(stream, limit, task):
-            if frames is None:
+            if frames is None and run.evidence_pairs:  # a segment's last frame: corrected alone
+                restore_pending()  # not in one call with pairs: a batch is all pairs or all single frames
+                frames = batch
+            elif frames is None:
                 restore_pending()  # the frames before it first: rows and images stay in order
                 skip_warning(batch, "no_next_frame", f"{args.model} {task} needs the next frame, and this is the last "
                              "of its segment", f"{args.model} {task} needs the next frame, and this is the last of its "
@@ -135,6 +139,9 @@ class _Restoration(NamedTuple):
     device: torch.device
     frame_gamma: float = 1.0  # the recording's: its frames are read linear, as EDI and the corrector need them
     linear_model: bool = True  # EDI; a network reads the frames encoded as in the file, as its dataset stored them
+    # the corrector reads each frame with the next one for their agreement (evlatcorr.pair_evidence), the model
+    # reads the frame alone
+    evidence_pairs: bool = False
 
 
 def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _Restoration:
@@ -153,10 +160,13 @@ def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _
 
         corrector = StreamingLatencyCorrector(corrector, args.fuse_frames, name_frames=False)  # named by frame here
     pairs = needs_pairs(args.model, task)
-    if pairs:  # the first frame's events must reach the next exposure's end, plus the latency searched
+    # a model of single frames: the constant corrector still reads each frame with the next for their agreement
+    evidence = not pairs and args.correct == "constant" and not args.no_pairs
+    if pairs or evidence:  # the first frame's events must reach the next exposure's end, plus the latency searched
         rec.after_us = pair_reach_us(rec, high)
-        rec.before_us = max(rec.before_us, pair_lead_us(rec))  # and REFID reads before the first exposure
-    return _Restoration(rec, model, corrector, theta, pairs, device, rec.frame_gamma, args.model == "edi")
+    if pairs:  # and REFID reads before the first exposure
+        rec.before_us = max(rec.before_us, pair_lead_us(rec))
+    return _Restoration(rec, model, corrector, theta, pairs, device, rec.frame_gamma, args.model == "edi", evidence)
 
 
 def _restore_inputs(rec, max_frames: int | None, pairs: bool):
@@ -199,12 +209,19 @@ def _restored_outputs(run: _Restoration, frames, out):
     from evlatcorr.gamma import linear_frames
 
     gamma = 1.0 if run.linear_model else 1 / run.frame_gamma  # a network: the frames encoded back as in the file
+    if run.evidence_pairs:  # the pair was the corrector's evidence; the model reads the frame alone
+        frames, out = (None if f is None else _single(f) for f in (frames, out))
     with torch.no_grad():
         plain = run.model(linear_frames(frames, gamma)).output
         corrected = plain if out is None else run.model(linear_frames(out, gamma)).output
     if run.device.type == "cuda":
         torch.cuda.synchronize(run.device)  # so the row's time is the frame's
     return plain, corrected
+
+
+def _single(frames):
+    """A pair of frames as its first frame alone."""
+    return frames.replace(blurry_next=None, exposure_start_next=None, exposure_end_next=None)
 
 
 def _as_in_the_file(run: _Restoration, blurry, plain, corrected):
