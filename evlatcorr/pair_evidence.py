@@ -23,6 +23,7 @@ import math
 import torch
 from torch import Tensor
 
+from evlatcorr.blank_frames import blank_pairs
 from evlatcorr.checks import check_threshold, resolve_memory_budget
 from evlatcorr.config import DEFAULT_PAIR_WEIGHT
 from evlatcorr.events import Events
@@ -163,9 +164,11 @@ def pair_log_odds(pair: EventFrames, threshold: float, candidates: Tensor, max_s
         next_spread_factor: the ramps' longest as a multiple of the interval to the pixel's next event (None: none).
 
     Returns:
-        :math:`(K,)` float64 log-odds (their maximum 0), or None where the pair tells nothing: fewer than three
-        candidates can be read, or the disagreement is lowest at the last two of them (no minimum before the events
-        run out: latency does not change the frames' latents, or the events stop too early).
+        :math:`(K,)` float64 log-odds (their maximum 0), or None where the pair tells nothing: either frame is black,
+        saturated or flat (:func:`evlatcorr.blank_frames.blank_pairs`: it agrees with its neighbour at no latency; a
+        black next frame agreed best wherever the first frame's latent was darkest), fewer than three candidates can
+        be read, or the disagreement is lowest at the last two of them (no minimum before the events run out: latency
+        does not change the frames' latents, or the events stop too early).
 
     Example:
         >>> from evlatcorr.simulate import simulate
@@ -181,7 +184,7 @@ def pair_log_odds(pair: EventFrames, threshold: float, candidates: Tensor, max_s
     threshold = float(check_threshold(threshold, 1)[0])
     check_candidates(candidates)
     candidates = candidates.detach().to("cpu", torch.float64)
-    if len(pair.events) == 0:
+    if len(pair.events) == 0 or bool(blank_pairs(pair.blurry, pair.blurry_next)[0]):
         return None
     reach = float(pair.events.t.max() - pair.exposure_end_next[0])  # a window never runs past the last event
     readable = candidates <= reach

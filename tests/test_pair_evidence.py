@@ -67,6 +67,16 @@ def test_a_small_memory_budget_reads_the_sensor_in_bands_with_the_same_curve(mon
     assert abs(float(CANDIDATES[whole.argmin()]) - 3000.0) <= 250.0
 
 
+def test_a_pair_with_a_black_saturated_or_flat_frame_tells_nothing():
+    # a lens cap or a flash: such a frame agrees with its neighbour at no latency (a black next frame agreed best
+    # where the first frame's latent was darkest, 4.5 ms for a true 3 ms), and the frame keeps its own estimate
+    pair = _pairs(3000.0).pairs("delayed", after_us=25000.0).split()[0]
+    assert pair_log_odds(pair, 0.2, CANDIDATES) is not None
+    for blank in (torch.zeros_like(pair.blurry), torch.ones_like(pair.blurry), torch.full_like(pair.blurry, 0.5)):
+        assert pair_log_odds(pair.replace(blurry_next=blank), 0.2, CANDIDATES) is None
+        assert pair_log_odds(pair.replace(blurry=blank), 0.2, CANDIDATES) is None
+
+
 def test_bad_inputs_are_refused():
     seq = _pairs(3000.0)
     pair = seq.pairs().split()[0]
