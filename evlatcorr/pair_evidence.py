@@ -19,6 +19,7 @@ frames' evidence too). Two cues that share nothing but EDI.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import torch
 from torch import Tensor
@@ -31,7 +32,7 @@ from evlatcorr.frames import EventFrames
 from evlatcorr.integral import cumulative_event_grid, grid_bytes_per_point
 
 __all__ = ["DEFAULT_RAMP_US", "DEFAULT_RAMP_NEXT_FACTOR", "DEFAULT_PAIR_WEIGHT", "pair_disagreement_curve",
-           "pair_log_odds"]
+           "pair_disagreement_maps", "pair_log_odds"]
 
 #: the ramps' longest, µs, and their longest as a multiple of the interval to the pixel's next event: on the accuracy
 #: suite's tuning pairs (``docs/estimator.md``) these took the lag off on slow and fast scenes alike (median signed
@@ -77,8 +78,52 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
         >>> bool(curve[1] < curve[0])
         True
     """
+    bands = _band_disagreements(pair, threshold, candidates, max_spread_us, grid_us, next_spread_factor,
+                                "pair_disagreement_curve")
+    total = torch.zeros(len(candidates), dtype=torch.float64)
+    for _, band in bands:
+        total += band.double().sum((1, 2)).cpu()
+    h, w = pair.sensor_size
+    return total / (h * w)
+
+
+def pair_disagreement_maps(pair: EventFrames, threshold: float, candidates: Tensor,
+                           max_spread_us: float = DEFAULT_RAMP_US, grid_us: float = _GRID_US,
+                           next_spread_factor: float | None = DEFAULT_RAMP_NEXT_FACTOR) -> Tensor:
+    """:func:`pair_disagreement_curve` pixel by pixel: ``|log(I_1(t) + c) − log(I_2(t) + c)|`` for each candidate
+    :math:`(K, H, W)` float32, on the pair's device (its mean over the pixels is the curve, to float32 rounding).
+
+    For a latency per region or per brightness (``benchmarks/pair_bands.py``: one per brightness band of the
+    first frame); the arguments are :func:`pair_disagreement_curve`'s.
+
+    Example:
+        >>> from evlatcorr.simulate import simulate
+        >>> pair = simulate("camera", num_frames=2, height=24, width=32, latency_us=3000.0, seed=0).pairs()
+        >>> pair_disagreement_maps(pair, 0.2, torch.tensor([0.0, 3000.0])).shape
+        torch.Size([2, 24, 32])
+    """
+    bands = _band_disagreements(pair, threshold, candidates, max_spread_us, grid_us, next_spread_factor,
+                                "pair_disagreement_maps")
+    h, w = pair.sensor_size
+    out = torch.empty((len(candidates), h, w), dtype=torch.float32, device=pair.device)
+    for top, band in bands:
+        out[:, top:top + band.shape[1]] = band
+    return out
+
+
+def _band_disagreements(pair: EventFrames, threshold: float, candidates: Tensor, max_spread_us: float,
+                        grid_us: float, next_spread_factor: float | None, name: str) -> Iterator[tuple[int, Tensor]]:
+    """The arguments' disagreement, band of rows by band: ``(first row, (K, rows, W) float32)``; checked here, before
+    the first band is asked for."""
+    _check_pair_arguments(pair, threshold, candidates, max_spread_us, grid_us, next_spread_factor, name)
+    return _bands(pair, threshold, candidates, max_spread_us, grid_us, next_spread_factor)
+
+
+def _check_pair_arguments(pair: EventFrames, threshold: float, candidates: Tensor, max_spread_us: float,
+                          grid_us: float, next_spread_factor: float | None, name: str) -> None:
+    """Refuse what :func:`pair_disagreement_curve` cannot read (``name`` is the caller's, for the message)."""
     if pair.batch_size != 1 or pair.blurry_next is None:
-        raise ValueError("pair_disagreement_curve reads one pair of frames (B = 1, with blurry_next)")
+        raise ValueError(f"{name} reads one pair of frames (B = 1, with blurry_next)")
     if not (isinstance(threshold, (int, float)) and math.isfinite(threshold) and threshold > 0):
         raise ValueError(f"threshold must be a positive number, got {threshold}")
     if not (math.isfinite(max_spread_us) and max_spread_us >= 0):
@@ -88,6 +133,11 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
     if not (math.isfinite(grid_us) and grid_us > 0):
         raise ValueError(f"grid_us must be positive, got {grid_us}")
     check_candidates(candidates)
+
+
+def _bands(pair: EventFrames, threshold: float, candidates: Tensor, max_spread_us: float, grid_us: float,
+           next_spread_factor: float | None) -> Iterator[tuple[int, Tensor]]:
+    """:func:`_band_disagreements` after its checks."""
     s1, e1 = float(pair.exposure_start[0]), float(pair.exposure_end[0])
     s2, e2 = float(pair.exposure_start_next[0]), float(pair.exposure_end_next[0])
     integral = "linear" if max_spread_us > 0 else "step"
@@ -109,7 +159,7 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
     zero = round(((e1 + s2) / 2 - start) / grid_us)
     band = max(1, min(h, resolve_memory_budget() // 4 // ((bins + 1) * per_point)))
     spread = {"max_spread_us": max_spread_us, "next_spread_factor": next_spread_factor} if max_spread_us > 0 else {}
-    events, total = pair.events, torch.zeros(len(latency), dtype=torch.float64)
+    events = pair.events
     first, second = pair.blurry[0].float().mean(0), pair.blurry_next[0].float().mean(0)
     for top in range(0, h, band):  # bands of rows, not pixels: a few per pair at most
         rows = min(band, h - top)
@@ -130,8 +180,7 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
             mean = (trapezoids[b] - trapezoids[a]) / (b - a).clamp_min(1).float()[:, None, None]
             latent = blurry[top:top + rows].to(trapezoids.device) * at_middle / mean
             logs.append(torch.log(latent.clamp_min(0) + _FLOOR))
-        total += (logs[0] - logs[1]).abs().double().sum((1, 2)).cpu()
-    return total / (h * w)
+        yield top, (logs[0] - logs[1]).abs()
 
 
 def check_candidates(candidates: Tensor) -> None:

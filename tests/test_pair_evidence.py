@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from evlatcorr import checks
-from evlatcorr.pair_evidence import pair_disagreement_curve, pair_log_odds
+from evlatcorr.pair_evidence import pair_disagreement_curve, pair_disagreement_maps, pair_log_odds
 from evlatcorr.simulate import simulate
 from evlatcorr.temporal import fuse_latencies
 
@@ -65,6 +65,21 @@ def test_a_small_memory_budget_reads_the_sensor_in_bands_with_the_same_curve(mon
     with pytest.raises(ValueError, match="over the memory budget"):
         pair_disagreement_curve(pair, 0.2, CANDIDATES)
     assert abs(float(CANDIDATES[whole.argmin()]) - 3000.0) <= 250.0
+
+
+def test_the_maps_are_the_curve_pixel_by_pixel(monkeypatch):
+    seq = _pairs(3000.0)
+    pair = seq.pairs().split()[0]
+    maps = pair_disagreement_maps(pair, 0.2, CANDIDATES)
+    assert maps.shape == (len(CANDIDATES), 24, 32) and maps.dtype == torch.float32
+    torch.testing.assert_close(maps.double().mean((1, 2)), pair_disagreement_curve(pair, 0.2, CANDIDATES), rtol=1e-6,
+                               atol=0)
+    monkeypatch.setattr(checks, "MEMORY_BUDGET_BYTES", 4 * 7 * 428 * 32 * 56)  # bands of 7 rows: the same maps
+    torch.testing.assert_close(pair_disagreement_maps(pair, 0.2, CANDIDATES), maps, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="pair_disagreement_maps reads one pair"):
+        pair_disagreement_maps(seq.frames(), 0.2, CANDIDATES)
+    with pytest.raises(ValueError, match="non-empty 1-D tensor"):
+        pair_disagreement_maps(pair, 0.2, torch.tensor(1.0))
 
 
 def test_a_pair_with_a_black_saturated_or_flat_frame_tells_nothing():
