@@ -52,9 +52,10 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
     late, each event a ramp of at most ``max_spread_us`` (0: a step) and ``next_spread_factor`` times the interval to
     its pixel's next event.
 
-    The sensor is read in bands of rows whose grid fits a quarter of the memory budget
+    Only the pixels with events are integrated (elsewhere each latent is its blurry frame at every candidate, one
+    constant disagreement), in runs of pixels whose grid fits a quarter of the memory budget
     (:data:`evlatcorr.checks.MEMORY_BUDGET_BYTES`): a DAVIS346 pair 40 ms apart spans about 600 grid points. Where
-    not even one row's would fit (exposures of seconds), the grid is coarser.
+    not even a row's worth of pixels would fit (exposures of seconds), the grid is coarser.
 
     Args:
         pair: one pair (``B = 1``): ``blurry``, ``blurry_next``, both exposures and the events over both.
@@ -82,7 +83,7 @@ def pair_disagreement_curve(pair: EventFrames, threshold: float, candidates: Ten
                                 "pair_disagreement_curve")
     total = torch.zeros(len(candidates), dtype=torch.float64)
     for _, band in bands:
-        total += band.double().sum((1, 2)).cpu()
+        total += band.double().sum(1).cpu()
     h, w = pair.sensor_size
     return total / (h * w)
 
@@ -105,16 +106,17 @@ def pair_disagreement_maps(pair: EventFrames, threshold: float, candidates: Tens
     bands = _band_disagreements(pair, threshold, candidates, max_spread_us, grid_us, next_spread_factor,
                                 "pair_disagreement_maps")
     h, w = pair.sensor_size
-    out = torch.empty((len(candidates), h, w), dtype=torch.float32, device=pair.device)
-    for top, band in bands:
-        out[:, top:top + band.shape[1]] = band
-    return out
+    out = torch.empty((len(candidates), h * w), dtype=torch.float32, device=pair.device)
+    for pixels, band in bands:
+        out[:, pixels] = band
+    return out.view(len(candidates), h, w)
 
 
 def _band_disagreements(pair: EventFrames, threshold: float, candidates: Tensor, max_spread_us: float,
-                        grid_us: float, next_spread_factor: float | None, name: str) -> Iterator[tuple[int, Tensor]]:
-    """The arguments' disagreement, band of rows by band: ``(first row, (K, rows, W) float32)``; checked here, before
-    the first band is asked for."""
+                        grid_us: float, next_spread_factor: float | None, name: str) -> Iterator[tuple[Tensor, Tensor]]:
+    """The arguments' disagreement, a run of pixels at a time: ``(flat pixel indices (n,), (K, n) float32)``, first
+    the pixels without events (their latents are their blurry frames at every candidate), then the others in runs
+    whose grid fits a quarter of the memory budget; checked here, before the first run is asked for."""
     _check_pair_arguments(pair, threshold, candidates, max_spread_us, grid_us, next_spread_factor, name)
     return _bands(pair, threshold, candidates, max_spread_us, grid_us, next_spread_factor)
 
@@ -136,7 +138,7 @@ def _check_pair_arguments(pair: EventFrames, threshold: float, candidates: Tenso
 
 
 def _bands(pair: EventFrames, threshold: float, candidates: Tensor, max_spread_us: float, grid_us: float,
-           next_spread_factor: float | None) -> Iterator[tuple[int, Tensor]]:
+           next_spread_factor: float | None) -> Iterator[tuple[Tensor, Tensor]]:
     """:func:`_band_disagreements` after its checks."""
     s1, e1 = float(pair.exposure_start[0]), float(pair.exposure_end[0])
     s2, e2 = float(pair.exposure_start_next[0]), float(pair.exposure_end_next[0])
@@ -157,16 +159,26 @@ def _bands(pair: EventFrames, threshold: float, candidates: Tensor, max_spread_u
 
     middle, windows = index((e1 + s2) / 2), ((index(s1), index(e1)), (index(s2), index(e2)))
     zero = round(((e1 + s2) / 2 - start) / grid_us)
-    band = max(1, min(h, resolve_memory_budget() // 4 // ((bins + 1) * per_point)))
     spread = {"max_spread_us": max_spread_us, "next_spread_factor": next_spread_factor} if max_spread_us > 0 else {}
     events = pair.events
-    first, second = pair.blurry[0].float().mean(0), pair.blurry_next[0].float().mean(0)
-    for top in range(0, h, band):  # bands of rows, not pixels: a few per pair at most
-        rows = min(band, h - top)
-        inside = (events.y >= top) & (events.y < top + rows)
-        part = Events.from_canonical(events.x[inside], events.y[inside] - top, events.t[inside], events.p[inside],
-                                     events.batch[inside], (rows, w), 1)
-        grid = cumulative_event_grid(part, start, grid_us, bins, integral, torch.float64, **spread)[0]
+    first, second = pair.blurry[0].float().mean(0).flatten(), pair.blurry_next[0].float().mean(0).flatten()
+    # a pixel without events has its blurry frame as latent at every candidate: its disagreement is one constant
+    pixel = events.y * w + events.x
+    active = torch.unique(pixel)
+    still = torch.ones(h * w, dtype=torch.bool, device=first.device)
+    still[active.to(first.device)] = False
+    still = still.nonzero().flatten()
+    yield still, (torch.log(first[still].clamp_min(0) + _FLOOR) - torch.log(second[still].clamp_min(0) + _FLOOR)
+                  ).abs()[None].expand(len(latency), -1)
+    # the pixels with events, in runs that fit a quarter of the memory budget (a few rows' worth at least)
+    column = torch.searchsorted(active, pixel)  # each event's pixel among the active ones
+    band = w * max(1, min(h, resolve_memory_budget() // 4 // ((bins + 1) * per_point)))
+    for lo in range(0, len(active), band):
+        count = min(band, len(active) - lo)
+        inside = (column >= lo) & (column < lo + count)
+        part = Events.from_canonical(column[inside] - lo, torch.zeros_like(column[inside]), events.t[inside],
+                                     events.p[inside], events.batch[inside], (1, count), 1)
+        grid = cumulative_event_grid(part, start, grid_us, bins, integral, torch.float64, **spread)[0, :, 0]
         weights = grid.sub_(grid[zero].clone()).mul_(threshold).exp_()  # levels about the gap's middle: no overflow
         # trapezoids from grid point a to b: T[b] - T[a] with T = cumsum(w) - w / 2, summed in float64; read as
         # float32 (a window's sum keeps 7 digits: the levels are taken about the gap's middle), half the traffic of
@@ -174,13 +186,14 @@ def _bands(pair: EventFrames, threshold: float, candidates: Tensor, max_spread_u
         at_middle = weights[middle.to(weights.device)].float()
         trapezoids = weights.cumsum(0).sub_(weights, alpha=0.5).float()
         del weights, grid
+        which = active[lo:lo + count].to(first.device)
         logs = []
         for blurry, (a, b) in ((first, windows[0]), (second, windows[1])):
             a, b = a.to(trapezoids.device), b.to(trapezoids.device)
-            mean = (trapezoids[b] - trapezoids[a]) / (b - a).clamp_min(1).float()[:, None, None]
-            latent = blurry[top:top + rows].to(trapezoids.device) * at_middle / mean
+            mean = (trapezoids[b] - trapezoids[a]) / (b - a).clamp_min(1).float()[:, None]
+            latent = blurry[which].to(trapezoids.device) * at_middle / mean
             logs.append(torch.log(latent.clamp_min(0) + _FLOOR))
-        yield top, (logs[0] - logs[1]).abs()
+        yield which, (logs[0] - logs[1]).abs()
 
 
 def check_candidates(candidates: Tensor) -> None:

@@ -82,6 +82,40 @@ def test_the_maps_are_the_curve_pixel_by_pixel(monkeypatch):
         pair_disagreement_maps(pair, 0.2, torch.tensor(1.0))
 
 
+def test_only_pixels_with_events_are_integrated_and_the_maps_are_the_whole_sensors():
+    # the maps from one grid over the whole sensor, by hand: each frame's latent at the gap's middle is its blurry
+    # frame times exp(θ C(mid + l)) over its exposure's mean of exp(θ C(t + l)) (trapezoids, times at grid points);
+    # a pixel without events keeps its blurry frame at every candidate
+    from evlatcorr.integral import cumulative_event_grid
+    from evlatcorr.pair_evidence import DEFAULT_RAMP_NEXT_FACTOR, DEFAULT_RAMP_US
+
+    seq = _pairs(3000.0)
+    pair = seq.pairs().split()[0]
+    keep = pair.events.x < 20  # the right third of the sensor has no events
+    pair = pair.replace(events=pair.events.select(keep))
+    s1, e1, s2, e2 = (float(v[0]) for v in (pair.exposure_start, pair.exposure_end, pair.exposure_start_next,
+                                            pair.exposure_end_next))
+    step = 125.0
+    start, bins = s1 - step, int(math.ceil((e2 + float(CANDIDATES.max()) - s1 + step) / step)) + 2
+    grid = cumulative_event_grid(pair.events, start, step, bins, "linear", torch.float64,
+                                 max_spread_us=DEFAULT_RAMP_US, next_spread_factor=DEFAULT_RAMP_NEXT_FACTOR)[0]
+    weights = (0.2 * (grid - grid[round(((e1 + s2) / 2 - start) / step)])).exp()
+    sums = weights.cumsum(0) - weights / 2
+
+    def at(t):
+        return ((t + CANDIDATES - start) / step).round().long().clamp(0, bins)
+
+    logs = []
+    for blurry, (a, b) in ((pair.blurry, (at(s1), at(e1))), (pair.blurry_next, (at(s2), at(e2)))):
+        mean = (sums[b] - sums[a]) / (b - a)[:, None, None]
+        latent = blurry[0].mean(0).double() * weights[at((e1 + s2) / 2)] / mean
+        logs.append(torch.log(latent.clamp_min(0) + 0.02))
+    maps = pair_disagreement_maps(pair, 0.2, CANDIDATES)
+    torch.testing.assert_close(maps.double(), (logs[0] - logs[1]).abs(), rtol=1e-4, atol=1e-5)
+    still = (logs[0] - logs[1]).abs()[:, :, 20:]
+    assert bool((still == still[:1]).all())  # no events: the same at every candidate
+
+
 def test_a_pair_with_a_black_saturated_or_flat_frame_tells_nothing():
     # a lens cap or a flash: such a frame agrees with its neighbour at no latency (a black next frame agreed best
     # where the first frame's latent was darkest, 4.5 ms for a true 3 ms), and the frame keeps its own estimate

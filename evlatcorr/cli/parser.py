@@ -153,7 +153,8 @@ def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> Non
     p.add_argument("--no-pairs", action="store_true",
                    help="--correct constant reads each frame with the next one and adds their agreement to the "
                         "frame's evidence (a model of single frames still reads the frame alone); this leaves it out "
-                        "(faster: the pair costs several times the frame's own search)")
+                        "(faster: the pair costs about as much as the frame's own search, and deblurring reads each "
+                        "frame's events up to the next exposure)")
     _common_options(p)
 
 
