@@ -121,3 +121,38 @@ def each_simulated(cases: list, evaluate, desc: str) -> tuple[list, str]:
             tqdm.write(f"{case.name}: not simulated: {err}")
     note = f"\n{len(refused)} case(s) not simulated, left out: " + "; ".join(refused) + "\n" if refused else ""
     return results, note
+
+
+def evaluate_split(parser: argparse.ArgumentParser, args: argparse.Namespace, keep, evaluate,
+                   what: str) -> tuple[list, str]:
+    """``evaluate(case)`` of the cases of ``args.split`` (``"tuning"``: dev and dev_wide; the first ``args.num`` of
+    each) that ``keep(case)`` accepts: a usage error naming ``what`` when there are none, the output folder ``args.out``
+    checked first, the script's exit when none could be simulated. Returns :func:`each_simulated`'s results and note."""
+    from evlatcorr.benchmark.accuracy import make_cases
+
+    splits = ("dev", "dev_wide") if args.split == "tuning" else (args.split,)
+    cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size)) if keep(c)]
+    if not cases:
+        parser.error(f"no {what} among the first {args.num} of split {args.split}")
+    check_out_folder(parser, args.out)
+    rows, note = each_simulated(cases, evaluate, "cases")
+    if not rows:
+        sys.exit("no case could be simulated: nothing to report")
+    return rows, note
+
+
+def write_results(folder: Path, title: str, body: str, rows: list[dict]) -> None:
+    """``results.md`` (the title, the command that ran and ``body``) and ``results.csv`` (``rows``) under ``folder``,
+    and the table printed."""
+    import csv
+    import shlex
+    import sys
+
+    command = shlex.join(["python", f"benchmarks/{Path(sys.argv[0]).name}", *sys.argv[1:]])
+    text = f"# {title}\n\n`{command}`\n\n{body}"
+    (folder / "results.md").write_text(text)
+    with open(folder / "results.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    print("\n" + text + f"\nwrote {folder / 'results.md'} and results.csv")

@@ -23,16 +23,12 @@ import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU page
 # isort: split
 
 import argparse  # noqa: E402
-import csv  # noqa: E402
 import math  # noqa: E402
-import shlex  # noqa: E402
 import statistics  # noqa: E402
-import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
 
-from evlatcorr.benchmark.accuracy import make_cases  # noqa: E402
 from evlatcorr.benchmark.accuracy_cases import simulate_case  # noqa: E402
 from evlatcorr.benchmark.compare import edi_psnr, recovery  # noqa: E402
 from evlatcorr.pair_evidence import pair_disagreement_maps  # noqa: E402
@@ -119,24 +115,10 @@ def main(argv: list[str] | None = None) -> None:
         p.error(f"--bands must be at least 1, got {args.bands}")
     if not all(w > 0 for w in args.weights):
         p.error(f"--weights must be positive (inf: the band alone), got {args.weights}")
-    splits = ("dev", "dev_wide") if args.split == "tuning" else (args.split,)
-    cases = [c for s in splits for c in make_cases(s, args.num, tuple(args.size))
-             if c.latency_model == "intensity_delay"]
-    if not cases:
-        p.error(f"no per-pixel delay case among the first {args.num} of split {args.split}")
-    _setup.check_out_folder(p, args.out)
-    rows, note = _setup.each_simulated(cases, lambda case: band_rows(case, args.bands, args.weights), "cases")
-    if not rows:
-        sys.exit("no case could be simulated: nothing to report")
-    command = shlex.join(["python", "benchmarks/pair_bands.py", *sys.argv[1:]])
-    text = (f"# A latency per brightness band from two frames' agreement\n\n`{command}`\n\n"
-            + to_markdown(rows, args.weights, args.bands) + note)
-    (args.out / "results.md").write_text(text)
-    with open(args.out / "results.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    print("\n" + text + f"\nwrote {args.out / 'results.md'} and results.csv")
+    rows, note = _setup.evaluate_split(p, args, lambda case: case.latency_model == "intensity_delay",
+                                       lambda case: band_rows(case, args.bands, args.weights), "per-pixel delay case")
+    _setup.write_results(args.out, "A latency per brightness band from two frames' agreement",
+                         to_markdown(rows, args.weights, args.bands) + note, rows)
 
 
 if __name__ == "__main__":

@@ -304,7 +304,11 @@ class EventLatencyCorrector(nn.Module):
     ``mode="constant"`` finds one latency per frame: the one whose EDI latent image is sharpest
     (see :func:`~evlatcorr.search.search_constant_latency`), searched in one pass over the events
     (a :class:`ConstantLatencyCorrector`). ``mode="spatial"`` gives a per-pixel map from a polynomial
-    of intensity (a :class:`~evlatcorr.spatial.SpatialLatencyCorrector`).
+    of intensity (a :class:`~evlatcorr.spatial.SpatialLatencyCorrector`). Given pairs (``blurry_next`` set) and no
+    trained ``curve``, spatial mode takes each frame's constant latency (with its pair's agreement) and adds how
+    much later dim pixels are, fitted to the pair's agreement pixel by pixel (:mod:`evlatcorr.pair_curve`; where the
+    pair shows no such slope the map is the constant latency): ``meta["pair_curves"]`` holds each pair's fit (None
+    where the pair told nothing), ``meta["latency_slope_us"]`` :math:`(B,)` its slope.
 
     The events of each sample must reach past ``exposure_end`` by the largest latency searched
     (late events of an exposure are stamped after it ends): by default the search range is 0 to
@@ -439,6 +443,10 @@ class EventLatencyCorrector(nn.Module):
     def _correct(self, frames: EventFrames) -> EventFrames:
         if self.constant is not None:
             return self.constant(frames)
+        if self.spatial.model is None and frames.blurry_next is not None and frames.exposure_start_next is not None:
+            out = correct_constant_latency(frames, self.threshold, self.config, frames.meta.get("previous_latency"),
+                                           frames.meta.get("latency_history"))
+            return _sloped_by_pairs(out, frames, self.config)
         if self.threshold != "auto":
             return self.spatial(frames)
         # spatial mode with threshold="auto": θ as constant mode estimates it (one for pairs, else per frame), at
@@ -446,6 +454,36 @@ class EventLatencyCorrector(nn.Module):
         check_search_size(frames.sensor_size)
         check_has_events(frames)
         return self.spatial(frames, threshold=_auto_threshold(frames, self.config, None))
+
+
+def _sloped_by_pairs(out: EventFrames, frames: EventFrames, config: SearchConfig) -> EventFrames:
+    """Spatial mode given pairs, without a trained curve: each frame's constant latency (``out``: the constant
+    corrector's, its reader with the pair's agreement) plus how far the curve fitted to its pair's agreement
+    (:func:`evlatcorr.pair_curve.fit_pair_curve`) departs from its own single latency at each pixel. A pair that tells
+    nothing (blank, no events past the second exposure) keeps the frame's constant latency."""
+    from evlatcorr.pair_curve import fit_pair_curve
+    from evlatcorr.spatial import _latency_bounds, _mid_exposure
+
+    theta = _threshold_vector(out.meta["threshold"], frames.batch_size)
+    fits, departures = [], []
+    for i, pair in enumerate(frames.split()):  # one fit per pair: a loop over frames, not pixels or events
+        try:
+            fit = fit_pair_curve(pair, float(theta[i]))
+        except ValueError:
+            fit = None
+        fits.append(fit)
+        departures.append(torch.zeros_like(out.latency[i:i + 1]) if fit is None
+                          else fit.departure(pair.blurry).to(out.latency))
+    with torch.no_grad():  # the map inside the search range, as spatial mode keeps its maps
+        low, high = (bound.to(out.latency).view(-1, 1, 1, 1) for bound in _latency_bounds(frames, config.search_range))
+        latency = torch.minimum(torch.maximum(out.latency + torch.cat(departures), low), high)
+        corrected = frames.events.shift(latency.double())
+        latent = _edi_deblur(frames.blurry, corrected, frames.exposure_start, frames.exposure_end,
+                             _mid_exposure(frames), theta, None, config.num_bins, integral="continuous")
+    meta = dict(out.meta)
+    meta["pair_curves"] = fits
+    meta["latency_slope_us"] = torch.tensor([0.0 if f is None else f.slope_us for f in fits], dtype=torch.float64)
+    return out.with_outputs(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
 
 
 def _warn_if_short(frames: EventFrames, config: SearchConfig) -> None:

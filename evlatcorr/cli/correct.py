@@ -148,10 +148,17 @@ def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: tor
             pending.clear()
 
     per_call = frames_per_call(device, args.mode)
-    for batch in progress(rec, len(rec), "correct"):
+    # spatial mode without a curve reads each frame with the next for how much later its dim pixels are
+    # (evlatcorr.pair_curve); a segment's last frame is corrected alone
+    paired = args.mode == "spatial" and args.curve is None and not args.no_pairs and not isinstance(theta, str)
+    if paired:
+        from evlatcorr.restore import pair_frames, pair_reach_us
+
+        rec.after_us = pair_reach_us(rec, args.search_us[1] if args.search_us else None)
+    for batch, pair in progress(pair_frames(rec) if paired else ((b, None) for b in rec), len(rec), "correct"):
         batch = batch.to(device)
         if has_events(batch):
-            pending.append(batch)
+            pending.append(batch if pair is None else pair.to(device))
             if len(pending) >= per_call:
                 correct_pending()
             continue

@@ -72,13 +72,16 @@ def build_parser() -> argparse.ArgumentParser:
                                                "the report with the suffix .png)")
     c.add_argument("--no-figure", action="store_true", help="write no figure")
     c.add_argument("--mode", choices=("constant", "spatial"), default="constant",
-                   help="one latency per frame (default), or a per-pixel map from a polynomial of intensity")
+                   help="one latency per frame (default), or a per-pixel map from a polynomial of intensity (without "
+                        "--curve: each frame's latency plus a slope over intensity fitted to its pair's agreement)")
     c.add_argument("--curve", type=Path, help="trained latency curve checkpoint (mode spatial)")
     _fuse_frames_option(c, "constant mode", "N frames either side too (a recording's latency changes slowly",
                         "the report")
     c.add_argument("--no-pairs", action="store_true",
                    help="fuse the reader's evidence alone: without each pair of consecutive frames' agreement (with "
-                        "--fuse-frames in constant mode; the report's pair_latency_us is where a pair agrees best)")
+                        "--fuse-frames in constant mode; the report's pair_latency_us is where a pair agrees best); "
+                        "in spatial mode without --curve, fit the paper's polynomial to each frame's sharpness "
+                        "instead of each frame's latency plus the slope over intensity fitted to its pair")
     _common_options(c)
 
     d = sub.add_parser("deblur", help="deblur every frame with EDI or a network; PNGs, a side-by-side GIF, a CSV",
@@ -152,7 +155,8 @@ def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> Non
                         "frames.csv")
     p.add_argument("--no-pairs", action="store_true",
                    help="--correct constant reads each frame with the next one and adds their agreement to the "
-                        "frame's evidence (a model of single frames still reads the frame alone); this leaves it out "
+                        "frame's evidence (a model of single frames still reads the frame alone), --correct spatial "
+                        "without --curve also the latency's slope over intensity fitted to it; this leaves it out "
                         "(faster: the pair costs about as much as the frame's own search, and deblurring reads each "
                         "frame's events up to the next exposure)")
     _common_options(p)

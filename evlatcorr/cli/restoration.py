@@ -160,8 +160,10 @@ def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _
 
         corrector = StreamingLatencyCorrector(corrector, args.fuse_frames, name_frames=False)  # named by frame here
     pairs = needs_pairs(args.model, task)
-    # a model of single frames: the constant corrector still reads each frame with the next for their agreement
-    evidence = not pairs and args.correct == "constant" and not args.no_pairs
+    # a model of single frames: the constant corrector still reads each frame with the next for their agreement, and
+    # spatial mode without a curve for the slope fitted to it (evlatcorr.pair_curve)
+    evidence = not pairs and not args.no_pairs and (args.correct == "constant"
+                                                    or (args.correct == "spatial" and args.curve is None))
     if pairs or evidence:  # the first frame's events must reach the next exposure's end, plus the latency searched
         rec.after_us = pair_reach_us(rec, high)
     if pairs:  # and REFID reads before the first exposure
