@@ -113,6 +113,9 @@ def main(argv: list[str] | None = None) -> None:
                         f"{DEFAULT_RAMP_NEXT_FACTOR:g}; 0: no such limit)")
     p.add_argument("--frame-gap", type=float, default=1.0,
                    help="time from one exposure's start to the next, in exposure times (default: 1, back to back)")
+    p.add_argument("--slope", action="store_true",
+                   help="also score each 'fused ±2, pairs W' with the sequence's slope over intensity fitted to its "
+                        "pairs (evlatcorr.pair_curve; what evlatcorr correct --mode spatial does)")
     p.add_argument("--no-ideal", action="store_true",
                    help="skip the sequences' ideal events (estimated by default: what bright light gives)")
     _setup.add_exposure_option(p)
@@ -143,7 +146,8 @@ def main(argv: list[str] | None = None) -> None:
         cases, lambda case: evaluate_sequence(case, args.frames, windows, ideal=not args.no_ideal,
                                               pair_weights=args.pair_weights, frame_gap=args.frame_gap,
                                               ramp_us=args.pair_ramp_us,
-                                              ramp_next_factor=args.pair_ramp_next or None), "sequences")
+                                              ramp_next_factor=args.pair_ramp_next or None, slope=args.slope),
+        "sequences")
     rows = [row for case_rows in per_case for row in case_rows]
     seconds = time.perf_counter() - t0
     if not rows:

@@ -69,8 +69,8 @@ class PairCurve:
     def departure(self, blurry: Tensor) -> Tensor:
         """Each pixel's latency less the single latency, µs :math:`(B, 1, H, W)`: what to add to a frame's constant
         latency (the corrector's, which also reads the frame's sharpness) for the curve's spread over intensities."""
-        with torch.no_grad():
-            return self.curve.to(blurry.device)(blurry) - self.single_latency_us
+        f = self.curve.transform(PolynomialLatency.intensity(blurry.detach()))  # exactly 0 without a slope
+        return (self.offset_us - self.single_latency_us) + self.slope_us * f
 
 
 def pair_curve_table(pair: EventFrames, threshold: float, offsets: Tensor, slopes: Tensor,

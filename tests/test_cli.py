@@ -738,26 +738,62 @@ def test_spatial_correct_writes_each_frames_map_and_shifts_the_events_by_it(simu
         np.testing.assert_allclose(f["events/t"][:], np.sort(t - maps[frame, 0, y, x]), rtol=0, atol=1e-6)
 
 
-def test_spatial_mode_reads_each_frame_with_the_next_unless_told_not_to(simulated, tmp_path):
-    # without --curve, spatial mode takes each frame's constant latency with its pair's agreement plus the slope
-    # fitted to the pair (none on this constant-latency recording: the map is one latency); a segment's last frame,
-    # and every frame with --no-pairs, gets the sharpness fit; deblur does the same
-    for command, out, report in (("correct", "c.h5", "c.csv"), ("deblur", "d", "d/frames.csv")):
-        rows = {}
-        for name, extra in (("paired", ()), ("alone", ("--no-pairs",))):
-            target = tmp_path / name / out
-            args = (command, str(simulated), str(target), "--num-bins", "100", "--threshold", "0.2")
-            r = run(*args, *(("--mode", "spatial") if command == "correct" else ("--correct", "spatial")), *extra,
-                    cwd=tmp_path)
-            assert r.returncode == 0, r.stderr
-            rows[name] = list(csv.DictReader(open(tmp_path / name / report)))
-        paired, alone = rows["paired"], rows["alone"]
-        assert [row["source"] for row in paired] == ["reader", "fit"], command
-        assert [row["source"] for row in alone] == ["fit", "fit"], command
-        assert paired[0]["latency_min_us"] == paired[0]["latency_max_us"] == paired[0]["latency_us"]
-        assert abs(float(paired[0]["latency_us"]) - 3000.0) < 1000.0
-        # the last frame's fit alike (the paired run's frames hold more events after their window)
-        assert abs(float(paired[1]["latency_us"]) - float(alone[1]["latency_us"])) < 5.0
+def test_spatial_mode_reads_pairs_unless_told_not_to(simulated, tmp_path):
+    # without --curve, spatial mode adds a slope over intensity fitted to the pairs' agreement: correct to constant
+    # mode's fused latencies (one curve for the recording; none on this constant-latency recording, so the maps are
+    # those latencies), deblur to each frame's latency with its pair (a segment's last frame: the sharpness fit);
+    # --no-pairs: the sharpness fit on every frame
+    base = ("--num-bins", "100", "--threshold", "0.2")
+    rows = {}
+    for name, args in (("constant", ("correct", "c.h5")), ("spatial", ("correct", "c.h5", "--mode", "spatial")),
+                       ("spatial alone", ("correct", "c.h5", "--mode", "spatial", "--no-pairs")),
+                       ("deblur", ("deblur", "d", "--correct", "spatial")),
+                       ("deblur alone", ("deblur", "d", "--correct", "spatial", "--no-pairs"))):
+        folder = tmp_path / name.replace(" ", "_")
+        r = run(args[0], str(simulated), str(folder / args[1]), *args[2:], *base, cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+        assert ("latency over intensity: no slope" in r.stderr) == (name == "spatial"), r.stderr
+        report = folder / ("c.csv" if args[0] == "correct" else "d/frames.csv")
+        rows[name] = list(csv.DictReader(open(report)))
+    constant, spatial = rows["constant"], rows["spatial"]
+    assert [r["latency_us"] for r in spatial] == [r["latency_us"] for r in constant]
+    assert all(r["latency_min_us"] == r["latency_max_us"] == r["latency_us"] for r in spatial)
+    with h5py.File(tmp_path / "spatial" / "c.h5") as f:
+        maps = f["frames/estimated_latency_map"][:]
+        assert maps.shape == (2, 1, 48, 64) and f.attrs["corrected_mode"] == "spatial"
+        np.testing.assert_allclose(maps.mean(axis=(1, 2, 3)), [float(r["latency_us"]) for r in constant], atol=0.06)
+    assert [r["source"] for r in rows["spatial alone"]] == ["fit", "fit"]
+    assert [r["source"] for r in rows["deblur"]] == ["reader", "fit"]
+    assert [r["source"] for r in rows["deblur alone"]] == ["fit", "fit"]
+    assert abs(float(rows["deblur"][0]["latency_us"]) - 3000.0) < 1000.0
+    # the last frame's fit alike (the paired run's frames hold more events after their window)
+    assert abs(float(rows["deblur"][1]["latency_us"]) - float(rows["deblur alone"][1]["latency_us"])) < 5.0
+
+
+@pytest.mark.slow
+def test_spatial_correct_finds_dim_pixels_later(tmp_path):
+    # a recording whose dim pixels are later (0.5 ms at white to 8 ms at black): one slope for the recording, and each
+    # frame's map the fused constant latency plus its departure
+    from evlatcorr.pair_curve import fit_pair_curve
+
+    seq = simulate("astronaut", num_frames=3, height=48, width=64, latency="intensity_delay",
+                   latency_range_us=(500.0, 8000.0), max_speed_px_per_ms=1.0, seed=0)
+    write_sequence(tmp_path / "delay.h5", seq)
+    for name, extra in (("constant", ()), ("spatial", ("--mode", "spatial"))):
+        r = run("correct", str(tmp_path / "delay.h5"), str(tmp_path / f"{name}.h5"), "--num-bins", "100",
+                "--threshold", "0.2", *extra, cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+    assert "latency over intensity: " in r.stderr and "us later at black than at white" in r.stderr
+    fit = fit_pair_curve(seq.pairs(), 0.2)
+    constant = [float(r["latency_us"]) for r in csv.DictReader(open(tmp_path / "constant.csv"))]
+    with h5py.File(tmp_path / "spatial.h5") as f:
+        maps = torch.from_numpy(f["frames/estimated_latency_map"][:]).double()
+    expected = (torch.tensor(constant, dtype=torch.float64).view(-1, 1, 1, 1)
+                + fit.departure(seq.frames().blurry).double()).clamp(0.0, 20000.0)
+    torch.testing.assert_close(maps, expected, atol=0.06, rtol=0.0)
+    truth = seq.frames().meta["true_latency"].double()
+    flat = torch.tensor(constant, dtype=torch.float64).view(-1, 1, 1, 1)
+    assert float((maps - truth).abs().mean()) < 0.7 * float((flat - truth).abs().mean())
 
 
 def test_a_cut_off_recording_is_corrected_and_its_warnings_said_once(tmp_path):
@@ -811,8 +847,9 @@ def test_correct_an_event_utils_recording_streams_its_events_and_keeps_numbers(e
     monkeypatch.setattr(correct.tempfile, "TemporaryDirectory", lambda **k: scratch_dirs.append(k.get("dir"))
                         or temporary_directory(**k))
     out = tmp_path / "results" / "corrected.h5"
+    # (spatial: the sharpness fit, whose maps vary; with pairs this recording's maps would be one latency each)
     assert cli.main(["correct", str(event_utils_recording), str(out), "--mode", mode, "--num-bins", "100",
-                     "--threshold", "0.2"]) == 0
+                     "--threshold", "0.2", *(["--no-pairs"] if mode == "spatial" else [])]) == 0
     assert len(kept) == 2 and all(latency.dim() == 0 for latency in kept)
     # the scratch maps lie beside the output (not in a temp folder that may be in memory), and are gone after
     assert scratch_dirs == ([out.parent] if mode == "spatial" else [])

@@ -140,6 +140,20 @@ def test_each_pairs_agreement_is_fused_at_each_weight_with_a_cameras_gap():
     assert [r["latency_us"] for r in rows if r["estimate"] == "fused ±2, pairs 30"] != fused
 
 
+def test_the_sequences_slope_over_intensity_is_scored_beside_the_fused_latency():
+    # --slope: one curve fitted to all the sequence's pairs; a constant-latency sequence shows no slope, so the
+    # sloped rows are the fused ones; a per-pixel delay sequence's maps spread, their mean the row's latency
+    constant = next(c for c in make_cases("dev", size=(48, 64)) if c.latency_model == "constant")
+    rows = evaluate_sequence(constant, num_frames=3, windows={}, ideal=False, pair_weights=(10.0,), slope=True)
+    fused = [r for r in rows if r["estimate"] == "fused ±2, pairs 10"]
+    sloped = [r for r in rows if r["estimate"] == "fused ±2, pairs 10, sloped"]
+    assert len(sloped) == len(fused) == 3
+    for a, b in zip(fused, sloped):
+        assert {k: v for k, v in a.items() if k != "estimate"} == {k: v for k, v in b.items() if k != "estimate"}
+    assert not any(r["estimate"].endswith("sloped") for r in evaluate_sequence(
+        constant, num_frames=3, windows={}, ideal=False, pair_weights=(10.0,)))
+
+
 def test_a_case_the_simulator_refuses_is_left_out_and_named(tmp_path):
     from tests.commands import ROOT, run_script
 

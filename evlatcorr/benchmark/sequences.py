@@ -28,6 +28,7 @@ import torch
 from evlatcorr.benchmark.accuracy import NO_GAP_DB, Case, simulate_case
 from evlatcorr.benchmark.accuracy_compare import CLEAR_CHANGE_DB, bootstrap_interval
 from evlatcorr.benchmark.compare import edi_psnr, recovery
+from evlatcorr.pair_curve import fit_pair_curve
 from evlatcorr.pair_evidence import DEFAULT_RAMP_NEXT_FACTOR, DEFAULT_RAMP_US, pair_log_odds
 from evlatcorr.temporal import frame_evidence, fuse_latencies
 
@@ -44,7 +45,8 @@ LOSING_DB = 0.5
 def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple] | None = None,
                       ideal: bool = True, pair_weights: Sequence[float] = (), frame_gap: float = 1.0,
                       ramp_us: float = DEFAULT_RAMP_US,
-                      ramp_next_factor: float | None = DEFAULT_RAMP_NEXT_FACTOR) -> list[dict[str, Any]]:
+                      ramp_next_factor: float | None = DEFAULT_RAMP_NEXT_FACTOR,
+                      slope: bool = False) -> list[dict[str, Any]]:
     """Every frame of a case simulated as a sequence, scored with its own latency and with each fused one.
 
     Args:
@@ -62,6 +64,11 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
             frames have a gap).
         ramp_us: the pairs' ramps' longest, µs (0: steps).
         ramp_next_factor: the ramps' longest as a multiple of the interval to the pixel's next event (None: none).
+        slope: with ``pair_weights``, also each ``"fused ±2, pairs w"`` with the sequence's slope over intensity
+            (``"fused ±2, pairs w, sloped"``): one curve fitted to all its pairs' agreement
+            (:func:`evlatcorr.pair_curve.fit_pair_curve`), each frame's map the fused latency plus the curve's
+            departure from its single latency at the frame's intensities (what ``evlatcorr correct --mode spatial``
+            does); its ``latency_us`` is the map's mean.
 
     Returns:
         one row per frame and estimate (``"per frame"`` and each window): ``case``, ``model``, ``frame``,
@@ -93,31 +100,59 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
             return []
         return seq.pairs(which, after_us=case.after_us).split()
 
+    def sloped(which: str, sequence: list, estimates: dict) -> dict[str, torch.Tensor | None]:
+        """Each estimate's departure maps per frame (None: the estimate as it is)."""
+        out: dict[str, Any] = {name: None for name in estimates}
+        if not (slope and pair_weights and num_frames >= 2):
+            return out
+        try:
+            fit = fit_pair_curve(seq.pairs(which, after_us=case.after_us), case.threshold)
+        except ValueError:  # no pair tells anything: no slope
+            fit = None
+        has_slope = fit is not None and fit.slope_us > 0  # without a slope the maps are the fused latencies
+        departures = [fit.departure(frame.blurry).double() if has_slope else None for frame in sequence]
+        for name in list(estimates):
+            if name.startswith("fused ±2, pairs"):
+                estimates[f"{name}, sloped"] = estimates[name]
+                out[f"{name}, sloped"] = departures
+        return out
+
     rows = []
     kept, estimates = _estimates(frames, case.threshold, windows, pairs("delayed"), pair_weights, ramps)
+    maps = sloped("delayed", frames, estimates)
     for n, i in enumerate(kept):
         frame = frames[i]
         true = float(frame.meta["true_latency"].mean())
         psnr_ideal, psnr_uncorrected = edi_psnr(ideal_frames[i], case.threshold), edi_psnr(frame, case.threshold)
         for name, values in estimates.items():
-            value = float(values[n])
+            value = _latency(values[n], maps[name], i, case.exposure_us)
             psnr = edi_psnr(frame, case.threshold, latency=value)
+            value = float(torch.as_tensor(value).mean())
             rows.append(dict(case=case.name, model=case.latency_model, frame=i, estimate=name, latency_us=value,
                              true_latency_us=true, error_us=value - true, psnr_ideal=psnr_ideal,
                              psnr_uncorrected=psnr_uncorrected, psnr_corrected=psnr,
                              recovery=recovery(psnr, psnr_uncorrected, psnr_ideal, NO_GAP_DB)))
     if ideal:
         kept, estimates = _estimates(ideal_frames, case.threshold, windows, pairs("ideal"), pair_weights, ramps)
+        maps = sloped("ideal", ideal_frames, estimates)
         for n, i in enumerate(kept):
             psnr_ideal = edi_psnr(ideal_frames[i], case.threshold)
             for name, values in estimates.items():
-                value = float(values[n])
+                value = _latency(values[n], maps[name], i, case.exposure_us)
+                psnr = edi_psnr(ideal_frames[i], case.threshold, latency=value)
+                value = float(torch.as_tensor(value).mean())
                 rows.append(dict(case=case.name, model=IDEAL, frame=i, estimate=name, latency_us=value,
                                  true_latency_us=0.0, error_us=value, psnr_ideal=psnr_ideal,
-                                 psnr_uncorrected=psnr_ideal,
-                                 psnr_corrected=edi_psnr(ideal_frames[i], case.threshold, latency=value),
-                                 recovery=math.nan))
+                                 psnr_uncorrected=psnr_ideal, psnr_corrected=psnr, recovery=math.nan))
     return rows
+
+
+def _latency(value: torch.Tensor, departures: list | None, frame: int, high: float) -> float | torch.Tensor:
+    """A frame's estimate: its fused latency, or with ``departures`` that plus the frame's departure map, held inside
+    0 to ``high`` (µs) as spatial mode holds its maps inside the search range."""
+    if departures is None or departures[frame] is None:
+        return float(value)
+    return (float(value) + departures[frame]).clamp(0.0, high)
 
 
 def _estimates(frames: list, threshold: float, windows: dict[str, tuple], pairs: Sequence = (),

@@ -7,6 +7,7 @@ import argparse
 import contextlib
 import itertools
 import math
+import sys
 import tempfile
 import time
 import warnings
@@ -57,7 +58,11 @@ def cmd_correct(args: argparse.Namespace) -> int:
     parse_threshold(args.threshold)  # a bad value fails before any reading
     rec = open_input(args)
     theta = threshold_of_recording(args, rec, device)
-    corrector = build_corrector(args, args.mode, args.curve, theta)
+    # spatial mode without a curve: the constant latencies (fused as constant mode fuses them) plus the recording's
+    # slope over intensity, fitted to its first pairs' agreement (_sloped_maps)
+    sloped = args.mode == "spatial" and args.curve is None and not args.no_pairs and not isinstance(theta, str)
+    search_mode = "constant" if sloped else args.mode
+    corrector = build_corrector(args, search_mode, args.curve, theta)
     with contextlib.ExitStack() as stack:  # both files appear only when both are complete
         report_tmp = stack.enter_context(atomic_path(report))
         h5 = maps = None
@@ -70,13 +75,15 @@ def cmd_correct(args: argparse.Namespace) -> int:
             scratch = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix=f".{args.output.name}.maps-",
                                                                            dir=args.output.parent)))
             maps = stack.enter_context(h5py.File(scratch / "maps.h5", "w"))
-        frames = _correct_frames(args, rec, corrector, theta, device, h5, maps)
+        frames = _correct_frames(args, rec, corrector, theta, device, h5, None if sloped else maps, search_mode)
         if not frames.rows:
             raise ValueError(f"{args.input}: no frames")
         latencies = frames.latencies
-        if args.mode == "constant" and args.fuse_frames > 0:
+        if search_mode == "constant" and args.fuse_frames > 0:
             pairs = None if args.no_pairs else _pair_evidence(args, frames, theta, device)
             latencies = _fused(frames.rows, latencies, frames.evidence, args.fuse_frames, args.search_us, pairs)
+        if sloped:
+            latencies = _sloped_maps(args, frames, latencies, theta, device, maps)
         _write_corrected(args, rec, h5, frames, latencies, maps)
         write_csv(report_tmp, frames.rows)
     rows = frames.rows
@@ -107,25 +114,27 @@ class _CorrectedFrames(NamedTuple):
 
 
 def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: torch.device, h5,
-                    maps=None) -> _CorrectedFrames:
+                    maps=None, mode: str | None = None) -> _CorrectedFrames:
     """Every frame's latency (``corrector``; a frame without events keeps the previous one), its blurry image appended
     to ``h5``'s ``frames/blurry`` as it comes when ``h5`` is an open file, and in spatial mode its latency map to
-    ``maps``'s ``frames/estimated_latency_map`` (an open file: the output or a scratch one)."""
+    ``maps``'s ``frames/estimated_latency_map`` (an open file: the output or a scratch one). ``mode``: the
+    corrector's (default ``args.mode``)."""
     from evlatcorr.frames import EventFrames
     from evlatcorr.restore import has_events
 
+    mode = mode or args.mode
     kept = _CorrectedFrames([], [], [], [], [], [math.inf, -math.inf])
     fused = ("; the latency written is fused with the frames either side (--fuse-frames; frame_latency_us keeps "
-             "this one)") if args.mode == "constant" and args.fuse_frames > 0 else ""
+             "this one)") if mode == "constant" and args.fuse_frames > 0 else ""
     frame_warnings = FrameWarnings({"fallback": fused, "clipped": fused, "flat": fused, "few_events": fused})
     pending: list[Any] = []  # frames with events not yet corrected, searched in one call (frames_per_call)
 
     def record(batch, out, seconds: float, skipped: str = "") -> None:
         kept.rows.append(latency_row(batch, out, theta, seconds, skipped=skipped))
-        kept.evidence.append(frame_evidence(out)[0][1:] if args.mode == "constant" and not skipped else (None, None))
+        kept.evidence.append(frame_evidence(out)[0][1:] if mode == "constant" and not skipped else (None, None))
         latency = out.latency[0, 0].cpu()
         kept.extremes[:] = [min(kept.extremes[0], float(latency.min())), max(kept.extremes[1], float(latency.max()))]
-        if args.mode == "constant":  # one latency for the whole frame
+        if mode == "constant":  # one latency for the whole frame
             kept.latencies.append(latency.reshape(-1)[0].double())
         elif maps is not None:
             _append_frame(maps, "frames/estimated_latency_map", latency[None].float().numpy())
@@ -147,18 +156,11 @@ def _correct_frames(args: argparse.Namespace, rec, corrector, theta, device: tor
                 record(batch, part, seconds)
             pending.clear()
 
-    per_call = frames_per_call(device, args.mode)
-    # spatial mode without a curve reads each frame with the next for how much later its dim pixels are
-    # (evlatcorr.pair_curve); a segment's last frame is corrected alone
-    paired = args.mode == "spatial" and args.curve is None and not args.no_pairs and not isinstance(theta, str)
-    if paired:
-        from evlatcorr.restore import pair_frames, pair_reach_us
-
-        rec.after_us = pair_reach_us(rec, args.search_us[1] if args.search_us else None)
-    for batch, pair in progress(pair_frames(rec) if paired else ((b, None) for b in rec), len(rec), "correct"):
+    per_call = frames_per_call(device, mode)
+    for batch in progress(rec, len(rec), "correct"):
         batch = batch.to(device)
         if has_events(batch):
-            pending.append(batch if pair is None else pair.to(device))
+            pending.append(batch)
             if len(pending) >= per_call:
                 correct_pending()
             continue
@@ -261,6 +263,52 @@ def _fused(rows: list[dict], latencies: list[torch.Tensor], evidence: list[tuple
         row["frame_latency_us"] = row["latency_us"]
         row["latency_us"] = row["latency_min_us"] = row["latency_max_us"] = f"{float(fused[k]):.1f}"
     return [torch.full_like(m, float(v)) for m, v in zip(latencies, fused)]
+
+
+#: the recording's slope over intensity is fitted to its first pairs, as its contrast threshold is estimated from them
+CURVE_PAIRS = 12
+
+
+def _sloped_maps(args: argparse.Namespace, frames: _CorrectedFrames, latencies: list[torch.Tensor], theta,
+                 device: torch.device, maps) -> list[torch.Tensor]:
+    """Spatial mode without a curve: one curve ``ψ(L) = a + b · f(L)`` for the recording, fitted to the agreement of
+    its first :data:`CURVE_PAIRS` pairs with events (:func:`evlatcorr.pair_curve.fit_pair_curve`), and each frame's
+    map its constant latency (``latencies``, fused) plus the curve's departure from its single latency at the frame's
+    intensities, held inside the search range. The maps go to ``maps``'s ``frames/estimated_latency_map``, the rows get
+    their mean, lowest and highest latency; returns each frame's mean. Without a slope every map is one latency."""
+    from evlatcorr.frames import EventFrames
+    from evlatcorr.pair_curve import fit_pair_curve
+    from evlatcorr.restore import has_events, pair_frames, pair_reach_us
+
+    rec = open_input(args)
+    rec.after_us = pair_reach_us(rec, args.search_us[1] if args.search_us else None)
+    pairs = [pair.to(device) for _, pair in itertools.islice(pair_frames(rec), CURVE_PAIRS)
+             if pair is not None and has_events(pair)]
+    fit = None
+    with warnings.catch_warnings():  # what the pairs' frames say, the main pass has said
+        warnings.simplefilter("ignore")
+        with contextlib.suppress(ValueError):  # no pair tells anything: no slope
+            fit = fit_pair_curve(EventFrames.cat(pairs), float(theta)) if pairs else None
+    print("latency over intensity: " + (f"{fit.slope_us:.0f} us later at black than at white (fitted to the first "
+                                        f"{fit.pairs_used} pairs' agreement)" if fit is not None and fit.slope_us
+                                        else "no slope (one latency per frame)"), file=sys.stderr)
+    frames.extremes[:] = [math.inf, -math.inf]
+    out = []
+    for k, (batch, row) in enumerate(zip(open_input(args), frames.rows)):
+        h, w = batch.sensor_size
+        base = float(latencies[k].mean())
+        latency = torch.full((1, h, w), base, dtype=torch.float64)
+        if fit is not None and fit.slope_us:
+            low, high = args.search_us or (0.0, float(batch.exposure_end - batch.exposure_start))
+            departure = fit.departure(batch.blurry.to(device))[0].double().cpu()
+            latency = (latency + departure).clamp(min(low, base), max(high, base))
+        _append_frame(maps, "frames/estimated_latency_map", latency.float().numpy())
+        lowest, highest = float(latency.min()), float(latency.max())
+        frames.extremes[:] = [min(frames.extremes[0], lowest), max(frames.extremes[1], highest)]
+        row["latency_us"] = f"{float(latency.mean()):.1f}"
+        row["latency_min_us"], row["latency_max_us"] = f"{lowest:.1f}", f"{highest:.1f}"
+        out.append(latency.mean())
+    return out
 
 
 def _corrected_stream(rec, starts: np.ndarray, latencies: list[torch.Tensor], on_disk=None,

@@ -73,15 +73,18 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--no-figure", action="store_true", help="write no figure")
     c.add_argument("--mode", choices=("constant", "spatial"), default="constant",
                    help="one latency per frame (default), or a per-pixel map from a polynomial of intensity (without "
-                        "--curve: each frame's latency plus a slope over intensity fitted to its pair's agreement)")
+                        "--curve: constant mode's latencies plus a slope over intensity fitted to the first pairs' "
+                        "agreement)")
     c.add_argument("--curve", type=Path, help="trained latency curve checkpoint (mode spatial)")
-    _fuse_frames_option(c, "constant mode", "N frames either side too (a recording's latency changes slowly",
+    _fuse_frames_option(c, "constant mode (and spatial mode without --curve)",
+                        "N frames either side too (a recording's latency changes slowly",
                         "the report")
     c.add_argument("--no-pairs", action="store_true",
                    help="fuse the reader's evidence alone: without each pair of consecutive frames' agreement (with "
                         "--fuse-frames in constant mode; the report's pair_latency_us is where a pair agrees best); "
                         "in spatial mode without --curve, fit the paper's polynomial to each frame's sharpness "
-                        "instead of each frame's latency plus the slope over intensity fitted to its pair")
+                        "instead of adding the recording's slope over intensity, fitted to its first pairs, to "
+                        "constant mode's latencies")
     _common_options(c)
 
     d = sub.add_parser("deblur", help="deblur every frame with EDI or a network; PNGs, a side-by-side GIF, a CSV",
