@@ -19,7 +19,8 @@ from evlatcorr.search import ConstantSearchResult, _search_constant_latency, fal
 from evlatcorr.search_candidates import HOT_PIXEL_LOG_RANGE
 from evlatcorr.temporal import LatencyHistory
 
-__all__ = ["EventLatencyCorrector", "ConstantLatencyCorrector", "correct_constant_latency", "SearchConfig"]
+__all__ = ["EventLatencyCorrector", "ConstantLatencyCorrector", "SlopedLatencyCorrector", "correct_constant_latency",
+           "SearchConfig"]
 
 _MODES = ("constant", "spatial")
 
@@ -462,28 +463,73 @@ def _sloped_by_pairs(out: EventFrames, frames: EventFrames, config: SearchConfig
     (:func:`evlatcorr.pair_curve.fit_pair_curve`) departs from its own single latency at each pixel. A pair that tells
     nothing (blank, no events past the second exposure) keeps the frame's constant latency."""
     from evlatcorr.pair_curve import fit_pair_curve
-    from evlatcorr.spatial import _latency_bounds, _mid_exposure
 
     theta = _threshold_vector(out.meta["threshold"], frames.batch_size)
-    fits, departures = [], []
+    fits = []
     for i, pair in enumerate(frames.split()):  # one fit per pair: a loop over frames, not pixels or events
         try:
-            fit = fit_pair_curve(pair, float(theta[i]))
+            fits.append(fit_pair_curve(pair, float(theta[i])))
         except ValueError:
-            fit = None
-        fits.append(fit)
-        departures.append(torch.zeros_like(out.latency[i:i + 1]) if fit is None
-                          else fit.departure(pair.blurry).to(out.latency))
-    with torch.no_grad():  # the map inside the search range, as spatial mode keeps its maps
-        low, high = (bound.to(out.latency).view(-1, 1, 1, 1) for bound in _latency_bounds(frames, config.search_range))
-        latency = torch.minimum(torch.maximum(out.latency + torch.cat(departures), low), high)
-        corrected = frames.events.shift(latency.double())
-        latent = _edi_deblur(frames.blurry, corrected, frames.exposure_start, frames.exposure_end,
-                             _mid_exposure(frames), theta, None, config.num_bins, integral="continuous")
+            fits.append(None)
+    return _with_slopes(out, frames, config, fits)
+
+
+def _with_slopes(out: EventFrames, frames: EventFrames, config: SearchConfig, fits: list) -> EventFrames:
+    """``out`` (a constant corrector's) with each frame's latency plus its curve's departure (``fits``: a
+    :class:`~evlatcorr.pair_curve.PairCurve` or None per frame), held inside the search range, its events and latent
+    following; as it is where no curve has a slope. ``meta["pair_curves"]`` and ``meta["latency_slope_us"]`` say
+    which."""
+    from evlatcorr.spatial import _latency_bounds, _mid_exposure
+
     meta = dict(out.meta)
     meta["pair_curves"] = fits
     meta["latency_slope_us"] = torch.tensor([0.0 if f is None else f.slope_us for f in fits], dtype=torch.float64)
+    if not any(f is not None and f.slope_us for f in fits):
+        return out.with_outputs(meta=meta)
+    theta = _threshold_vector(out.meta["threshold"], frames.batch_size)
+    with torch.no_grad():  # the map inside the search range, as spatial mode keeps its maps
+        departure = torch.cat([torch.zeros_like(out.latency[i:i + 1]) if f is None
+                               else f.departure(frames.blurry[i:i + 1]).to(out.latency) for i, f in enumerate(fits)])
+        low, high = (bound.to(out.latency).view(-1, 1, 1, 1) for bound in _latency_bounds(frames, config.search_range))
+        latency = torch.minimum(torch.maximum(out.latency + departure, low), high)
+        corrected = frames.events.shift(latency.double())
+        latent = _edi_deblur(frames.blurry, corrected, frames.exposure_start, frames.exposure_end,
+                             _mid_exposure(frames), theta, None, config.num_bins, integral="continuous")
     return out.with_outputs(latency=latency.contiguous(), corrected=corrected, latent=latent, meta=meta)
+
+
+class SlopedLatencyCorrector(nn.Module):
+    """A constant corrector's latencies plus one curve's departure over intensity, for every frame: what the command
+    line's spatial mode runs on a recording without a trained curve, the curve fitted to the recording's first pairs
+    (:func:`evlatcorr.pair_curve.fit_pair_curve`).
+
+    Args:
+        corrector: a constant corrector (an :class:`EventLatencyCorrector`, or one wrapped in a
+            :class:`~evlatcorr.temporal.StreamingLatencyCorrector`).
+        curve: the :class:`~evlatcorr.pair_curve.PairCurve` whose departure from its single latency is added.
+        config: the corrector's search settings (its range holds the maps; its bins the latent's EDI).
+
+    Example:
+        >>> from evlatcorr.pair_curve import fit_pair_curve
+        >>> from evlatcorr.simulate import simulate
+        >>> seq = simulate("camera", num_frames=3, height=24, width=32, latency_us=3000.0, seed=0)
+        >>> constant = EventLatencyCorrector()
+        >>> sloped = SlopedLatencyCorrector(constant, fit_pair_curve(seq.pairs(), 0.2), constant.config)
+        >>> out = sloped(seq.frames())
+        >>> out.meta["latency_slope_us"].tolist()  # no slope: the constant corrector's output
+        [0.0, 0.0, 0.0]
+    """
+
+    def __init__(self, corrector: nn.Module, curve: Any, config: SearchConfig) -> None:
+        super().__init__()
+        self.corrector, self.curve, self.config = corrector, curve, config
+
+    def extra_repr(self) -> str:
+        return f"offset_us={self.curve.offset_us:.0f}, slope_us={self.curve.slope_us:.0f}"
+
+    def forward(self, frames: EventFrames) -> EventFrames:
+        out = self.corrector(frames)
+        return _with_slopes(out, frames, self.config, [self.curve] * frames.batch_size)
 
 
 def _warn_if_short(frames: EventFrames, config: SearchConfig) -> None:

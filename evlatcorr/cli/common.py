@@ -160,6 +160,41 @@ class _LaterFrames:
         return lines
 
 
+#: the recording's slope over intensity is fitted to its first pairs, as its contrast threshold is estimated from them
+CURVE_PAIRS = 12
+
+
+def sloped_spatial(args: argparse.Namespace, mode: str, theta) -> bool:
+    """Whether spatial ``mode`` runs as constant mode plus the recording's slope over intensity: without ``--curve``
+    or ``--no-pairs``, and with one θ for the recording."""
+    return mode == "spatial" and args.curve is None and not args.no_pairs and not isinstance(theta, str)
+
+
+def recording_curve(args: argparse.Namespace, theta: float, device: torch.device):
+    """One curve ``ψ(L) = a + b · f(L)`` for the recording, fitted to the agreement of its first :data:`CURVE_PAIRS`
+    pairs with events (:func:`evlatcorr.pair_curve.fit_pair_curve`), or None where no pair tells anything; the slope
+    found is said on stderr."""
+    import itertools
+
+    from evlatcorr.frames import EventFrames
+    from evlatcorr.pair_curve import fit_pair_curve
+    from evlatcorr.restore import has_events, pair_frames, pair_reach_us
+
+    rec = open_input(args)
+    rec.after_us = pair_reach_us(rec, args.search_us[1] if args.search_us else None)
+    pairs = [pair.to(device) for _, pair in itertools.islice(pair_frames(rec), CURVE_PAIRS)
+             if pair is not None and has_events(pair)]
+    fit = None
+    with warnings.catch_warnings():  # what the pairs' frames say, the main pass says of them
+        warnings.simplefilter("ignore")
+        with contextlib.suppress(ValueError):  # no pair tells anything: no slope
+            fit = fit_pair_curve(EventFrames.cat(pairs), float(theta)) if pairs else None
+    print("latency over intensity: " + (f"{fit.slope_us:.0f} us later at black than at white (fitted to the first "
+                                        f"{fit.pairs_used} pairs' agreement)" if fit is not None and fit.slope_us
+                                        else "no slope (one latency per frame)"), file=sys.stderr)
+    return fit
+
+
 def build_corrector(args: argparse.Namespace, mode: str = "constant", curve: Path | None = None,
                theta: float | str = 0.2):
     from evlatcorr import EventLatencyCorrector

@@ -7,7 +7,6 @@ import argparse
 import contextlib
 import itertools
 import math
-import sys
 import tempfile
 import time
 import warnings
@@ -28,7 +27,9 @@ from evlatcorr.cli.common import (
     parse_device,
     parse_threshold,
     progress,
+    recording_curve,
     skip_warning,
+    sloped_spatial,
     threshold_of_recording,
     write_csv,
 )
@@ -60,7 +61,7 @@ def cmd_correct(args: argparse.Namespace) -> int:
     theta = threshold_of_recording(args, rec, device)
     # spatial mode without a curve: the constant latencies (fused as constant mode fuses them) plus the recording's
     # slope over intensity, fitted to its first pairs' agreement (_sloped_maps)
-    sloped = args.mode == "spatial" and args.curve is None and not args.no_pairs and not isinstance(theta, str)
+    sloped = sloped_spatial(args, args.mode, theta)
     search_mode = "constant" if sloped else args.mode
     corrector = build_corrector(args, search_mode, args.curve, theta)
     with contextlib.ExitStack() as stack:  # both files appear only when both are complete
@@ -265,33 +266,14 @@ def _fused(rows: list[dict], latencies: list[torch.Tensor], evidence: list[tuple
     return [torch.full_like(m, float(v)) for m, v in zip(latencies, fused)]
 
 
-#: the recording's slope over intensity is fitted to its first pairs, as its contrast threshold is estimated from them
-CURVE_PAIRS = 12
-
-
 def _sloped_maps(args: argparse.Namespace, frames: _CorrectedFrames, latencies: list[torch.Tensor], theta,
                  device: torch.device, maps) -> list[torch.Tensor]:
     """Spatial mode without a curve: one curve ``ψ(L) = a + b · f(L)`` for the recording, fitted to the agreement of
-    its first :data:`CURVE_PAIRS` pairs with events (:func:`evlatcorr.pair_curve.fit_pair_curve`), and each frame's
-    map its constant latency (``latencies``, fused) plus the curve's departure from its single latency at the frame's
-    intensities, held inside the search range. The maps go to ``maps``'s ``frames/estimated_latency_map``, the rows get
+    its first pairs (:func:`~evlatcorr.cli.common.recording_curve`), and each frame's map its constant latency
+    (``latencies``, fused) plus the curve's departure from its single latency at the frame's intensities, held inside
+    the search range. The maps go to ``maps``'s ``frames/estimated_latency_map``, the rows get
     their mean, lowest and highest latency; returns each frame's mean. Without a slope every map is one latency."""
-    from evlatcorr.frames import EventFrames
-    from evlatcorr.pair_curve import fit_pair_curve
-    from evlatcorr.restore import has_events, pair_frames, pair_reach_us
-
-    rec = open_input(args)
-    rec.after_us = pair_reach_us(rec, args.search_us[1] if args.search_us else None)
-    pairs = [pair.to(device) for _, pair in itertools.islice(pair_frames(rec), CURVE_PAIRS)
-             if pair is not None and has_events(pair)]
-    fit = None
-    with warnings.catch_warnings():  # what the pairs' frames say, the main pass has said
-        warnings.simplefilter("ignore")
-        with contextlib.suppress(ValueError):  # no pair tells anything: no slope
-            fit = fit_pair_curve(EventFrames.cat(pairs), float(theta)) if pairs else None
-    print("latency over intensity: " + (f"{fit.slope_us:.0f} us later at black than at white (fitted to the first "
-                                        f"{fit.pairs_used} pairs' agreement)" if fit is not None and fit.slope_us
-                                        else "no slope (one latency per frame)"), file=sys.stderr)
+    fit = recording_curve(args, theta, device)
     frames.extremes[:] = [math.inf, -math.inf]
     out = []
     for k, (batch, row) in enumerate(zip(open_input(args), frames.rows)):

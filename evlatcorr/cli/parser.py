@@ -158,8 +158,9 @@ def _restore_options(p: argparse.ArgumentParser, models: tuple[str, ...]) -> Non
                         "frames.csv")
     p.add_argument("--no-pairs", action="store_true",
                    help="--correct constant reads each frame with the next one and adds their agreement to the "
-                        "frame's evidence (a model of single frames still reads the frame alone), --correct spatial "
-                        "without --curve also the latency's slope over intensity fitted to it; this leaves it out "
+                        "frame's evidence (a model of single frames still reads the frame alone), and --correct "
+                        "spatial without --curve adds to those latencies a slope over intensity fitted to the first "
+                        "pairs; this leaves both out (spatial: the sharpness fit) "
                         "(faster: the pair costs about as much as the frame's own search, and deblurring reads each "
                         "frame's events up to the next exposure)")
     _common_options(p)

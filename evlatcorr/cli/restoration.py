@@ -23,7 +23,9 @@ from evlatcorr.cli.common import (
     parse_device,
     parse_threshold,
     progress,
+    recording_curve,
     skip_warning,
+    sloped_spatial,
     threshold_of_recording,
     write_csv,
 )
@@ -154,16 +156,24 @@ def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _
     theta = threshold_of_recording(args, rec, device) if args.model == "edi" or args.correct != "none" else 0.2
     if args.model == "edi":
         model = build_model(args.model, task, None, theta, args.num_bins)
-    corrector = None if args.correct == "none" else build_corrector(args, args.correct, args.curve, theta)
-    if args.correct == "constant" and args.fuse_frames > 0:  # frame by frame: each takes the frames before it
+    # spatial mode without a curve: constant mode plus the recording's slope over intensity (as evlatcorr correct)
+    sloped = args.correct != "none" and sloped_spatial(args, args.correct, theta)
+    mode = "constant" if sloped else args.correct
+    corrector = None if args.correct == "none" else build_corrector(args, mode, args.curve, theta)
+    config = None if corrector is None else corrector.config
+    if mode == "constant" and args.fuse_frames > 0:  # frame by frame: each takes the frames before it
         from evlatcorr.temporal import StreamingLatencyCorrector
 
         corrector = StreamingLatencyCorrector(corrector, args.fuse_frames, name_frames=False)  # named by frame here
+    if sloped:
+        fit = recording_curve(args, theta, device)
+        if fit is not None and fit.slope_us:
+            from evlatcorr.correction import SlopedLatencyCorrector
+
+            corrector = SlopedLatencyCorrector(corrector, fit, config)
     pairs = needs_pairs(args.model, task)
-    # a model of single frames: the constant corrector still reads each frame with the next for their agreement, and
-    # spatial mode without a curve for the slope fitted to it (evlatcorr.pair_curve)
-    evidence = not pairs and not args.no_pairs and (args.correct == "constant"
-                                                    or (args.correct == "spatial" and args.curve is None))
+    # a model of single frames: the constant corrector still reads each frame with the next for their agreement
+    evidence = not pairs and mode == "constant" and not args.no_pairs
     if pairs or evidence:  # the first frame's events must reach the next exposure's end, plus the latency searched
         rec.after_us = pair_reach_us(rec, high)
     if pairs:  # and REFID reads before the first exposure
