@@ -63,7 +63,7 @@ def _restore(args: argparse.Namespace, task: str) -> int:
     frame_warnings = FrameWarnings()
     # frames with events wait to be corrected together: on an accelerator the constant search takes several frames in
     # one pass (evlatcorr.search_batched); a CPU takes them one at a time
-    per_call = frames_per_call(device, args.correct) if run.corrector is not None else 1
+    per_call = frames_per_call(device, run.search_mode) if run.corrector is not None else 1
     pending: list[tuple[Any, Any]] = []
 
     def restore(batch, frames, out, seconds: float, skipped: str = "") -> None:
@@ -144,6 +144,9 @@ class _Restoration(NamedTuple):
     # the corrector reads each frame with the next one for their agreement (evlatcorr.pair_evidence), the model
     # reads the frame alone
     evidence_pairs: bool = False
+    # the search the corrector runs ("constant" for spatial mode's constant latencies plus the recording's slope):
+    # how many frames one call may take on an accelerator
+    search_mode: str = "constant"
 
 
 def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _Restoration:
@@ -178,7 +181,8 @@ def _restoration(args: argparse.Namespace, task: str, device: torch.device) -> _
         rec.after_us = pair_reach_us(rec, high)
     if pairs:  # and REFID reads before the first exposure
         rec.before_us = max(rec.before_us, pair_lead_us(rec))
-    return _Restoration(rec, model, corrector, theta, pairs, device, rec.frame_gamma, args.model == "edi", evidence)
+    return _Restoration(rec, model, corrector, theta, pairs, device, rec.frame_gamma, args.model == "edi", evidence,
+                        mode)
 
 
 def _restore_inputs(rec, max_frames: int | None, pairs: bool):
