@@ -522,6 +522,15 @@ class SlopedLatencyCorrector(nn.Module):
 
     def __init__(self, corrector: nn.Module, curve: Any, config: SearchConfig) -> None:
         super().__init__()
+        from evlatcorr.pair_curve import PairCurve
+
+        if not isinstance(corrector, nn.Module):
+            raise ValueError(f"corrector must be a constant corrector module, got {type(corrector).__name__}")
+        if not isinstance(curve, PairCurve):
+            raise ValueError(f"curve must be a PairCurve (evlatcorr.pair_curve.fit_pair_curve), got "
+                             f"{type(curve).__name__}")
+        if not isinstance(config, SearchConfig):
+            raise ValueError(f"config must be a SearchConfig, got {type(config).__name__}")
         self.corrector, self.curve, self.config = corrector, curve, config
 
     def extra_repr(self) -> str:

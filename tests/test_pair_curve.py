@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from evlatcorr.benchmark.compare import psnr
-from evlatcorr.correction import EventLatencyCorrector
+from evlatcorr.correction import EventLatencyCorrector, SlopedLatencyCorrector
 from evlatcorr.pair_curve import fit_pair_curve, pair_curve_table
 from evlatcorr.pair_evidence import pair_disagreement_curve, pair_disagreement_maps
 from evlatcorr.simulate import simulate
@@ -115,6 +115,31 @@ def test_spatial_mode_given_pairs_slopes_each_frames_constant_latency(dim_later)
     blank = pairs.replace(blurry_next=torch.zeros_like(pairs.blurry_next))
     kept = EventLatencyCorrector(mode="spatial")(blank)
     assert kept.meta["pair_curves"] == [None, None] and kept.meta["latency_slope_us"].tolist() == [0.0, 0.0]
+
+
+@pytest.mark.slow
+def test_a_recordings_curve_slopes_every_frames_constant_latency(dim_later):
+    # what the command line runs in spatial mode: one curve for the recording, added to each frame's constant latency
+    constant = EventLatencyCorrector()
+    fit = fit_pair_curve(dim_later.pairs(), 0.2)
+    frames = dim_later.frames()
+    flat = constant(frames)
+    sloped = SlopedLatencyCorrector(constant, fit, constant.config)(frames)
+    torch.testing.assert_close(sloped.latency, (flat.latency + fit.departure(frames.blurry)).clamp(0.0, 20000.0))
+    assert sloped.meta["latency_slope_us"].tolist() == [fit.slope_us] * 3 and fit.slope_us >= 4000.0
+    truth = frames.meta["true_latency"]
+    assert float((sloped.latency - truth).abs().mean()) < 0.7 * float((flat.latency - truth).abs().mean())
+    assert psnr(sloped.latent, frames.sharp) > psnr(flat.latent, frames.sharp) + 1.0
+
+
+def test_the_sloped_corrector_refuses_what_it_cannot_use(constant_pair):
+    constant = EventLatencyCorrector()
+    fit = fit_pair_curve(constant_pair, 0.2)
+    for args, message in (((None, fit, constant.config), "corrector must be a constant corrector module"),
+                          ((constant, fit.curve, constant.config), "curve must be a PairCurve"),
+                          ((constant, fit, {}), "config must be a SearchConfig")):
+        with pytest.raises(ValueError, match=message):
+            SlopedLatencyCorrector(*args)
 
 
 def test_pairs_that_tell_nothing_are_left_out_and_none_is_an_error(constant_pair):
