@@ -14,6 +14,11 @@ from the true one (a recording's θ estimated wrong).
     python benchmarks/pair_curve.py --split dev             # 40 cases, ~4 min on 2 cores
     python benchmarks/pair_curve.py --split test            # 48 cases, report only
     python benchmarks/pair_curve.py --split dev_wide --threshold-scale 1.4
+    python benchmarks/pair_curve.py --recording cradle_lowlight.aedat4 --threshold 0.52   # a recording's pairs
+
+``--recording`` has no truth: each pair of the recording's consecutive frames (with events, events past the second
+exposure) gets the curve as shipped and with no bar and no θ check (``min_gain=0``, ``threshold_scales=()``), and the
+shipped fit's time.
 
 Writes ``results.md`` and ``results.csv`` under ``--out``.
 """
@@ -27,6 +32,7 @@ import _setup  # noqa: F401  first: the repository on sys.path and 2 MB CPU page
 import argparse  # noqa: E402
 import math  # noqa: E402
 import statistics  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -81,6 +87,51 @@ def case_row(case, min_gain: float, threshold_scale: float = 1.0) -> dict:
     return row
 
 
+def recording_rows(path: Path, threshold: float) -> list[dict]:
+    """Each pair of a recording's consecutive frames: the curve as shipped and unguarded, and the shipped fit's time."""
+    from evlatcorr.io import open_recording
+    from evlatcorr.restore import has_events, pair_frames, pair_reach_us
+
+    rec = open_recording(path)
+    rec.after_us = pair_reach_us(rec)  # to the next exposure's end, and the latencies read past it
+    rows = []
+    for k, (frame, pair) in enumerate(pair_frames(rec)):
+        if pair is None or not has_events(frame):
+            continue
+        row = {"pair": k, "fit_s": math.nan, "slope_us": math.nan, "offset_us": math.nan, "gain": math.nan,
+               "free_slope_us": math.nan, "free_offset_us": math.nan, "free_gain": math.nan,
+               "single_latency_us": math.nan, "told_nothing": ""}
+        try:
+            started = time.perf_counter()
+            shipped = fit_pair_curve(pair, threshold)
+            row["fit_s"] = time.perf_counter() - started
+            free = fit_pair_curve(pair, threshold, min_gain=0.0, threshold_scales=())
+        except ValueError as err:  # the pair tells nothing
+            rows.append(row | {"told_nothing": str(err)})
+            continue
+        rows.append(row | {"slope_us": shipped.slope_us, "offset_us": shipped.offset_us, "gain": shipped.gain,
+                           "free_slope_us": free.slope_us, "free_offset_us": free.offset_us, "free_gain": free.gain,
+                           "single_latency_us": shipped.single_latency_us, "told_nothing": ""})
+    return rows
+
+
+def recording_markdown(rows: list[dict]) -> str:
+    lines = ["| pair | single latency | shipped: offset / slope | no bar, no θ check: offset / slope (gain) | fit |",
+             "| --- | --- | --- | --- | --- |"]
+    for r in rows:
+        if r["told_nothing"]:
+            lines.append(f"| {r['pair']} | tells nothing | | | |")
+            continue
+        lines.append(f"| {r['pair']} | {r['single_latency_us']:.0f} µs | {r['offset_us']:.0f} / {r['slope_us']:.0f} µs "
+                     f"| {r['free_offset_us']:.0f} / {r['free_slope_us']:.0f} µs ({r['free_gain']:.2%}) | "
+                     f"{r['fit_s']:.2f} s |")
+    told = [r for r in rows if not r["told_nothing"]]
+    times = [r["fit_s"] for r in told]
+    return ("\n".join(lines) + f"\n\n{sum(r['slope_us'] > 0 for r in told)} of {len(told)} pairs take a slope as "
+            f"shipped, {sum(r['free_slope_us'] > 0 for r in told)} with no bar and no θ check; the shipped fit's "
+            f"median time per pair: {statistics.median(times) if times else math.nan:.2f} s.\n")
+
+
 def to_markdown(rows: list[dict]) -> str:
     def tenth(values: list[float]) -> float:
         return sorted(values)[len(values) // 10] if values else math.nan
@@ -122,8 +173,24 @@ def main(argv: list[str] | None = None) -> None:
                         "default: 1)")
     p.add_argument("--models", nargs="+", choices=list(MODELS), default=list(MODELS),
                    help="latency models to run (default: all three)")
+    p.add_argument("--recording", type=Path, help="a recording's consecutive frames instead of the suite's cases "
+                   "(a path, or the name of a shared DAVIS346 recording)")
+    p.add_argument("--threshold", type=float, help="the recording's contrast threshold (with --recording)")
     p.add_argument("--out", type=Path, default=Path("outputs/pair_curve"))
     args = p.parse_args(argv)
+    if args.recording is not None:
+        if args.threshold is None or not (math.isfinite(args.threshold) and args.threshold > 0):
+            p.error("--recording needs the recording's --threshold, a positive number")
+        path = args.recording if args.recording.is_file() else _setup.shared_recording(str(args.recording))
+        if not path.is_file():
+            p.error(f"--recording {args.recording}: no such file")
+        _setup.check_out_folder(p, args.out)
+        rows = recording_rows(path, args.threshold)
+        if not rows:
+            sys.exit(f"{path}: no pair of consecutive frames with events")
+        _setup.write_results(args.out, f"A latency curve fitted to each pair of {path.name} (threshold "
+                             f"{args.threshold:g})", recording_markdown(rows), rows)
+        return
     _setup.check_case_options(p, args)
     if not (math.isfinite(args.threshold_scale) and args.threshold_scale > 0):
         p.error(f"--threshold-scale must be a positive number, got {args.threshold_scale}")
