@@ -46,7 +46,7 @@ from evlatcorr.benchmark.sequences import (  # noqa: E402
     summarize_sequences,
 )
 from evlatcorr.pair_evidence import DEFAULT_PAIR_WEIGHT, DEFAULT_RAMP_NEXT_FACTOR, DEFAULT_RAMP_US  # noqa: E402
-from evlatcorr.temporal import DEFAULT_NO_LATENCY_MASS  # noqa: E402
+from evlatcorr.temporal import DEFAULT_NO_LATENCY_MASS, DEFAULT_PAIR_REFINE  # noqa: E402
 
 MODELS = {"constant": "constant latency", "intensity": "photoreceptor low-pass", "intensity_delay": "per-pixel delay"}
 
@@ -111,6 +111,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--pair-ramp-next", type=float, default=DEFAULT_RAMP_NEXT_FACTOR, metavar="FACTOR",
                    help="the pairs' ramps' longest as a multiple of the interval to the pixel's next event (default: "
                         f"{DEFAULT_RAMP_NEXT_FACTOR:g}; 0: no such limit)")
+    p.add_argument("--pair-refine", type=float, nargs="+", default=[DEFAULT_PAIR_REFINE], metavar="R",
+                   help="score the pair-fused estimates with fuse_latencies(pair_refine=R) for each R: near the fused "
+                        "latency the pairs count R times (default: "
+                        f"{DEFAULT_PAIR_REFINE:g}; 1: not refined; estimates at other R are named '..., refine R')")
     p.add_argument("--frame-gap", type=float, default=1.0,
                    help="time from one exposure's start to the next, in exposure times (default: 1, back to back)")
     p.add_argument("--slope", action="store_true",
@@ -126,6 +130,8 @@ def main(argv: list[str] | None = None) -> None:
         p.error(f"--frames must be at least 2 (fusing needs a frame's neighbours), got {args.frames}")
     if any(not (math.isfinite(w) and w > 0) for w in args.pair_weights):
         p.error(f"--pair-weights must be positive, got {args.pair_weights}")
+    if any(not (math.isfinite(r) and r >= 1) for r in args.pair_refine):
+        p.error(f"--pair-refine must be 1 or more, got {args.pair_refine}")
     if not (math.isfinite(args.frame_gap) and args.frame_gap >= 1):
         p.error(f"--frame-gap must be 1 or more (frames do not overlap), got {args.frame_gap}")
     if not (math.isfinite(args.pair_ramp_us) and args.pair_ramp_us >= 0):
@@ -146,7 +152,8 @@ def main(argv: list[str] | None = None) -> None:
         cases, lambda case: evaluate_sequence(case, args.frames, windows, ideal=not args.no_ideal,
                                               pair_weights=args.pair_weights, frame_gap=args.frame_gap,
                                               ramp_us=args.pair_ramp_us,
-                                              ramp_next_factor=args.pair_ramp_next or None, slope=args.slope),
+                                              ramp_next_factor=args.pair_ramp_next or None, slope=args.slope,
+                                              pair_refines=args.pair_refine),
         "sequences")
     rows = [row for case_rows in per_case for row in case_rows]
     seconds = time.perf_counter() - t0

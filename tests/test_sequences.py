@@ -4,6 +4,7 @@ import pytest
 
 from evlatcorr.benchmark.accuracy import make_cases
 from evlatcorr.benchmark.sequences import IDEAL, LOSING_DB, evaluate_sequence, summarize_sequences
+from evlatcorr.temporal import DEFAULT_PAIR_REFINE
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +88,9 @@ def test_a_sequence_needs_at_least_one_frame():
     for kwargs, match in ((dict(pair_weights=(10.0, 0.0)), "pair_weights must be positive"),
                           (dict(frame_gap=0.5), "frame_gap must be 1 or more"),
                           (dict(ramp_us=-1.0), "ramp_us must be 0 or more"),
-                          (dict(ramp_next_factor=0.0), "ramp_next_factor must be positive or None")):
+                          (dict(ramp_next_factor=0.0), "ramp_next_factor must be positive or None"),
+                          (dict(pair_refines=(0.5,)), "pair_refines must be numbers >= 1"),
+                          (dict(pair_refines=()), "pair_refines must be numbers >= 1")):
         with pytest.raises(ValueError, match=match):
             evaluate_sequence(make_cases("dev")[0], **kwargs)
 
@@ -123,7 +126,8 @@ def test_the_script_writes_its_table(tmp_path):
     for option, value, message in (("--pair-weights", "0", "--pair-weights must be positive"),
                                    ("--frame-gap", "0.5", "--frame-gap must be 1 or more"),
                                    ("--pair-ramp-us", "-1", "--pair-ramp-us must be 0 or more"),
-                                   ("--pair-ramp-next", "-1", "--pair-ramp-next must be 0 or more")):
+                                   ("--pair-ramp-next", "-1", "--pair-ramp-next must be 0 or more"),
+                                   ("--pair-refine", "0.5", "--pair-refine must be 1 or more")):
         bad = run_script(*script[:-2], option, value, cwd=ROOT)
         assert bad.returncode == 2 and message in bad.stderr
 
@@ -138,6 +142,24 @@ def test_each_pairs_agreement_is_fused_at_each_weight_with_a_cameras_gap():
     fused = [r["latency_us"] for r in rows if r["estimate"] == "fused ±2, pairs 10"]
     assert len(fused) == 3 and all(abs(v - case.latency_us) < 1000.0 for v in fused), (case.latency_us, fused)
     assert [r["latency_us"] for r in rows if r["estimate"] == "fused ±2, pairs 30"] != fused
+
+
+def test_the_pairs_refinement_is_scored_at_each_factor_the_default_under_its_own_name():
+    # --pair-refine 10 1: the default (10, the estimates' plain names) and no refinement (", refine 1"), each as
+    # fuse_latencies gives it from the same frames' evidence
+    case = next(c for c in make_cases("dev", size=(48, 64)) if c.latency_model == "constant")
+    rows = evaluate_sequence(case, num_frames=3, windows={}, ideal=False, pair_weights=(10.0,),
+                             pair_refines=(DEFAULT_PAIR_REFINE, 1.0))
+    assert [r["estimate"] for r in rows if r["frame"] == 0] == [
+        "per frame", "fused ±2, pairs 10", "per frame, with its pair 10", "fused, past 2 (stream), pairs 10",
+        "fused ±2, pairs 10, refine 1", "per frame, with its pair 10, refine 1",
+        "fused, past 2 (stream), pairs 10, refine 1"]
+    plain = evaluate_sequence(case, num_frames=3, windows={}, ideal=False, pair_weights=(10.0,), pair_refines=(None,))
+    assert [r["latency_us"] for r in rows if r["estimate"] == "fused ±2, pairs 10, refine 1"] == [
+        r["latency_us"] for r in plain if r["estimate"] == "fused ±2, pairs 10, refine 1"]
+    assert [r["latency_us"] for r in rows if r["estimate"] == "fused ±2, pairs 10"] == [
+        r["latency_us"] for r in evaluate_sequence(case, num_frames=3, windows={}, ideal=False, pair_weights=(10.0,))
+        if r["estimate"] == "fused ±2, pairs 10"]
 
 
 def test_the_sequences_slope_over_intensity_is_scored_beside_the_fused_latency():

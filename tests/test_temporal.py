@@ -7,7 +7,14 @@ import torch
 from evlatcorr.curve_reader import probability_centre
 from evlatcorr.edi import edi_deblur
 from evlatcorr.search import search_constant_latency
-from evlatcorr.temporal import DEFAULT_NO_LATENCY_MASS, frame_evidence, fuse_latencies, no_latency_share
+from evlatcorr.temporal import (
+    DEFAULT_NO_LATENCY_MASS,
+    DEFAULT_PAIR_REFINE,
+    PAIR_REFINE_HALF_WIDTH,
+    frame_evidence,
+    fuse_latencies,
+    no_latency_share,
+)
 from tests.conftest import random_events, textured_frames
 
 CANDIDATES = torch.arange(0.0, 2000.0, 100.0, dtype=torch.float64)
@@ -219,6 +226,46 @@ def test_pairs_add_their_agreement_to_their_first_frame_alone_and_in_a_stream():
     plain = StreamingLatencyCorrector(each_alone)
     torch.testing.assert_close(torch.stack([plain(pair).latency.mean().double() for pair in pairs.split()]),
                                without, rtol=0, atol=1e-3)
+
+
+def test_the_pairs_place_the_latency_near_where_the_readers_put_it():
+    # the readers (two frames sure of about 800 µs) choose the neighbourhood; a pair whose agreement is best at
+    # 1100 µs draws the latency towards it once refined, the further the more it counts, where fused once it barely
+    # moves the readers' centre
+    log_p = torch.stack([belief(800.0, 150.0), belief(800.0, 150.0)])
+    pair = -4.0 * torch.log1p(((CANDIDATES - 1100.0) / 300.0) ** 2)  # log-odds, their maximum 0 at 1100 µs
+
+    def fused_with(refine):
+        return fuse_latencies(torch.zeros(2), CANDIDATES, log_p, 1, 1, pair_log_odds=[pair, None], pair_refine=refine)
+
+    fused, refined, sharper = fused_with(None), fused_with(DEFAULT_PAIR_REFINE), fused_with(3 * DEFAULT_PAIR_REFINE)
+    assert float((fused - 870.0).abs().max()) < 20.0
+    assert float((refined - 1045.0).abs().max()) < 20.0  # 10x by default
+    assert float((sharper - 1100.0).abs().max()) < 20.0
+    torch.testing.assert_close(fuse_latencies(torch.zeros(2), CANDIDATES, log_p, 1, 1, pair_log_odds=[pair, None]),
+                               refined, rtol=0, atol=0)
+    # refining by 1 is no refinement; without pairs there is nothing to refine with
+    torch.testing.assert_close(fused_with(1.0), fused, rtol=0, atol=0)
+    alone = fuse_latencies(torch.zeros(2), CANDIDATES, log_p, 1, 1)
+    torch.testing.assert_close(alone, fuse_latencies(torch.zeros(2), CANDIDATES, log_p, 1, 1, pair_refine=None),
+                               rtol=0, atol=0)
+
+
+def test_a_pair_that_agrees_far_from_the_readers_cannot_carry_the_latency_there():
+    # a pair agreeing best at 1800 µs, far from where three sure frames put it (300 µs), moves the latency no further
+    # than the refinement's reach
+    log_p = torch.stack([belief(300.0, 100.0)] * 3)
+    pair = -3.0 * torch.log1p(((CANDIDATES - 1800.0) / 200.0) ** 2)
+    refined = fuse_latencies(torch.zeros(3), CANDIDATES, log_p, 1, 1, pair_log_odds=[pair, pair, None])
+    step = float(CANDIDATES[1] - CANDIDATES[0])
+    assert float(refined.max()) <= 300.0 + PAIR_REFINE_HALF_WIDTH * step + 1e-6
+    assert float(refined.min()) > 300.0  # pulled towards the pair, inside the reach
+
+
+@pytest.mark.parametrize("refine", [0.5, 0.0, math.nan, math.inf, True])
+def test_a_refinement_under_one_or_not_a_number_is_refused(refine):
+    with pytest.raises(ValueError, match="pair_refine"):
+        fuse_latencies(torch.zeros(2), CANDIDATES, torch.zeros(2, 20), 1, 1, pair_refine=refine)
 
 
 def _evidence(out):

@@ -16,6 +16,7 @@ Example:
 
 from __future__ import annotations
 
+import functools
 import math
 import statistics
 import warnings
@@ -30,7 +31,7 @@ from evlatcorr.benchmark.accuracy_compare import CLEAR_CHANGE_DB, bootstrap_inte
 from evlatcorr.benchmark.compare import edi_psnr, recovery
 from evlatcorr.pair_curve import fit_pair_curve
 from evlatcorr.pair_evidence import DEFAULT_RAMP_NEXT_FACTOR, DEFAULT_RAMP_US, pair_log_odds
-from evlatcorr.temporal import frame_evidence, fuse_latencies
+from evlatcorr.temporal import DEFAULT_PAIR_REFINE, frame_evidence, fuse_latencies
 
 __all__ = ["evaluate_sequence", "summarize_sequences", "fused_against_own", "DEFAULT_WINDOWS", "IDEAL"]
 
@@ -46,7 +47,8 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
                       ideal: bool = True, pair_weights: Sequence[float] = (), frame_gap: float = 1.0,
                       ramp_us: float = DEFAULT_RAMP_US,
                       ramp_next_factor: float | None = DEFAULT_RAMP_NEXT_FACTOR,
-                      slope: bool = False) -> list[dict[str, Any]]:
+                      slope: bool = False,
+                      pair_refines: Sequence[float | None] = (DEFAULT_PAIR_REFINE,)) -> list[dict[str, Any]]:
     """Every frame of a case simulated as a sequence, scored with its own latency and with each fused one.
 
     Args:
@@ -69,6 +71,9 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
             (:func:`evlatcorr.pair_curve.fit_pair_curve`), each frame's map the fused latency plus the curve's
             departure from its single latency at the frame's intensities (what ``evlatcorr correct --mode spatial``
             does); its ``latency_us`` is the map's mean.
+        pair_refines: with ``pair_weights``, each pair-fused estimate at each of these ``pair_refine`` of
+            :func:`~evlatcorr.temporal.fuse_latencies` (how many times the pairs count near the fused latency; 1 or
+            None: not at all); the default's estimates keep their names, the others end in ``", refine r"``.
 
     Returns:
         one row per frame and estimate (``"per frame"`` and each window): ``case``, ``model``, ``frame``,
@@ -79,8 +84,8 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
         estimate, and no recovery (NaN).
 
     Raises:
-        ValueError: for a weight that is not positive, a gap under 1, a negative ramp or a factor that is not
-            positive.
+        ValueError: for a weight that is not positive, a gap under 1, a negative ramp, a factor that is not
+            positive or a ``pair_refines`` under 1.
     """
     windows = DEFAULT_WINDOWS if windows is None else windows
     if any(not (isinstance(w, (int, float)) and math.isfinite(w) and w > 0) for w in pair_weights):
@@ -91,6 +96,8 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
         raise ValueError(f"ramp_us must be 0 or more, got {ramp_us}")
     if ramp_next_factor is not None and not (math.isfinite(ramp_next_factor) and ramp_next_factor > 0):
         raise ValueError(f"ramp_next_factor must be positive or None, got {ramp_next_factor}")
+    if not pair_refines or any(r is not None and not (math.isfinite(r) and r >= 1) for r in pair_refines):
+        raise ValueError(f"pair_refines must be numbers >= 1 or None, at least one, got {list(pair_refines)}")
     ramps = (ramp_us, ramp_next_factor)
     delayed, ideal_events, seq = simulate_case(case, num_frames, frame_interval_us=frame_gap * case.exposure_us)
     frames, ideal_frames = delayed.split(), ideal_events.split()
@@ -118,7 +125,8 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
         return out
 
     rows = []
-    kept, estimates = _estimates(frames, case.threshold, windows, pairs("delayed"), pair_weights, ramps)
+    kept, estimates = _estimates(frames, case.threshold, windows, pairs("delayed"), pair_weights, ramps,
+                                  pair_refines)
     maps = sloped("delayed", frames, estimates)
     for n, i in enumerate(kept):
         frame = frames[i]
@@ -133,7 +141,8 @@ def evaluate_sequence(case: Case, num_frames: int = 6, windows: dict[str, tuple]
                              psnr_uncorrected=psnr_uncorrected, psnr_corrected=psnr,
                              recovery=recovery(psnr, psnr_uncorrected, psnr_ideal, NO_GAP_DB)))
     if ideal:
-        kept, estimates = _estimates(ideal_frames, case.threshold, windows, pairs("ideal"), pair_weights, ramps)
+        kept, estimates = _estimates(ideal_frames, case.threshold, windows, pairs("ideal"), pair_weights,
+                                      ramps, pair_refines)
         maps = sloped("ideal", ideal_frames, estimates)
         for n, i in enumerate(kept):
             psnr_ideal = edi_psnr(ideal_frames[i], case.threshold)
@@ -156,10 +165,12 @@ def _latency(value: torch.Tensor, departures: list | None, frame: int, high: flo
 
 
 def _estimates(frames: list, threshold: float, windows: dict[str, tuple], pairs: Sequence = (),
-               pair_weights: Sequence[float] = (), ramps: tuple[float, float | None] = (DEFAULT_RAMP_US, None)
+               pair_weights: Sequence[float] = (), ramps: tuple[float, float | None] = (DEFAULT_RAMP_US, None),
+               pair_refines: Sequence[float | None] = (DEFAULT_PAIR_REFINE,)
                ) -> tuple[list[int], dict[str, torch.Tensor]]:
     """The default corrector's latency of each frame with events (their indices), alone (``"per frame"``), fused
-    over each window, and fused ±2 with the pairs' agreement at each weight (``pairs[i]``: frames i and i + 1)."""
+    over each window, and fused with the pairs' agreement at each weight and refinement (``pairs[i]``: frames i and
+    i + 1)."""
     from evlatcorr.correction import EventLatencyCorrector
 
     corrector = EventLatencyCorrector(threshold=threshold)
@@ -186,14 +197,15 @@ def _estimates(frames: list, threshold: float, windows: dict[str, tuple], pairs:
                 for i, cand in zip(kept, candidates)]
         for w in pair_weights:
             weighted = [None if u is None else w * u for u in unit]
-            estimates[f"fused ±2, pairs {w:g}"] = fuse_latencies(latency, candidates, log_p, 2, 2,
-                                                                 pair_log_odds=weighted)
-            # one pair alone (a pair-reading network behind the corrector): the frame's evidence and its pair's
-            estimates[f"per frame, with its pair {w:g}"] = fuse_latencies(latency, candidates, log_p, 0, 0,
-                                                                          pair_log_odds=weighted)
-            # a stream of pairs (interpolation, REFID): each frame has its own pair, not the later frames'
-            estimates[f"fused, past 2 (stream), pairs {w:g}"] = fuse_latencies(latency, candidates, log_p, 2, 0,
-                                                                               pair_log_odds=weighted)
+            for refine in pair_refines:
+                tail = "" if refine == DEFAULT_PAIR_REFINE else f", refine {refine or 1:g}"
+                fused = functools.partial(fuse_latencies, latency, candidates, log_p, pair_log_odds=weighted,
+                                          pair_refine=refine)
+                estimates[f"fused ±2, pairs {w:g}{tail}"] = fused(2, 2)
+                # one pair alone (a pair-reading network behind the corrector): the frame's evidence and its pair's
+                estimates[f"per frame, with its pair {w:g}{tail}"] = fused(0, 0)
+                # a stream of pairs (interpolation, REFID): each frame has its own pair, not the later frames'
+                estimates[f"fused, past 2 (stream), pairs {w:g}{tail}"] = fused(2, 0)
     return kept, estimates
 
 
